@@ -1,0 +1,31 @@
+# The two commands of the README: `make demo` (main job) and `make test` (tests).
+# Each creates .venv and installs the tested versions from constraints.txt.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test bench clean-spool
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
+	touch $(STAMP)
+
+# Generate a small spool (2,000 samples kept, 3,000 published so it rotates) and draw a preview.
+demo: $(STAMP)
+	$(BIN)/cuboidgen run --spool data_spool --limit 2000 --max-samples 3000 --no-dashboard
+	$(BIN)/cuboidgen inspect data_spool
+	$(BIN)/cuboidgen preview data_spool --out preview.png
+	@echo "preview written to preview.png"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_generate.py
+	$(BIN)/python benchmarks/bench_spool_read.py
+
+clean-spool:
+	find data_spool -mindepth 1 ! -name .gitkeep -delete

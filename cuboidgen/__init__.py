@@ -1,0 +1,1 @@
+"""Synthetic sample generator daemon (producer half of cuboid-fit)."""

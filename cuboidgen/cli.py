@@ -1,0 +1,189 @@
+"""`cuboidgen`: parse options, build a GenConfig, call the library. Nothing else lives here."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+from dataclasses import asdict
+from enum import Enum
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.table import Table
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Synthetic cuboid samples into a capped spool.")
+occluders_app = typer.Typer(no_args_is_help=True, help="Occluder libraries: extract cutouts, preview them.")
+app.add_typer(occluders_app, name="occluders")
+console = Console(stderr=True)
+
+
+class ShapeChoice(str, Enum):
+    box = "box"
+    twobox = "twobox"
+    mix = "mix"
+
+
+def setup_logging(verbose: bool = False) -> None:
+    handler = RichHandler(console=console, show_path=False) if console.is_terminal else logging.StreamHandler()
+    if not console.is_terminal:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
+
+
+def fail(message: str) -> None:
+    """One line on stderr and a non-zero exit: how every bad value is reported."""
+    console.print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(2)
+
+
+@app.command()
+def run(
+    spool: Path = typer.Option(Path("data_spool"), help="Spool folder (created if missing)."),
+    limit: int = typer.Option(10_000, help="Samples kept; the oldest are evicted. 0 retains the spool (no eviction)."),
+    max_samples: Optional[int] = typer.Option(None, help="Stop after publishing this many samples."),
+    workers: int = typer.Option(os.cpu_count() or 1, help="Worker processes (default: all cores)."),
+    size: int = typer.Option(256, help="Mask size in px (square)."),
+    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Shape class; mix picks one per sample."),
+    seed: Optional[int] = typer.Option(None, help="Run seed: the same seed and options give the same samples."),
+    scene: str = typer.Option("paper", help="Scene preset (paper, street) or a .json/.toml scene file."),
+    occluders: Optional[Path] = typer.Option(None, help="Folder of RGBA or binary PNG occluders (default: built-in)."),
+    dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", help="Live dashboard (else log lines)."),
+    fsync: bool = typer.Option(False, help="Sync every sample to disk before publishing it (survives power loss)."),
+    evict_every: int = typer.Option(64, help="Publishes between spool listings; bounds overshoot per worker."),
+) -> None:
+    """Generate samples into the spool until Ctrl-C/SIGTERM (or --max-samples)."""
+    from cuboidgen.config import GenConfig, load_scene
+    from cuboidgen.daemon import run as run_daemon
+
+    setup_logging()
+    try:
+        config = GenConfig(
+            spool=spool, limit=limit, max_samples=max_samples, workers=workers, size=size, shape=shape.value,
+            seed=seed, scene=load_scene(scene), occluders=occluders, dashboard=dashboard, fsync=fsync,
+            evict_every=evict_every,
+        ).validate()
+        if occluders is not None:
+            from cuboidgen.occluders import OccluderLibrary
+
+            OccluderLibrary.from_dir(occluders)  # fail now, in one line, not in every worker
+        run_daemon(config)
+    except ValueError as exc:
+        fail(str(exc))
+
+
+@app.command()
+def preview(
+    spool: Path = typer.Argument(..., help="Spool folder."),
+    out: Path = typer.Option(Path("preview.png"), help="PNG to write."),
+    count: int = typer.Option(12, help="How many of the newest samples."),
+    columns: int = typer.Option(4, help="Samples per row."),
+) -> None:
+    """Draw the newest samples: noisy input | clean mask with keypoints, indices and wireframe."""
+    from cuboidgen.preview import newest_samples, render_grid
+
+    try:
+        path = render_grid(newest_samples(spool, count), out, columns)
+    except ValueError as exc:
+        fail(str(exc))
+    console.print(f"wrote {path}")
+
+
+@app.command()
+def inspect(
+    spool: Path = typer.Argument(..., help="Spool folder."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """Count samples, corrupt files, shapes, sizes, bytes and ages in a spool."""
+    from shared.inspect import inspect_spool
+
+    try:
+        report = inspect_spool(spool)
+    except ValueError as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(report, indent=2))
+        return
+    table = Table("key", "value", title=f"spool {spool}")
+    for key, value in report.items():
+        table.add_row(key, str(value))
+    Console().print(table)
+
+
+@app.command()
+def scenes(name: Optional[str] = typer.Argument(None, help="Show one preset's ranges.")) -> None:
+    """List the scene presets, or print one as JSON (a starting point for your own file)."""
+    from cuboidgen.config import SCENES
+
+    if name is None:
+        for preset in SCENES.values():
+            typer.echo(f"{preset.name}: {'ground-standing, tilted camera' if preset.eye_height else 'paper Table 4'}")
+        return
+    if name not in SCENES:
+        fail(f"scene {name!r}: expected one of {', '.join(SCENES)}")
+    typer.echo(json.dumps(asdict(SCENES[name]), indent=2))
+
+
+@app.command()
+def bench(
+    size: int = typer.Option(256, help="Mask size in px."),
+    samples: int = typer.Option(400, help="Samples per repeat."),
+    repeats: int = typer.Option(5, help="Repeats; medians are reported."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON here."),
+) -> None:
+    """Generation and spool read throughput on this machine (table and JSON)."""
+    from cuboidgen.bench import run_benchmarks
+
+    setup_logging()
+    results = run_benchmarks(size=size, samples=samples, repeats=repeats)
+    text = json.dumps(results, indent=2)
+    if json_out:
+        json_out.write_text(text)
+    typer.echo(text)
+
+
+@occluders_app.command("extract")
+def occluders_extract(
+    cityscapes: Path = typer.Option(..., help="Cityscapes root (holding gtFine/)."),
+    out: Path = typer.Option(..., help="Folder to write PNG cutouts into."),
+    classes: Optional[list[str]] = typer.Option(None, "--class", help="Restrict to these classes (repeatable)."),
+    min_pixels: int = typer.Option(400, help="Skip cutouts smaller than this."),
+) -> None:
+    """Cut occluder instances (car, person, pole, vegetation, ...) out of Cityscapes gtFine labels."""
+    from cuboidgen.occluders import extract_cityscapes
+
+    setup_logging()
+    try:
+        counts = extract_cityscapes(cityscapes, out, classes=classes or None, min_pixels=min_pixels)
+    except ValueError as exc:
+        fail(str(exc))
+    for name, n in sorted(counts.items()):
+        typer.echo(f"{name}: {n}")
+    typer.echo(f"total: {sum(counts.values())} cutouts in {out}")
+
+
+@occluders_app.command("preview")
+def occluders_preview(
+    occluders: Optional[Path] = typer.Option(None, help="Folder of PNG cutouts (default: built-in library)."),
+    out: Path = typer.Option(Path("occluders.png"), help="PNG to write."),
+) -> None:
+    """Tile an occluder library into one picture."""
+    from cuboidgen.occluders import OccluderLibrary
+    from cuboidgen.preview import render_occluders
+
+    try:
+        path = render_occluders(OccluderLibrary.load(occluders), out)
+    except ValueError as exc:
+        fail(str(exc))
+    console.print(f"wrote {path}")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,219 @@
+"""The generator daemon: N worker processes publish samples into the spool.
+
+Every worker is a spool writer of its own (it publishes and evicts), so the
+daemon needs no coordinator: the main process only starts workers, watches
+their counters and the spool, shows the dashboard and stops everyone on
+SIGINT/SIGTERM. Workers finish the sample in hand before they exit; since
+publishing is a rename, even a SIGKILL never leaves a torn sample.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import secrets
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from cuboidgen.config import GenConfig
+from cuboidgen.dashboard import Dashboard, GenSnapshot, WorkerView
+from shared.sample import encode
+from shared.spool import META_NAME, SpoolFull, SpoolWriter, check_spool, enumerate_spool, name_time
+
+log = logging.getLogger(__name__)
+
+# Per-worker counters in shared memory, one row of these fields per worker.
+FIELDS = ("published", "evicted", "errors", "state", "bytes")
+RUNNING, BACKING_OFF, DONE = 0, 1, 2
+STATE_NAMES = {RUNNING: "running", BACKING_OFF: "disk full, backing off", DONE: "done"}
+BACKOFF = (0.5, 10.0)  # s: first and longest wait while the disk is full
+JOIN_TIMEOUT = 15.0  # s a worker gets to finish its sample before it is killed
+
+
+@dataclass
+class Shared:
+    """What the main process and its workers share (never the trainer)."""
+
+    counters: object  # mp.Array of int64, workers x FIELDS
+    stop: object  # mp.Event
+    tickets: object | None  # mp.Value: samples still to publish under --max-samples
+
+    def set(self, worker: int, name: str, value: int) -> None:
+        self.counters[worker * len(FIELDS) + FIELDS.index(name)] = value
+
+    def get(self, worker: int, name: str) -> int:
+        return self.counters[worker * len(FIELDS) + FIELDS.index(name)]
+
+    def take_ticket(self) -> bool:
+        if self.tickets is None:
+            return True
+        with self.tickets.get_lock():
+            if self.tickets.value <= 0:
+                return False
+            self.tickets.value -= 1
+            return True
+
+
+def run(config: GenConfig) -> int:
+    """Generate until stopped (or --max-samples); returns the number of samples published."""
+    config.validate()
+    if config.limit == 0 and config.max_samples is None:
+        log.warning("--limit 0 retains the spool as it is: nothing to generate "
+                    "(add --max-samples N to append N samples without eviction)")
+        return 0
+    check_spool(config.spool, writable=True, create=True)
+    write_metadata(config)
+    seed = config.seed if config.seed is not None else secrets.randbits(63)
+    ctx = mp.get_context("spawn")
+    shared = Shared(
+        counters=ctx.Array("q", config.workers * len(FIELDS), lock=False),
+        stop=ctx.Event(),
+        tickets=ctx.Value("q", config.max_samples) if config.max_samples else None,
+    )
+    workers = [ctx.Process(target=work, args=(i, config, seed, shared), daemon=True, name=f"cuboidgen-{i}")
+               for i in range(config.workers)]
+    previous = _install_stop_handlers(shared.stop)
+    try:
+        for w in workers:
+            w.start()
+        log.info("generating into %s with %d workers, run seed %d", config.spool, config.workers, seed)
+        watch(config, shared, workers)
+    finally:
+        shared.stop.set()
+        _join(workers)
+        _restore_handlers(previous)
+    published = sum(shared.get(i, "published") for i in range(config.workers))
+    log.info("stopped: %d samples published", published)
+    return published
+
+
+def work(index: int, config: GenConfig, run_seed: int, shared: Shared) -> None:
+    """One worker: draw, encode, publish, repeat. Runs in its own process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process decides when to stop
+    signal.signal(signal.SIGTERM, lambda *_: shared.stop.set())
+    import cv2
+
+    cv2.setNumThreads(1)  # one process per core: OpenCV's own threads only contend
+    from cuboidgen.occluders import OccluderLibrary
+    from cuboidgen.synth import make_sample, sample_seed
+
+    library = OccluderLibrary.load(config.occluders)
+    with SpoolWriter(config.spool, config.limit, config.evict_every, config.fsync) as writer:
+        count = 0
+        while not shared.stop.is_set() and shared.take_ticket():
+            seed = sample_seed(run_seed, index, count)
+            count += 1
+            try:
+                data = encode(make_sample(config.shape, config.scene, config.size, seed, library))
+            except Exception:  # a bad draw must not stop the daemon; it is counted and logged
+                log.exception("worker %d: sample with seed %d failed", index, seed)
+                shared.set(index, "errors", shared.get(index, "errors") + 1)
+                continue
+            if not publish(writer, data, index, shared):
+                break
+            shared.set(index, "published", writer.counts.published)
+            shared.set(index, "evicted", writer.counts.evicted)
+            shared.set(index, "bytes", writer.counts.published_bytes)
+    shared.set(index, "state", DONE)
+
+
+def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> bool:
+    """Publish, waiting out a full disk with growing pauses; False if stopped meanwhile."""
+    wait = BACKOFF[0]
+    while not shared.stop.is_set():
+        try:
+            writer.publish(data)
+            shared.set(index, "state", RUNNING)
+            return True
+        except SpoolFull:
+            if shared.get(index, "state") != BACKING_OFF:
+                log.warning("worker %d: disk full under %s, backing off", index, writer.spool)
+            shared.set(index, "state", BACKING_OFF)
+            shared.stop.wait(wait)
+            wait = min(wait * 2, BACKOFF[1])
+    return False
+
+
+def watch(config: GenConfig, shared: Shared, workers: list) -> None:
+    """Refresh the dashboard until every worker is done or a stop is asked for."""
+    started = time.monotonic()
+    last = (started, [0] * len(workers))
+    with Dashboard(live=config.dashboard) as dashboard:
+        while True:
+            finished = shared.stop.wait(0.5) or not any(w.is_alive() for w in workers)
+            now = time.monotonic()
+            published = [shared.get(i, "published") for i in range(len(workers))]
+            rates = [(p - q) / max(now - last[0], 1e-9) for p, q in zip(published, last[1])]
+            if now - last[0] >= 2.0 or finished:
+                last = (now, published)
+            dashboard.update(snapshot(config, shared, rates, now - started), final=finished)
+            if finished:
+                return
+
+
+def snapshot(config: GenConfig, shared: Shared, rates: list[float], elapsed: float) -> GenSnapshot:
+    workers = [
+        WorkerView(
+            published=shared.get(i, "published"), evicted=shared.get(i, "evicted"),
+            errors=shared.get(i, "errors"), rate=rates[i], state=STATE_NAMES[shared.get(i, "state")],
+        )
+        for i in range(len(rates))
+    ]
+    count, size, oldest, newest = spool_summary(config.spool)
+    notes = ["disk full: workers back off and resume when space returns"] if any(
+        w.state == STATE_NAMES[BACKING_OFF] for w in workers) else []
+    return GenSnapshot(
+        elapsed=elapsed, workers=workers, spool=str(config.spool), spool_samples=count, spool_bytes=size,
+        limit=config.limit, max_samples=config.max_samples, oldest_age=oldest, newest_age=newest,
+        size=config.size, shape=config.shape, scene=config.scene.name, notes=notes,
+    )
+
+
+def spool_summary(spool: Path) -> tuple[int, int, float | None, float | None]:
+    """Samples, bytes, and the ages (s) of the oldest and newest sample."""
+    names = enumerate_spool(spool)
+    total = 0
+    for name in names:
+        try:
+            total += os.stat(os.path.join(spool, name)).st_size
+        except FileNotFoundError:
+            pass  # evicted while we looked
+    if not names:
+        return 0, 0, None, None
+    now = time.time()
+    return len(names), total, now - name_time(names[0]), now - name_time(names[-1])
+
+
+def write_metadata(config: GenConfig) -> None:
+    """Record the latest generator's config beside the samples (atomically)."""
+    from shared.sample import FORMAT, VERSION
+
+    meta = {"format": FORMAT, "version": VERSION, "generator": config.to_dict(), "written": time.time()}
+    tmp = config.spool / f".tmp-meta-{os.getpid()}"
+    tmp.write_text(json.dumps(meta, indent=2, default=str))
+    os.replace(tmp, config.spool / META_NAME)
+
+
+def _install_stop_handlers(stop) -> dict:
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    return previous
+
+
+def _restore_handlers(previous: dict) -> None:
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+
+
+def _join(workers: list) -> None:
+    deadline = time.monotonic() + JOIN_TIMEOUT
+    for w in workers:
+        w.join(max(deadline - time.monotonic(), 0.1))
+        if w.is_alive():
+            log.warning("%s did not stop in time; killing it (publishing is atomic, nothing is torn)", w.name)
+            w.kill()
+            w.join()

@@ -1,0 +1,157 @@
+"""Synthetic scenes: draw a box (or two), pose it, project it, name its corners in viewer terms.
+
+The paper's recipe (3.3.1): a canonical box, a random non-uniform scale, rotation
+and translation, then a perspective projection. Frames are:
+
+* object: x toward the box's RIGHT, y down (BOTTOM), z away (BACK); centre at 0;
+* camera: OpenCV's, x right, y down, z forward; the image is x/z, y/z before framing.
+
+Names are decided after projection (DESIGN.md: FRONT faces the camera, LEFT is
+image-left), so a mirror flip or a yaw past a side keeps every label's meaning.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cuboidgen.config import SceneConfig
+from shared.shapes import Shape
+
+MIN_DEPTH = 0.05  # nearest corner's z as a fraction of the distance; closer draws are redrawn
+
+
+@dataclass(frozen=True)
+class View:
+    """A posed, projected, framed shape: what the rasteriser and the sample need."""
+
+    keypoints: np.ndarray  # (N, 2) px, integer = pixel centre
+    points3d: np.ndarray  # (N, 3) camera frame, same order as keypoints
+    ratios: dict
+    params: dict  # every value drawn, as plain floats
+
+
+def uniform(rng: np.random.Generator, bounds) -> float:
+    lo, hi = bounds
+    return lo + (hi - lo) * rng.random()
+
+
+def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Generator) -> View:
+    """Draw one view of `shape` from `scene`'s ranges, framed into a size x size image."""
+    while True:
+        params = draw_params(shape, scene, rng)
+        camera = to_camera(object_points(shape, params), params)
+        if camera[:, 2].min() > MIN_DEPTH * params["distance"]:
+            break
+    image = camera[:, :2] / camera[:, 2:3]
+    order, swaps = viewer_order(shape, camera, image)
+    params.update(swaps)
+    camera, image = camera[order], image[order]
+    keypoints, framing = frame(image, size, scene, rng)
+    params.update(framing)
+    return View(keypoints=keypoints, points3d=camera, ratios=shape.ratios(camera), params=params)
+
+
+def draw_params(shape: Shape, scene: SceneConfig, rng: np.random.Generator) -> dict:
+    p = {k: uniform(rng, getattr(scene, k)) for k in ("width", "height", "depth")}
+    if len(shape.parts) == 2:
+        p["split"] = uniform(rng, scene.split)
+        p["height_ratio"] = uniform(rng, scene.height_ratio)
+        p["left_taller"] = bool(rng.random() < 0.5)
+    for k in ("pitch_deg", "yaw_deg", "roll_deg", "offset_x", "offset_y", "distance", "camera_pitch_deg"):
+        p[k] = uniform(rng, getattr(scene, k))
+    if scene.eye_height is not None:
+        # Standing on the ground: the centre sits half the height above it.
+        p["eye_height"] = uniform(rng, scene.eye_height)
+        p["offset_y"] = p["eye_height"] - p["height"] / 2
+    p["flip"] = bool(rng.random() < scene.flip_probability)
+    return p
+
+
+# Per Table 1 corner: 1 where it takes the LEFT x, the BOTTOM y and the FRONT z.
+_CORNER_SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)
+
+
+def box_corners(x_right: float, x_left: float, y_top: float, y_bottom: float, depth: float) -> np.ndarray:
+    """The 8 corners of an axis-aligned box in Table 1 order (4*front + 2*left + bottom)."""
+    near = np.array([x_right, y_top, depth / 2])
+    return near + _CORNER_SIDES * (np.array([x_left, y_bottom, -depth / 2]) - near)
+
+
+def object_points(shape: Shape, p: dict) -> np.ndarray:
+    """Keypoints in the object frame; all parts share the ground (y = height / 2)."""
+    w, h, d = p["width"], p["height"], p["depth"]
+    if len(shape.parts) == 1:
+        return box_corners(w / 2, -w / 2, -h / 2, h / 2, d)
+    middle = w / 2 - p["split"] * w  # the shared wall, split * width from the right side
+    low = h * p["height_ratio"]
+    h_left, h_right = (h, low) if p["left_taller"] else (low, h)
+    points = np.zeros((shape.num_keypoints, 3))
+    for part, corners in zip(shape.parts, (
+        box_corners(w / 2, middle, h / 2 - h_right, h / 2, d),
+        box_corners(middle, -w / 2, h / 2 - h_left, h / 2, d),
+    )):
+        points[list(part)] = corners
+    return points
+
+
+def rotation(pitch_deg: float, yaw_deg: float, roll_deg: float) -> np.ndarray:
+    """Yaw about the vertical, then pitch about x, then roll about the optical axis."""
+    a, b, c = math.radians(pitch_deg), math.radians(yaw_deg), math.radians(roll_deg)
+    ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
+    rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
+    ry = np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
+    rz = np.array([[cc, -sc, 0], [sc, cc, 0], [0, 0, 1]])
+    return rz @ rx @ ry
+
+
+def camera_tilt(pitch_up_deg: float) -> np.ndarray:
+    """Level-frame points into the frame of a camera tilted up: things ahead move down."""
+    t = math.radians(pitch_up_deg)
+    return np.array([[1, 0, 0], [0, math.cos(t), math.sin(t)], [0, -math.sin(t), math.cos(t)]])
+
+
+def to_camera(points: np.ndarray, p: dict) -> np.ndarray:
+    tilt = camera_tilt(p["camera_pitch_deg"])
+    linear = tilt @ rotation(p["pitch_deg"], p["yaw_deg"], p["roll_deg"])
+    if p["flip"]:
+        linear[0] *= -1  # a mirror image; viewer_order renames the corners
+    offset = tilt @ np.array([p["offset_x"], p["offset_y"], p["distance"]])
+    return points @ linear.T + offset * np.array([-1.0 if p["flip"] else 1.0, 1.0, 1.0])
+
+
+def viewer_order(shape: Shape, camera: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The index order that names keypoints in viewer terms, and which swaps it made.
+
+    LEFT must be image-left of RIGHT, FRONT nearer the camera than BACK.
+    """
+    left, right, front, back = (_having(shape, w) for w in ("LEFT", "RIGHT", "FRONT", "BACK"))
+    order = np.arange(shape.num_keypoints)
+    swap_lr = image[left, 0].mean() > image[right, 0].mean()
+    if swap_lr:
+        order = order[shape.mirror_left_right]
+    swap_fb = camera[order[front], 2].mean() > camera[order[back], 2].mean()
+    if swap_fb:
+        order = order[shape.mirror_front_back]
+    return order, {"swap_left_right": bool(swap_lr), "swap_front_back": bool(swap_fb)}
+
+
+@functools.cache
+def _having(shape: Shape, word: str) -> np.ndarray:
+    return shape.having(word)
+
+
+def frame(image: np.ndarray, size: int, scene: SceneConfig, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """Scale and shift projected points so the silhouette's longer side spans the image
+    less two margins, centred with a small random shift (kept inside the image)."""
+    margin = uniform(rng, scene.margin)
+    lo, hi = image.min(axis=0), image.max(axis=0)
+    scale = size * (1 - 2 * margin) / float(max(hi - lo))
+    extent = (hi - lo) * scale
+    slack = np.maximum(size - 1 - extent, 0.0)  # free room per axis, in px
+    jitter = (rng.random(2) - 0.5) * scene.centre_jitter * np.minimum(slack, size * margin)
+    origin = (slack / 2 + jitter) - lo * scale  # pixel centres: the image spans 0 .. size - 1
+    keypoints = image * scale + origin
+    return keypoints, {"margin": margin, "frame_scale": float(scale), "frame_origin": [float(v) for v in origin]}

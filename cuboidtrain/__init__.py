@@ -1,0 +1,1 @@
+"""Trainer daemon for the Refiner, Estimator and Tabulator (consumer half of cuboid-fit)."""

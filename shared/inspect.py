@@ -1,0 +1,58 @@
+"""A census of a spool: what is in it, what is corrupt, and how old it is."""
+from __future__ import annotations
+
+import os
+from collections import Counter
+from datetime import datetime, timezone
+from pathlib import Path
+
+from shared.sample import decode_record
+from shared.spool import TMP_PREFIX, check_spool, is_sample_name, name_time, read_sample_bytes
+
+
+def inspect_spool(spool: Path) -> dict:
+    """Decode every sample file; count samples, corrupt files, shapes, sizes, bytes and ages."""
+    spool = check_spool(spool)
+    entries = sorted(os.scandir(spool), key=lambda e: e.name)
+    names = [e.name for e in entries if e.is_file() and is_sample_name(e.name)]
+    shapes, sizes, scenes, problems = Counter(), Counter(), Counter(), Counter()
+    total_bytes = corrupt = vanished = 0
+    for name in names:
+        data = read_sample_bytes(spool, name)
+        if data is None:
+            vanished += 1
+            continue
+        total_bytes += len(data)
+        try:
+            record = decode_record(data)
+        except ValueError as exc:
+            corrupt += 1
+            problems[str(exc).split(":")[0]] += 1
+            continue
+        shapes[record["shape"]] += 1
+        sizes[record["size"]] += 1
+        scenes[record.get("params", {}).get("scene", "?")] += 1
+    samples = sum(shapes.values())
+    times = [name_time(n) for n in names]
+    return {
+        "spool": str(spool),
+        "samples": samples,
+        "files": sum(1 for e in entries if e.is_file()),
+        "bytes": total_bytes,
+        "mean_bytes": total_bytes / max(samples + corrupt, 1),
+        "corrupt": corrupt,
+        "corrupt_reasons": dict(problems),
+        "vanished": vanished,
+        "temporary": sum(1 for e in entries if e.name.startswith(TMP_PREFIX)),
+        "foreign": sum(1 for e in entries if e.is_file() and not is_sample_name(e.name)
+                       and not e.name.startswith(TMP_PREFIX)),
+        "shapes": dict(shapes),
+        "size": next(iter(sizes)) if len(sizes) == 1 else sorted(sizes) or None,
+        "scenes": dict(scenes),
+        "oldest": _iso(min(times)) if times else None,
+        "newest": _iso(max(times)) if times else None,
+    }
+
+
+def _iso(t: float) -> str:
+    return datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")

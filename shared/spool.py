@@ -1,0 +1,227 @@
+"""The spool: a capped folder of samples, published atomically, evicted oldest first.
+
+The spool folder is the only link between the generator and the trainer. Its rules:
+
+* A sample is one file `<time_ns>-<host>-<pid>-<token>-<seq>.cub`. The name sorts
+  by age and never collides: pid and a random token tell apart writers on one
+  host, the host name tells apart hosts, and the sequence number orders one
+  writer's samples.
+* Publishing writes `.tmp-<name>` and renames it in the same folder, so readers
+  see a whole file or none. Nothing is fsynced unless asked: a killed process
+  leaves at most a temporary file, which is swept when a writer next starts;
+  only a power cut could lose data that was not synced.
+* Every writer evicts. After each publish, a writer that believes the spool is
+  at its limit deletes one file, the oldest it knows of; every `evict_every`
+  publishes it lists the folder again and deletes down to the limit. So the
+  spool never holds more than `limit + writers * evict_every` samples, however
+  many writers on however many hosts share it.
+* `limit == 0` retains the spool: nothing is ever evicted.
+"""
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import re
+import secrets
+import socket
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+SUFFIX = ".cub"
+TMP_PREFIX = ".tmp-"
+META_NAME = "SPOOL.json"
+EVICT_EVERY = 64  # publishes between listings; the spool bound is limit + writers * EVICT_EVERY
+ORPHAN_AGE = 60.0  # s: a temporary file this old belongs to no live writer on any host
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+class SpoolError(ValueError):
+    """The spool folder cannot be used (missing, not a folder, not writable)."""
+
+
+class SpoolFull(OSError):
+    """The disk under the spool is full; nothing was published."""
+
+
+def host_tag() -> str:
+    return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:24] or "host"
+
+
+def check_spool(spool: Path, writable: bool = False, create: bool = False) -> Path:
+    """The spool as a Path, or a one-line SpoolError saying what is wrong with it."""
+    spool = Path(spool)
+    if create and not spool.exists():
+        try:
+            spool.mkdir(parents=True)
+        except OSError as exc:
+            raise SpoolError(f"spool {spool}: cannot create it ({exc.strerror})") from None
+    if not spool.exists():
+        raise SpoolError(f"spool {spool}: no such folder")
+    if not spool.is_dir():
+        raise SpoolError(f"spool {spool}: not a folder")
+    if writable and not os.access(spool, os.W_OK | os.X_OK):
+        raise SpoolError(f"spool {spool}: not writable")
+    return spool
+
+
+def is_sample_name(name: str) -> bool:
+    return name.endswith(SUFFIX) and not name.startswith(".")
+
+
+def enumerate_spool(spool: Path) -> list[str]:
+    """Sample file names in age order, oldest first."""
+    return sorted(n for n in os.listdir(spool) if is_sample_name(n))
+
+
+def name_time(name: str) -> float:
+    """Publication time (unix seconds) encoded in a sample's name."""
+    return int(name.split("-", 1)[0]) / 1e9
+
+
+def read_sample_bytes(spool: Path, name: str) -> bytes | None:
+    """The file's bytes, or None when it vanished (evicted) since it was enumerated."""
+    try:
+        with open(os.path.join(spool, name), "rb") as f:
+            return f.read()
+    except FileNotFoundError:
+        return None
+
+
+def sweep_orphans(spool: Path, max_age: float = ORPHAN_AGE) -> int:
+    """Delete temporary files left by killed writers; returns how many.
+
+    A temporary file is an orphan when its writer ran on this host and is gone,
+    or when it is older than `max_age` (a live writer keeps one for microseconds).
+    """
+    here, swept, now = host_tag(), 0, time.time()
+    for entry in os.scandir(spool):
+        if not entry.name.startswith(TMP_PREFIX):
+            continue
+        parts = entry.name[len(TMP_PREFIX) :].split("-")
+        try:
+            dead = parts[1] == here and not _pid_alive(int(parts[2]))
+            old = now - entry.stat().st_mtime > max_age
+        except (IndexError, ValueError, FileNotFoundError):
+            dead, old = False, True
+        if dead or old:
+            try:
+                os.unlink(entry.path)
+                swept += 1
+            except FileNotFoundError:
+                pass
+    return swept
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@dataclass
+class WriterCounts:
+    published: int = 0
+    evicted: int = 0
+    published_bytes: int = 0
+
+
+class SpoolWriter:
+    """Publishes sample bytes into a spool and keeps it within `limit` samples.
+
+    Use as a context manager; `publish` is the only write path.
+    """
+
+    def __init__(self, spool: Path, limit: int, evict_every: int = EVICT_EVERY, fsync: bool = False):
+        if limit < 0:
+            raise ValueError(f"limit {limit} is negative: expected 0 (retain everything) or a sample count")
+        if evict_every < 1:
+            raise ValueError(f"evict_every {evict_every}: expected at least 1")
+        self.spool = Path(spool)
+        self.limit, self.evict_every, self.fsync = limit, evict_every, fsync
+        self.counts = WriterCounts()
+        self._prefix = f"{host_tag()}-{os.getpid()}-{secrets.token_hex(3)}"
+        self._seq = 0
+        self._known: deque[str] = deque()  # names believed present, oldest first
+        self._believed = 0  # samples believed present
+        self._since_listing = 0
+
+    def __enter__(self) -> "SpoolWriter":
+        check_spool(self.spool, writable=True, create=True)
+        swept = sweep_orphans(self.spool)
+        if swept:
+            log.info("swept %d orphaned temporary files from %s", swept, self.spool)
+        if self.limit:
+            self._list_and_evict()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def publish(self, data: bytes) -> str:
+        """Atomically add one sample; returns its file name. Raises SpoolFull on a full disk."""
+        self._seq += 1
+        name = f"{time.time_ns():019d}-{self._prefix}-{self._seq:09d}{SUFFIX}"
+        self._write_atomically(name, data)
+        self.counts.published += 1
+        self.counts.published_bytes += len(data)
+        if self.limit:
+            self._known.append(name)
+            self._believed += 1
+            self._since_listing += 1
+            if self._since_listing >= self.evict_every:
+                self._list_and_evict()
+            else:
+                self._evict_known()
+        return name
+
+    def _write_atomically(self, name: str, data: bytes) -> None:
+        tmp = os.path.join(self.spool, TMP_PREFIX + name)
+        try:
+            with open(tmp, "xb") as f:
+                f.write(data)
+                if self.fsync:
+                    f.flush()
+                    os.fsync(f.fileno())
+            os.rename(tmp, os.path.join(self.spool, name))
+        except BaseException as exc:
+            _unlink_quietly(tmp)
+            if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
+                raise SpoolFull(exc.errno, f"no space left under {self.spool}") from None
+            raise
+
+    def _list_and_evict(self) -> None:
+        names = enumerate_spool(self.spool)
+        self._since_listing = 0
+        self._known = deque(names)
+        self._believed = len(names)
+        self._evict_known()
+
+    def _evict_known(self) -> None:
+        """Delete the oldest known samples until the belief is back at the limit.
+
+        Another writer may have deleted a file first: then try the next one, so each
+        of our publishes at the limit is matched by exactly one deletion.
+        """
+        while self._believed > self.limit and self._known:
+            try:
+                os.unlink(os.path.join(self.spool, self._known.popleft()))
+            except FileNotFoundError:
+                continue
+            self._believed -= 1
+            self.counts.evicted += 1
+
+
+def _unlink_quietly(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass

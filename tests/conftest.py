@@ -1,0 +1,52 @@
+"""Shared builders for the tests: tiny configs, samples and spools."""
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cuboidgen.config import PAPER, GenConfig
+from cuboidgen.occluders import OccluderLibrary
+from cuboidgen.synth import make_sample
+from shared.sample import encode
+from shared.spool import SpoolWriter
+
+SIZE = 48  # px: tests stay tiny
+
+
+@pytest.fixture(scope="session")
+def library() -> OccluderLibrary:
+    return OccluderLibrary.builtin(variants_per_kind=4, seed=0)
+
+
+@functools.cache
+def small_library() -> OccluderLibrary:
+    return OccluderLibrary.builtin(variants_per_kind=2, seed=0)
+
+
+def build_sample(seed: int = 0, shape: str = "box", size: int = SIZE, library=None, scene=PAPER):
+    return make_sample(shape, scene, size, seed, library if library is not None else small_library())
+
+
+def fill_spool(spool: Path, count: int, limit: int = 0, shape: str = "box", library=None) -> list[str]:
+    """Publish `count` samples (seeds 0..count-1); returns their names, oldest first."""
+    with SpoolWriter(spool, limit=limit) as writer:
+        return [writer.publish(encode(build_sample(i, shape, library=library))) for i in range(count)]
+
+
+def tiny_config(spool: Path, **changes) -> GenConfig:
+    base = GenConfig(spool=spool, limit=50, max_samples=20, workers=1, size=SIZE, seed=1, dashboard=False)
+    return replace(base, **changes)
+
+
+def centred(scene=PAPER, **changes):
+    """A scene with fixed framing (margin 0.125, no jitter) so poses map to known pixels."""
+    return replace(scene, margin=(0.125, 0.125), centre_jitter=0.0, **changes)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)

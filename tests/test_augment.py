@@ -1,0 +1,69 @@
+"""Occlusion and contour noise: they only remove what they should, and by the amount recorded."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cuboidgen.config import PAPER
+from cuboidgen.noise import roughen
+from cuboidgen.occlusion import occlude, subtract
+from tests.conftest import build_sample
+
+
+def disc(size=96, radius=30):
+    ys, xs = np.mgrid[0:size, 0:size]
+    return (xs - size / 2) ** 2 + (ys - size / 2) ** 2 <= radius**2
+
+
+def test_occlusion_only_removes_pixels(library, rng):
+    mask = disc()
+    scene = replace(PAPER, occluders=(2, 3))
+    out, placed = occlude(mask, library, scene, rng)
+    assert len(placed) in (2, 3)
+    assert not (out & ~mask).any() and out.sum() < mask.sum()
+    assert all(p["kind"] in library.names for p in placed)
+
+
+def test_no_occluders_leaves_the_mask(library, rng):
+    out, placed = occlude(disc(), library, replace(PAPER, occluders=(0, 0)), rng)
+    assert placed == [] and (out == disc()).all()
+
+
+def test_subtract_places_the_cutout_foot_where_asked():
+    mask = np.ones((64, 64), bool)
+    block = np.ones((10, 4), np.uint8)  # 10 px tall, 4 wide
+    subtract(mask, block, {"height_px": 20.0, "angle_deg": 0.0, "flip": False, "x": 30.0, "foot_y": 50.0})
+    rows, cols = np.nonzero(~mask)
+    assert rows.max() == 50 and 30 <= rows.min() <= 32  # 20 px tall, standing on row 50
+    assert abs(cols.mean() - 30.0) < 0.6 and 7 <= np.ptp(cols) + 1 <= 9  # 8 px wide, centred on x = 30
+
+
+def test_zero_noise_is_the_identity(rng):
+    assert (roughen(disc(), 0.0, 6.0, rng) == disc()).all()
+
+
+@pytest.mark.parametrize("amount", [0.5, 1.5, 3.0])
+def test_noise_changes_the_boundary_by_about_the_amount(amount, rng):
+    mask = disc(128, 40)
+    noisy = roughen(mask, amount, 6.0, rng)
+    changed = (noisy != mask).sum()
+    perimeter = 2 * np.pi * 40
+    # Pixels that changed side per boundary pixel track the mean absolute displacement (0.8 sigma).
+    assert 0.4 * amount < changed / perimeter < 1.6 * amount + 0.3
+    assert abs(int(noisy.sum()) - int(mask.sum())) < 0.6 * changed + perimeter * 0.1  # unbiased: no net growth
+
+
+def test_noise_keeps_holes_open(rng):
+    mask = disc(96, 36) & ~disc(96, 12)
+    noisy = roughen(mask, 1.0, 6.0, rng)
+    assert not noisy[48, 48] and noisy[48, 48 + 24]
+
+
+def test_recorded_amounts_and_occluded_fraction_are_consistent(library):
+    sample = build_sample(11, library=library)
+    p = sample.params
+    visible = (sample.clean & sample.noisy).sum()
+    assert 0 <= p["occluded_fraction"] <= 1 and p["contour_noise"] >= 0
+    if p["occluders"] == [] and p["contour_noise"] == 0:
+        assert (sample.noisy == sample.clean).all()
+    assert visible <= sample.clean.sum()

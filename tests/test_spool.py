@@ -1,0 +1,162 @@
+"""The spool: atomic publish, the cap, age order, several writers, kill -9, and readers under eviction."""
+import errno
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from shared.sample import decode, encode
+from shared.spool import (
+    SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, read_sample_bytes, sweep_orphans,
+)
+from tests.conftest import build_sample, fill_spool
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def start_writer(spool, limit, count, evict_every=8, size=32) -> subprocess.Popen:
+    process = subprocess.Popen(
+        [sys.executable, "-m", "tests.spool_writer", str(spool), str(limit), str(count), str(evict_every), str(size)],
+        cwd=ROOT, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert process.stdout.readline().strip() == b"ready"
+    return process
+
+
+def test_publish_then_read_back_in_age_order(tmp_path, library):
+    names = fill_spool(tmp_path, 5, library=library)
+    assert enumerate_spool(tmp_path) == names == sorted(names)
+    for seed, name in enumerate(names):
+        assert decode(read_sample_bytes(tmp_path, name)) == build_sample(seed, library=library)
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # no temporary files left
+
+
+def test_limit_evicts_the_oldest_first(tmp_path, library):
+    names = fill_spool(tmp_path, 30, limit=10, library=library)
+    assert enumerate_spool(tmp_path) == names[-10:]
+
+
+def test_limit_zero_retains_everything(tmp_path, library):
+    fill_spool(tmp_path, 12, library=library)
+    fill_spool(tmp_path, 5, limit=0, library=library)
+    assert len(enumerate_spool(tmp_path)) == 17
+
+
+def test_a_new_writer_evicts_down_to_its_limit_at_start(tmp_path, library):
+    names = fill_spool(tmp_path, 12, library=library)
+    with SpoolWriter(tmp_path, limit=4):
+        assert enumerate_spool(tmp_path) == names[-4:]
+
+
+def test_names_never_collide_between_writers(tmp_path):
+    with SpoolWriter(tmp_path, 0) as a, SpoolWriter(tmp_path, 0) as b:
+        names = {a.publish(b"x") for _ in range(200)} | {b.publish(b"y") for _ in range(200)}
+    assert len(names) == 400 == len(enumerate_spool(tmp_path))
+
+
+def test_concurrent_writers_stay_within_the_stated_bound(tmp_path):
+    limit, evict_every, writers, count = 40, 8, 3, 300
+    bound = limit + writers * evict_every  # shared/spool.py's promise
+    processes = [start_writer(tmp_path, limit, count, evict_every) for _ in range(writers)]
+    peak = 0
+    while any(p.poll() is None for p in processes):
+        peak = max(peak, len(enumerate_spool(tmp_path)))
+    assert all(p.returncode == 0 for p in processes)
+    final = len(enumerate_spool(tmp_path))
+    assert peak <= bound and limit <= final <= bound
+    assert peak > limit // 2  # the monitor really watched a full spool
+
+
+def test_kill_9_while_writing_never_leaves_a_torn_sample(tmp_path):
+    rng = random.Random(7)
+    for _ in range(8):
+        writer = start_writer(tmp_path, limit=30, count=0, evict_every=4, size=256)
+        time.sleep(rng.uniform(0.05, 0.4))
+        writer.send_signal(signal.SIGKILL)
+        writer.wait()
+        for name in enumerate_spool(tmp_path):
+            data = read_sample_bytes(tmp_path, name)
+            assert data is None or decode(data).size == 256  # ValueError here would be a torn sample
+    with SpoolWriter(tmp_path, limit=30):
+        pass  # a new writer sweeps what the killed ones left
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".tmp-")]
+    assert len(enumerate_spool(tmp_path)) == 30
+
+
+def test_reader_survives_eviction_during_enumeration(tmp_path):
+    writer = start_writer(tmp_path, limit=10, count=0, evict_every=2)
+    vanished = read = 0
+    deadline = time.monotonic() + 1.5
+    try:
+        while time.monotonic() < deadline:
+            for name in enumerate_spool(tmp_path):
+                data = read_sample_bytes(tmp_path, name)
+                if data is None:
+                    vanished += 1
+                else:
+                    decode(data)
+                    read += 1
+    finally:
+        writer.kill()
+        writer.wait()
+    assert read > 0 and vanished > 0
+
+
+def test_sweep_removes_orphans_of_dead_writers_only(tmp_path):
+    from shared.spool import host_tag
+
+    dead = tmp_path / f".tmp-1-{host_tag()}-999999-abc-000000001.cub"
+    live = tmp_path / f".tmp-1-{host_tag()}-{os.getpid()}-abc-000000001.cub"
+    stale = tmp_path / ".tmp-1-otherhost-12-abc-000000001.cub"
+    for path in (dead, live, stale):
+        path.write_bytes(b"partial")
+    os.utime(stale, (time.time() - 3600, time.time() - 3600))
+    assert sweep_orphans(tmp_path) == 2
+    assert live.exists() and not dead.exists() and not stale.exists()
+
+
+def test_full_disk_publishes_nothing_and_says_so(tmp_path, monkeypatch):
+    with SpoolWriter(tmp_path, limit=5) as writer:
+        real_open = open
+
+        def full_open(path, mode="r", *args, **kwargs):
+            if "x" in mode:
+                f = real_open(path, mode, *args, **kwargs)
+                f.write = lambda data: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device"))
+                return f
+            return real_open(path, mode, *args, **kwargs)
+
+        monkeypatch.setattr("builtins.open", full_open)
+        with pytest.raises(SpoolFull, match="no space left"):
+            writer.publish(b"data")
+        monkeypatch.undo()
+        assert os.listdir(tmp_path) == []
+        writer.publish(encode(build_sample(0)))  # space is back: publishing resumes
+    assert len(enumerate_spool(tmp_path)) == 1
+
+
+def test_bad_spool_paths_are_one_line_errors(tmp_path, monkeypatch):
+    with pytest.raises(SpoolError, match="no such folder"):
+        check_spool(tmp_path / "missing")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SpoolError, match="not a folder"):
+        check_spool(tmp_path / "file")
+    monkeypatch.setattr(os, "access", lambda *a: False)  # root ignores permissions, so fake them
+    with pytest.raises(SpoolError, match="not writable"):
+        check_spool(tmp_path, writable=True)
+
+
+def test_writer_creates_a_missing_spool(tmp_path):
+    with SpoolWriter(tmp_path / "a" / "b", limit=3) as writer:
+        writer.publish(b"x")
+    assert len(enumerate_spool(tmp_path / "a" / "b")) == 1
+
+
+def test_negative_limit_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="limit -1"):
+        SpoolWriter(tmp_path, -1)
