@@ -14,6 +14,7 @@ import multiprocessing as mp
 import os
 import secrets
 import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,12 +76,13 @@ def run(config: GenConfig) -> int:
     )
     workers = [ctx.Process(target=work, args=(i, config, seed, shared), daemon=True, name=f"cuboidgen-{i}")
                for i in range(config.workers)]
-    previous = _install_stop_handlers(shared.stop)
+    stop_asked = threading.Event()
+    previous = _install_stop_handlers(stop_asked)
     try:
         for w in workers:
             w.start()
         log.info("generating into %s with %d workers, run seed %d", config.spool, config.workers, seed)
-        watch(config, shared, workers)
+        watch(config, shared, workers, stop_asked)
     finally:
         shared.stop.set()
         _join(workers)
@@ -101,9 +103,11 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared) -> None:
     from cuboidgen.synth import make_sample, sample_seed
 
     library = OccluderLibrary.load(config.occluders)
+    parent = os.getppid()
     with SpoolWriter(config.spool, config.limit, config.evict_every, config.fsync) as writer:
         count = 0
-        while not shared.stop.is_set() and shared.take_ticket():
+        # A SIGKILLed main process cannot tell us to stop: being re-parented is the sign.
+        while not shared.stop.is_set() and os.getppid() == parent and shared.take_ticket():
             seed = sample_seed(run_seed, index, count)
             count += 1
             try:
@@ -137,13 +141,14 @@ def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> boo
     return False
 
 
-def watch(config: GenConfig, shared: Shared, workers: list) -> None:
+def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threading.Event) -> None:
     """Refresh the dashboard until every worker is done or a stop is asked for."""
     started = time.monotonic()
     last = (started, [0] * len(workers))
     with Dashboard(live=config.dashboard) as dashboard:
         while True:
-            finished = shared.stop.wait(0.5) or not any(w.is_alive() for w in workers)
+            time.sleep(0.5)
+            finished = stop_asked.is_set() or not any(w.is_alive() for w in workers)
             now = time.monotonic()
             published = [shared.get(i, "published") for i in range(len(workers))]
             rates = [(p - q) / max(now - last[0], 1e-9) for p, q in zip(published, last[1])]
@@ -197,7 +202,9 @@ def write_metadata(config: GenConfig) -> None:
     os.replace(tmp, config.spool / META_NAME)
 
 
-def _install_stop_handlers(stop) -> dict:
+def _install_stop_handlers(stop: threading.Event) -> dict:
+    """SIGINT/SIGTERM only raise a flag that the watch loop polls: waiting on an Event
+    that the handler sets can deadlock on the lock the interrupted wait holds."""
     previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         previous[sig] = signal.signal(sig, lambda *_: stop.set())

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 SHIFT = 4  # fixed-point bits for sub-pixel polygon vertices
-JITTER = 0.25  # per-pixel jitter as a fraction of the amount
+JITTER = 0.15  # per-pixel jitter as a fraction of the amount
 
 
 def roughen(mask: np.ndarray, amount: float, wavelength: float, rng: np.random.Generator) -> np.ndarray:

@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Train the Refiner, Estimator and Tabulator from a spool (not yet implemented).")
+app = typer.Typer(add_completion=False, no_args_is_help=True)
+
+
+@app.callback()
+def cuboidtrain() -> None:
+    """Train the Refiner, Estimator and Tabulator from a spool (training is not implemented yet)."""
 
 
 @app.command()

@@ -7,7 +7,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from shared.sample import decode_record
-from shared.spool import TMP_PREFIX, check_spool, is_sample_name, name_time, read_sample_bytes
+from shared.spool import META_NAME, TMP_PREFIX, check_spool, is_sample_name, name_time, read_sample_bytes
 
 
 def inspect_spool(spool: Path) -> dict:
@@ -45,7 +45,7 @@ def inspect_spool(spool: Path) -> dict:
         "vanished": vanished,
         "temporary": sum(1 for e in entries if e.name.startswith(TMP_PREFIX)),
         "foreign": sum(1 for e in entries if e.is_file() and not is_sample_name(e.name)
-                       and not e.name.startswith(TMP_PREFIX)),
+                       and not e.name.startswith(TMP_PREFIX) and e.name != META_NAME),
         "shapes": dict(shapes),
         "size": next(iter(sizes)) if len(sizes) == 1 else sorted(sizes) or None,
         "scenes": dict(scenes),

@@ -1,0 +1,96 @@
+"""The generator daemon: max-samples, the cap, clean SIGTERM/SIGINT shutdown, limit 0 and metadata."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from cuboidgen.daemon import run
+from shared.inspect import inspect_spool
+from shared.spool import META_NAME, enumerate_spool
+from tests.conftest import tiny_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_max_samples_publishes_exactly_that_many(tmp_path):
+    config = tiny_config(tmp_path, limit=0, max_samples=25, workers=2)
+    assert run(config) == 25
+    report = inspect_spool(tmp_path)
+    assert report["samples"] == 25 and report["corrupt"] == 0 and report["size"] == 48
+
+
+def test_limit_rotates_the_spool(tmp_path):
+    config = tiny_config(tmp_path, limit=10, max_samples=40, workers=2, evict_every=4)
+    run(config)
+    assert 10 <= len(enumerate_spool(tmp_path)) <= 10 + 2 * 4
+
+
+def test_same_seed_same_spool_contents(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for spool in (a, b):
+        run(tiny_config(spool, limit=0, max_samples=6, workers=1, seed=9))
+    read = lambda s: sorted((s / n).read_bytes() for n in enumerate_spool(s))  # noqa: E731
+    assert read(a) == read(b)
+
+
+def test_limit_zero_without_max_samples_leaves_the_spool_as_it_is(tmp_path):
+    run(tiny_config(tmp_path, limit=0, max_samples=3))
+    before = sorted(os.listdir(tmp_path))
+    assert run(tiny_config(tmp_path, limit=0, max_samples=None)) == 0
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_metadata_records_the_config(tmp_path):
+    run(tiny_config(tmp_path, max_samples=2, shape="twobox"))
+    meta = json.loads((tmp_path / META_NAME).read_text())
+    assert meta["version"] == 1 and meta["generator"]["shape"] == "twobox"
+    assert meta["generator"]["scene"]["name"] == "paper"
+
+
+def start_daemon(spool: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(spool), "--limit", "30", "--workers", "2",
+         "--size", "32", "--no-dashboard"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+
+
+def wait_for_samples(spool: Path, count: int, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not spool.is_dir() or len(enumerate_spool(spool)) < count:
+        assert time.monotonic() < deadline, "the daemon published nothing"
+        time.sleep(0.1)
+
+
+def test_sigterm_and_sigint_stop_cleanly_without_torn_files(tmp_path):
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        spool = tmp_path / sig.name
+        daemon = start_daemon(spool)
+        wait_for_samples(spool, 30)
+        daemon.send_signal(sig)
+        output = daemon.communicate(timeout=30)[0].decode()
+        assert daemon.returncode == 0, output
+        assert "stopped:" in output
+        report = inspect_spool(spool)
+        assert report["corrupt"] == 0 and report["temporary"] == 0 and report["samples"] >= 30
+
+
+def test_kill_9_and_restart_cycles_leave_nothing_corrupt(tmp_path):
+    for cycle in range(3):
+        daemon = start_daemon(tmp_path)
+        wait_for_samples(tmp_path, 10 + cycle)
+        time.sleep(0.2 * cycle)
+        daemon.kill()  # SIGKILL to the main process: its workers must notice and exit on their own
+        daemon.wait()
+    time.sleep(0.5)
+    daemon = start_daemon(tmp_path)  # sweeps orphans at start
+    wait_for_samples(tmp_path, 30)
+    daemon.send_signal(signal.SIGTERM)
+    daemon.communicate(timeout=30)
+    report = inspect_spool(tmp_path)
+    assert report["corrupt"] == 0 and report["temporary"] == 0
+    orphans = subprocess.run(["pgrep", "-f", f"cuboidgen.*{tmp_path}"], capture_output=True, text=True).stdout.split()
+    assert orphans == [], "workers outlived their killed daemon"
