@@ -1,0 +1,190 @@
+"""Benchmarks: generation and spool-read throughput, with baselines run in the same process.
+
+Figures are medians over repeats (this machine is shared and noisy). Ratios
+compare against a baseline measured in the same run:
+
+* generation: published samples/s on one core, against drawing and encoding only;
+* spool read: read + decode + collate into torch tensors on one core, against what
+  a user would otherwise write: generating each sample on the fly inside torch
+  DataLoader workers (all cores).
+"""
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cuboidgen.config import PAPER, GenConfig
+from cuboidgen.occluders import OccluderLibrary
+from cuboidgen.synth import make_sample
+from shared.sample import collate, decode_record, encode
+from shared.spool import SpoolWriter, enumerate_spool, read_sample_bytes
+
+TARGETS = {"generate_per_core": 2000.0, "bytes_per_sample": 20 * 1024, "read_one_core": 20000.0, "read_over_generate": 10.0}
+
+
+def rate(count: int, seconds: float) -> float:
+    return count / max(seconds, 1e-9)
+
+
+def timed(fn, repeats: int) -> list[float]:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def bench_generate(size: int, samples: int, repeats: int, library) -> dict:
+    """One core: draw + encode only, and draw + encode + publish into a capped spool."""
+    cv2.setNumThreads(1)
+    seeds = iter(range(10**9))
+    draw = lambda: [encode(make_sample("box", PAPER, size, next(seeds), library)) for _ in range(samples)]  # noqa: E731
+    with tempfile.TemporaryDirectory() as spool, SpoolWriter(Path(spool), limit=samples) as writer:
+        def publish():
+            for _ in range(samples):
+                writer.publish(encode(make_sample("box", PAPER, size, next(seeds), library)))
+
+        draw_times, publish_times = [], []
+        for _ in range(repeats):  # interleaved so both see the same machine load
+            draw_times += timed(draw, 1)
+            publish_times += timed(publish, 1)
+        sizes = [os.path.getsize(os.path.join(spool, n)) for n in enumerate_spool(Path(spool))]
+    generate_only = rate(samples, statistics.median(draw_times))
+    published = rate(samples, statistics.median(publish_times))
+    return {
+        "size": size, "samples_per_repeat": samples, "repeats": repeats,
+        "generate_only_per_s": generate_only, "published_per_s_per_core": published,
+        "publish_vs_generate_only": published / generate_only,
+        "bytes_per_sample_mean": float(np.mean(sizes)), "bytes_per_sample_max": int(max(sizes)),
+    }
+
+
+def bench_daemon(size: int, samples: int, workers: int) -> dict:
+    """The real daemon on all cores, process start-up included."""
+    from cuboidgen.daemon import run
+
+    with tempfile.TemporaryDirectory() as spool:
+        config = GenConfig(spool=Path(spool), limit=samples, max_samples=samples, workers=workers, size=size,
+                           seed=0, dashboard=False)
+        start = time.perf_counter()
+        run(config)
+        seconds = time.perf_counter() - start
+    return {"workers": workers, "samples": samples, "published_per_s": rate(samples, seconds)}
+
+
+def bench_read(size: int, samples: int, batch: int, repeats: int, library) -> dict:
+    """One core: enumerate, read, decode and collate into torch tensors, every epoch anew."""
+    import torch
+
+    with tempfile.TemporaryDirectory() as tmp:
+        spool = Path(tmp)
+        with SpoolWriter(spool, limit=0) as writer:
+            for seed in range(samples):
+                writer.publish(encode(make_sample("box", PAPER, size, seed, library)))
+
+        def epoch(unpack: bool):
+            names = enumerate_spool(spool)
+            for start in range(0, len(names), batch):
+                records = [decode_record(read_sample_bytes(spool, n)) for n in names[start : start + batch]]
+                tensors = {k: torch.from_numpy(v) for k, v in collate(records, unpack=unpack).items()}
+                assert tensors["keypoints"].shape[0] == len(records)
+
+        epoch(True)  # warm the page cache: a trainer reads a spool the generator just wrote
+        unpacked = timed(lambda: epoch(True), repeats)
+        packed = timed(lambda: epoch(False), repeats)
+    return {
+        "size": size, "samples": samples, "batch": batch, "repeats": repeats,
+        "read_unpacked_per_s": rate(samples, statistics.median(unpacked)),
+        "read_packed_per_s": rate(samples, statistics.median(packed)),
+    }
+
+
+class OnTheFly:
+    """What a user would otherwise write: a Dataset that generates each sample when asked."""
+
+    def __init__(self, size: int, count: int):
+        self.size, self.count, self.library = size, count, None
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int):
+        import torch
+
+        if self.library is None:  # built once per DataLoader worker
+            cv2.setNumThreads(1)
+            self.library = OccluderLibrary.builtin()
+        s = make_sample("box", PAPER, self.size, index, self.library)
+        return (torch.from_numpy(s.noisy.view(np.uint8)), torch.from_numpy(s.clean.view(np.uint8)),
+                torch.from_numpy(s.keypoints.astype(np.float32)))
+
+
+def bench_on_the_fly(size: int, samples: int, batch: int, workers: int, repeats: int) -> dict:
+    from torch.utils.data import DataLoader
+
+    loader = DataLoader(OnTheFly(size, samples), batch_size=batch, num_workers=workers,
+                        persistent_workers=workers > 0)
+    list(loader)  # start the workers and build their libraries outside the timing
+    times = timed(lambda: list(loader), repeats)
+    return {"workers": workers, "samples": samples, "on_the_fly_per_s": rate(samples, statistics.median(times))}
+
+
+def run_benchmarks(size: int = 256, samples: int = 400, repeats: int = 5, batch: int = 64) -> dict:
+    """Every benchmark in one process, with the ratios the targets are stated in."""
+    library = OccluderLibrary.builtin()
+    cores = os.cpu_count() or 1
+    generate = bench_generate(size, samples, repeats, library)
+    read = bench_read(size, max(samples * 5, 1000), batch, repeats, library)
+    fly = bench_on_the_fly(size, samples, batch, cores, max(repeats // 2, 2))
+    daemon = bench_daemon(size, samples * 4, cores)
+    results = {
+        "machine": {"cores": cores, "cpu": _cpu_name()},
+        "generate": generate, "daemon": daemon, "read": read, "on_the_fly": fly,
+        "ratios": {
+            "read_unpacked_over_generate_per_core": read["read_unpacked_per_s"] / generate["published_per_s_per_core"],
+            "read_unpacked_over_on_the_fly": read["read_unpacked_per_s"] / fly["on_the_fly_per_s"],
+            "read_packed_over_on_the_fly": read["read_packed_per_s"] / fly["on_the_fly_per_s"],
+        },
+        "targets": TARGETS,
+    }
+    print_table(results)
+    return results
+
+
+def print_table(r: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    g, d, rd, f = r["generate"], r["daemon"], r["read"], r["on_the_fly"]
+    t = Table("measure", "median", "target", title=f"cuboidgen bench, {g['size']}x{g['size']}, {r['machine']['cores']} cores")
+    t.add_row("generate + encode, 1 core", f"{g['generate_only_per_s']:,.0f} /s", "")
+    t.add_row("generate + publish, 1 core", f"{g['published_per_s_per_core']:,.0f} /s", f">= {TARGETS['generate_per_core']:,.0f} /s")
+    t.add_row(f"daemon, {d['workers']} workers (start-up included)", f"{d['published_per_s']:,.0f} /s", "")
+    t.add_row("bytes per sample (mean / max)", f"{g['bytes_per_sample_mean']:,.0f} / {g['bytes_per_sample_max']:,}", "<= 20,480")
+    t.add_row("spool read -> tensors, 1 core (unpacked)", f"{rd['read_unpacked_per_s']:,.0f} /s", ">= 20,000 /s")
+    t.add_row("spool read -> tensors, 1 core (packed bits)", f"{rd['read_packed_per_s']:,.0f} /s", "")
+    t.add_row(f"on the fly in DataLoader, {f['workers']} workers", f"{f['on_the_fly_per_s']:,.0f} /s", "baseline")
+    for name, value in r["ratios"].items():
+        t.add_row(name.replace("_", " "), f"{value:,.1f}x", ">= 10x" if "generate" in name else "")
+    Console(stderr=True).print(t)
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
+
