@@ -28,8 +28,11 @@ class ShapeChoice(str, Enum):
 
 
 def setup_logging(verbose: bool = False) -> None:
-    handler = RichHandler(console=console, show_path=False) if console.is_terminal else logging.StreamHandler()
-    if not console.is_terminal:
+    if console.is_terminal:
+        handler = RichHandler(console=console, show_path=False)
+        handler.setFormatter(logging.Formatter("%(message)s"))  # rich adds time and level itself
+    else:
+        handler = logging.StreamHandler()
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
 
