@@ -52,9 +52,7 @@ def render_grid(samples: list[Sample], out: Path, columns: int = 4) -> Path:
     if not samples:
         raise ValueError("no samples to preview: the spool holds no decodable sample")
     rows = -(-len(samples) // columns)
-    fig, axes = plt.subplots(rows, 2 * columns, figsize=(4.2 * columns, 2.3 * rows), squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
+    fig, axes = blank_grid(rows, 2 * columns, (4.2 * columns, 2.3 * rows))
     for i, sample in enumerate(samples):
         left, right = axes[i // columns, 2 * (i % columns)], axes[i // columns, 2 * (i % columns) + 1]
         extent = (-0.5, sample.size - 0.5, sample.size - 0.5, -0.5)  # pixel centres at integers
@@ -66,13 +64,8 @@ def render_grid(samples: list[Sample], out: Path, columns: int = 4) -> Path:
         draw_wireframe(right, sample)
         right.set_xlim(-0.5, sample.size - 0.5)
         right.set_ylim(sample.size - 0.5, -0.5)
-        right.set_title(f"{sample.shape} · seed {sample.seed % 10**6}", fontsize=7)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+        right.set_title(f"{sample.shape} · seed {sample.seed}", fontsize=6)
+    return save(fig, out, dpi=110)
 
 
 def render_occluders(library, out: Path, columns: int = 10) -> Path:
@@ -80,16 +73,25 @@ def render_occluders(library, out: Path, columns: int = 10) -> Path:
     if not len(library):
         raise ValueError("the occluder library is empty")
     rows = -(-len(library) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(1.3 * columns, 1.5 * rows), squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
+    fig, axes = blank_grid(rows, columns, (1.3 * columns, 1.5 * rows))
     for ax, mask, name in zip(axes.ravel(), library.masks, library.names):
         ax.imshow(mask, cmap="gray_r", vmin=0, vmax=1)
         ax.set_title(name, fontsize=7)
     fig.suptitle(f"occluders: {library.source} ({len(library)})", fontsize=9)
+    return save(fig, out, dpi=100)
+
+
+def blank_grid(rows: int, columns: int, figsize: tuple[float, float]):
+    fig, axes = plt.subplots(rows, columns, figsize=figsize, squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    return fig, axes
+
+
+def save(fig, out: Path, dpi: int) -> Path:
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
+    fig.savefig(out, dpi=dpi)
     plt.close(fig)
     return out
