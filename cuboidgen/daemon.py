@@ -39,8 +39,14 @@ class Shared:
     """What the main process and its workers share (never the trainer)."""
 
     counters: object  # mp.Array of int64, workers x FIELDS
-    stop: object  # mp.Event
+    stop: object  # mp.RawValue flag: lock-free, so a killed process can never leave it locked
     tickets: object | None  # mp.Value: samples still to publish under --max-samples
+
+    def stopping(self) -> bool:
+        return bool(self.stop.value)
+
+    def request_stop(self) -> None:
+        self.stop.value = 1
 
     def set(self, worker: int, name: str, value: int) -> None:
         self.counters[worker * len(FIELDS) + FIELDS.index(name)] = value
@@ -71,10 +77,11 @@ def run(config: GenConfig) -> int:
     ctx = mp.get_context("spawn")
     shared = Shared(
         counters=ctx.Array("q", config.workers * len(FIELDS), lock=False),
-        stop=ctx.Event(),
+        stop=ctx.RawValue("b", 0),
         tickets=ctx.Value("q", config.max_samples) if config.max_samples else None,
     )
-    workers = [ctx.Process(target=work, args=(i, config, seed, shared), daemon=True, name=f"cuboidgen-{i}")
+    workers = [ctx.Process(target=work, args=(i, config, seed, shared, os.getpid()), daemon=True,
+                           name=f"cuboidgen-{i}")
                for i in range(config.workers)]
     stop_asked = threading.Event()
     previous = _install_stop_handlers(stop_asked)
@@ -84,7 +91,7 @@ def run(config: GenConfig) -> int:
         log.info("generating into %s with %d workers, run seed %d", config.spool, config.workers, seed)
         watch(config, shared, workers, stop_asked)
     finally:
-        shared.stop.set()
+        shared.request_stop()
         _join(workers)
         _restore_handlers(previous)
     published = sum(shared.get(i, "published") for i in range(config.workers))
@@ -92,10 +99,14 @@ def run(config: GenConfig) -> int:
     return published
 
 
-def work(index: int, config: GenConfig, run_seed: int, shared: Shared) -> None:
-    """One worker: draw, encode, publish, repeat. Runs in its own process."""
+def work(index: int, config: GenConfig, run_seed: int, shared: Shared, parent: int) -> None:
+    """One worker: draw, encode, publish, repeat. Runs in its own process.
+
+    `parent` is the main process's pid, passed in rather than read here: a main
+    process killed while this one starts up would otherwise go unnoticed.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process decides when to stop
-    signal.signal(signal.SIGTERM, lambda *_: shared.stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: shared.request_stop())
     import cv2
 
     cv2.setNumThreads(1)  # one process per core: OpenCV's own threads only contend
@@ -103,11 +114,10 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared) -> None:
     from cuboidgen.synth import make_sample, sample_seed
 
     library = OccluderLibrary.load(config.occluders)
-    parent = os.getppid()
     with SpoolWriter(config.spool, config.limit, config.evict_every, config.fsync) as writer:
         count = 0
         # A SIGKILLed main process cannot tell us to stop: being re-parented is the sign.
-        while not shared.stop.is_set() and os.getppid() == parent and shared.take_ticket():
+        while not shared.stopping() and os.getppid() == parent and shared.take_ticket():
             seed = sample_seed(run_seed, index, count)
             count += 1
             try:
@@ -127,7 +137,7 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared) -> None:
 def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> bool:
     """Publish, waiting out a full disk with growing pauses; False if stopped meanwhile."""
     wait = BACKOFF[0]
-    while not shared.stop.is_set():
+    while not shared.stopping():
         try:
             writer.publish(data)
             shared.set(index, "state", RUNNING)
@@ -136,9 +146,16 @@ def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> boo
             if shared.get(index, "state") != BACKING_OFF:
                 log.warning("worker %d: disk full under %s, backing off", index, writer.spool)
             shared.set(index, "state", BACKING_OFF)
-            shared.stop.wait(wait)
+            pause(wait, shared)
             wait = min(wait * 2, BACKOFF[1])
     return False
+
+
+def pause(seconds: float, shared: Shared) -> None:
+    """Sleep, waking early when a stop is asked for."""
+    deadline = time.monotonic() + seconds
+    while not shared.stopping() and time.monotonic() < deadline:
+        time.sleep(min(0.1, seconds))
 
 
 def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threading.Event) -> None:

@@ -78,19 +78,24 @@ def test_sigterm_and_sigint_stop_cleanly_without_torn_files(tmp_path):
         assert report["corrupt"] == 0 and report["temporary"] == 0 and report["samples"] >= 30
 
 
-def test_kill_9_and_restart_cycles_leave_nothing_corrupt(tmp_path):
-    for cycle in range(3):
+def test_kill_9_and_restart_cycles_leave_nothing_corrupt_and_no_orphans(tmp_path):
+    # Kill early (workers still starting) and late (workers publishing): both must leave
+    # no torn sample and no worker running on without its daemon.
+    for delay in (0.3, 1.0, None, 0.6, None):
         daemon = start_daemon(tmp_path)
-        wait_for_samples(tmp_path, 10 + cycle)
-        time.sleep(0.2 * cycle)
+        if delay is None:
+            wait_for_samples(tmp_path, 10)
+        else:
+            time.sleep(delay)
         daemon.kill()  # SIGKILL to the main process: its workers must notice and exit on their own
         daemon.wait()
-    time.sleep(0.5)
-    daemon = start_daemon(tmp_path)  # sweeps orphans at start
+    time.sleep(3.0)  # an orphaned worker finishes its sample and exits within this
+    before = sorted(os.listdir(tmp_path))
+    time.sleep(1.5)
+    assert sorted(os.listdir(tmp_path)) == before, "workers outlived their killed daemon"
+    daemon = start_daemon(tmp_path)  # sweeps orphaned temporary files at start
     wait_for_samples(tmp_path, 30)
     daemon.send_signal(signal.SIGTERM)
     daemon.communicate(timeout=30)
     report = inspect_spool(tmp_path)
     assert report["corrupt"] == 0 and report["temporary"] == 0
-    orphans = subprocess.run(["pgrep", "-f", f"cuboidgen.*{tmp_path}"], capture_output=True, text=True).stdout.split()
-    assert orphans == [], "workers outlived their killed daemon"
