@@ -13,28 +13,45 @@ import numpy as np
 
 from cuboidgen.config import SceneConfig
 
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1: pixel centres, inclusive
 
-def occlude(mask: np.ndarray, library, scene: SceneConfig, rng: np.random.Generator) -> tuple[np.ndarray, list[dict]]:
-    """A copy of `mask` with occluders removed from it, and what was placed."""
+
+def occlude(
+    mask: np.ndarray, library, scene: SceneConfig, rng: np.random.Generator, box: Box | None = None
+) -> tuple[np.ndarray, list[dict]]:
+    """A copy of `mask` with occluders removed from it, and what was placed.
+
+    `box` is the silhouette's bounding box when the caller knows it (from the
+    keypoints); otherwise it is measured on the mask.
+    """
     out = mask.copy()
-    if not len(library) or not mask.any():
+    if box is None:
+        box = bounding_box(mask)
+    if not len(library) or box is None:
         return out, []
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    box = (float(cols[0]), float(rows[0]), float(cols[-1]), float(rows[-1]))  # x0, y0, x1, y1
     placed = []
     count = int(rng.integers(scene.occluders[0], scene.occluders[1] + 1))
     for _ in range(count):
         placement = draw_placement(library, box, scene, rng)
-        subtract(out, library.masks[placement["index"]], placement)
+        subtract(out, library.masks[placement["index"]], placement, limit=box)
         placed.append(placement)
     return out, placed
 
 
-def draw_placement(library, box: tuple[float, float, float, float], scene: SceneConfig, rng) -> dict:
+def bounding_box(mask: np.ndarray) -> Box | None:
+    """The bounding box of a mask's set pixels, or None for an empty mask."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    return float(cols[0]), float(rows[0]), float(cols[-1]), float(rows[-1])
+
+
+def draw_placement(library, box: Box, scene: SceneConfig, rng) -> dict:
     x0, y0, x1, y1 = box
     height = y1 - y0 + 1
     index = int(rng.integers(len(library)))
-    target = height * (scene.occluder_height[0] + (scene.occluder_height[1] - scene.occluder_height[0]) * rng.random())
+    (h_lo, h_hi), (a_lo, a_hi) = scene.occluder_height, scene.occluder_rotation_deg
+    target = height * (h_lo + (h_hi - h_lo) * rng.random())
     grounded = bool(rng.random() < scene.grounded_probability)
     # A grounded occluder's foot lands near the building's ground line; others anywhere over it.
     foot_y = y1 + height * 0.05 * (rng.random() - 0.3) if grounded else y0 + (y1 - y0 + target) * rng.random()
@@ -42,7 +59,7 @@ def draw_placement(library, box: tuple[float, float, float, float], scene: Scene
         "index": index,
         "kind": library.names[index],
         "height_px": float(target),
-        "angle_deg": float(scene.occluder_rotation_deg[0] + np.ptp(scene.occluder_rotation_deg) * rng.random()),
+        "angle_deg": float(a_lo + (a_hi - a_lo) * rng.random()),
         "flip": bool(rng.random() < 0.5),
         "x": float(x0 + (x1 - x0) * rng.random()),
         "foot_y": float(foot_y),
@@ -50,27 +67,38 @@ def draw_placement(library, box: tuple[float, float, float, float], scene: Scene
     }
 
 
-def placement_matrix(shape: tuple[int, int], p: dict) -> np.ndarray:
-    """2x3 affine from cutout pixels to image pixels: foot (bottom centre) to (x, foot_y)."""
+def placement_affine(shape: tuple[int, int], p: dict) -> tuple[float, float, float, float, float, float]:
+    """(a, b, tx, c, d, ty): the affine from cutout pixels to image pixels, mapping the
+    foot (bottom centre) to (x, foot_y). Plain floats: numpy costs more on six numbers."""
     h, w = shape
     s = p["height_px"] / h
-    a = math.radians(p["angle_deg"])
     sx = -s if p["flip"] else s
-    linear = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ np.diag([sx, s])
-    foot = np.array([(w - 1) / 2, h - 1])
-    offset = np.array([p["x"], p["foot_y"]]) - linear @ foot
-    return np.hstack([linear, offset[:, None]])
+    cos, sin = math.cos(math.radians(p["angle_deg"])), math.sin(math.radians(p["angle_deg"]))
+    a, b, c, d = cos * sx, -sin * s, sin * sx, cos * s  # rotation @ diag(sx, s)
+    foot_x, foot_y = (w - 1) / 2, h - 1
+    return a, b, p["x"] - a * foot_x - b * foot_y, c, d, p["foot_y"] - c * foot_x - d * foot_y
 
 
-def subtract(mask: np.ndarray, cutout: np.ndarray, p: dict) -> None:
-    """Clear the pixels of `mask` covered by the placed cutout, warping only its bounding box."""
-    matrix = placement_matrix(cutout.shape, p)
+def placement_matrix(shape: tuple[int, int], p: dict) -> np.ndarray:
+    """2x3 affine from cutout pixels to image pixels: foot (bottom centre) to (x, foot_y)."""
+    return np.array(placement_affine(shape, p)).reshape(2, 3)
+
+
+def subtract(mask: np.ndarray, cutout: np.ndarray, p: dict, limit: Box | None = None) -> None:
+    """Clear the pixels of `mask` covered by the placed cutout, warping only the part of
+    its bounding box inside the image (and inside `limit`, beyond which `mask` is known
+    to be empty)."""
+    a, b, tx, c, d, ty = placement_affine(cutout.shape, p)
     h, w = cutout.shape
-    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1]]) @ matrix.T
-    left, top = np.maximum(np.floor(corners.min(axis=0)).astype(int), 0)
-    right, bottom = np.minimum(np.ceil(corners.max(axis=0)).astype(int), (mask.shape[1] - 1, mask.shape[0] - 1))
+    corners = [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)]
+    xs = [a * u + b * v + tx for u, v in corners]
+    ys = [c * u + d * v + ty for u, v in corners]
+    x0, y0, x1, y1 = limit if limit is not None else (0, 0, mask.shape[1] - 1, mask.shape[0] - 1)
+    left, top = max(math.floor(min(xs)), int(x0), 0), max(math.floor(min(ys)), int(y0), 0)
+    right = min(math.ceil(max(xs)), int(x1), mask.shape[1] - 1)
+    bottom = min(math.ceil(max(ys)), int(y1), mask.shape[0] - 1)
     if right < left or bottom < top:
         return
-    matrix[:, 2] -= (left, top)  # warp into the region of interest only
-    warped = cv2.warpAffine(cutout, matrix, (int(right - left + 1), int(bottom - top + 1)), flags=cv2.INTER_NEAREST)
+    matrix = np.array([[a, b, tx - left], [c, d, ty - top]])  # warp into the region of interest only
+    warped = cv2.warpAffine(cutout, matrix, (right - left + 1, bottom - top + 1), flags=cv2.INTER_NEAREST)
     mask[top : bottom + 1, left : right + 1] &= warped == 0

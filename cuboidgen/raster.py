@@ -8,6 +8,7 @@ so spans are computed here exactly and filled with vectorised comparisons.
 from __future__ import annotations
 
 import functools
+import math
 
 import cv2
 import numpy as np
@@ -24,16 +25,22 @@ def hull(points: np.ndarray) -> np.ndarray:
 def fill_convex(mask: np.ndarray, points: np.ndarray) -> None:
     """Set the pixels of `mask` whose centres lie in the convex hull of `points`."""
     vertices = hull(np.asarray(points, dtype=np.float64))
-    height, width = mask.shape
-    top = max(int(np.ceil(vertices[:, 1].min())), 0)
-    bottom = min(int(np.floor(vertices[:, 1].max())), height - 1)
-    if bottom < top or len(vertices) < 3:
+    if len(vertices) < 3:
         return
-    left, right = _spans(vertices, np.arange(top, bottom + 1, dtype=np.float64))
-    first = np.clip(np.ceil(left), 0, width).astype(np.intp)  # first column inside
-    after = np.clip(np.floor(right) + 1, 0, width).astype(np.intp)  # first column past it
+    height, width = mask.shape
+    ys = vertices[:, 1].tolist()  # a few floats: Python's min/max beat numpy's here
+    top = max(math.ceil(min(ys)), 0)
+    bottom = min(math.floor(max(ys)), height - 1)
+    if bottom < top:
+        return
+    left, right = _spans(vertices, ys, np.arange(top, bottom + 1, dtype=np.float64))
+    first = np.ceil(left, out=left).astype(np.intp)  # first column inside
+    after = np.floor(right, out=right).astype(np.intp) + 1  # first column past it
     from_first, before_after = _row_tables(width)
-    mask[top : bottom + 1] |= np.take(from_first, first, axis=0) & np.take(before_after, after, axis=0)
+    # mode="clip" keeps spans that leave the image at its edges (columns 0 and width).
+    mask[top : bottom + 1] |= (
+        np.take(from_first, first, axis=0, mode="clip") & np.take(before_after, after, axis=0, mode="clip")
+    )
 
 
 @functools.cache
@@ -44,14 +51,15 @@ def _row_tables(width: int) -> tuple[np.ndarray, np.ndarray]:
     return cols >= k, cols < k
 
 
-def _spans(vertices: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Leftmost and rightmost x of a convex polygon (hull order) on each row centre.
+def _spans(vertices: np.ndarray, ys: list[float], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Leftmost and rightmost x of a convex polygon (hull order, vertex y values `ys`)
+    on each row centre.
 
     The hull splits at its top and bottom vertices into two chains that are
     monotonic in y, so each chain's x at every row is one linear interpolation.
     """
-    n, y = len(vertices), vertices[:, 1]
-    top, bottom = int(np.argmin(y)), int(np.argmax(y))
+    n = len(ys)
+    top, bottom = ys.index(min(ys)), ys.index(max(ys))
     one_way = vertices[[(top + k) % n for k in range((bottom - top) % n + 1)]]
     other_way = vertices[[(top - k) % n for k in range((top - bottom) % n + 1)]]
     xa = np.interp(rows, one_way[:, 1], one_way[:, 0])

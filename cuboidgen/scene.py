@@ -48,7 +48,7 @@ def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Genera
     image = camera[:, :2] / camera[:, 2:3]
     order, swaps = viewer_order(shape, camera, image)
     params.update(swaps)
-    camera, image = camera[order], image[order]
+    camera, image = camera.take(order, axis=0), image.take(order, axis=0)  # faster than camera[order]
     keypoints, framing = frame(image, size, scene, rng)
     params.update(framing)
     return View(keypoints=keypoints, points3d=camera, ratios=shape.ratios(camera), params=params)
@@ -70,40 +70,46 @@ def draw_params(shape: Shape, scene: SceneConfig, rng: np.random.Generator) -> d
     return p
 
 
-# Per Table 1 corner: 1 where it takes the LEFT x, the BOTTOM y and the FRONT z.
-_CORNER_SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)
+# Per Table 1 corner: whether it takes the LEFT x, the BOTTOM y and the FRONT z.
+_CORNER_SIDES = tuple(((c >> 1) & 1, c & 1, (c >> 2) & 1) for c in range(8))
 
 
-def box_corners(x_right: float, x_left: float, y_top: float, y_bottom: float, depth: float) -> np.ndarray:
-    """The 8 corners of an axis-aligned box in Table 1 order (4*front + 2*left + bottom)."""
-    near = np.array([x_right, y_top, depth / 2])
-    return near + _CORNER_SIDES * (np.array([x_left, y_bottom, -depth / 2]) - near)
+def box_corners(x_right: float, x_left: float, y_top: float, y_bottom: float, depth: float) -> list[tuple]:
+    """The 8 corners of an axis-aligned box in Table 1 order (4*front + 2*left + bottom),
+    as (x, y, z) tuples: numpy costs more than it saves on 24 numbers."""
+    return [
+        (x_left if left else x_right, y_bottom if bottom else y_top, -depth / 2 if front else depth / 2)
+        for left, bottom, front in _CORNER_SIDES
+    ]
 
 
 def object_points(shape: Shape, p: dict) -> np.ndarray:
     """Keypoints in the object frame; all parts share the ground (y = height / 2)."""
     w, h, d = p["width"], p["height"], p["depth"]
     if len(shape.parts) == 1:
-        return box_corners(w / 2, -w / 2, -h / 2, h / 2, d)
+        return np.array(box_corners(w / 2, -w / 2, -h / 2, h / 2, d))
     middle = w / 2 - p["split"] * w  # the shared wall, split * width from the right side
     low = h * p["height_ratio"]
     h_left, h_right = (h, low) if p["left_taller"] else (low, h)
-    points = np.zeros((shape.num_keypoints, 3))
+    points = [None] * shape.num_keypoints
     for part, corners in zip(shape.parts, (
         box_corners(w / 2, middle, h / 2 - h_right, h / 2, d),
         box_corners(middle, -w / 2, h / 2 - h_left, h / 2, d),
     )):
-        points[list(part)] = corners
-    return points
+        for index, corner in zip(part, corners):
+            points[index] = corner
+    return np.array(points)
 
 
 def rotation(pitch_deg: float, yaw_deg: float, roll_deg: float) -> np.ndarray:
     """Yaw about the vertical, then pitch about x, then roll about the optical axis."""
     a, b, c = math.radians(pitch_deg), math.radians(yaw_deg), math.radians(roll_deg)
     ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
-    rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
-    ry = np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
-    rz = np.array([[cc, -sc, 0], [sc, cc, 0], [0, 0, 1]])
+    rz, rx, ry = np.array([  # one array call for the three: numpy's per-call cost dominates here
+        [[cc, -sc, 0], [sc, cc, 0], [0, 0, 1]],
+        [[1, 0, 0], [0, ca, -sa], [0, sa, ca]],
+        [[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]],
+    ])
     return rz @ rx @ ry
 
 
@@ -116,10 +122,11 @@ def camera_tilt(pitch_up_deg: float) -> np.ndarray:
 def to_camera(points: np.ndarray, p: dict) -> np.ndarray:
     tilt = camera_tilt(p["camera_pitch_deg"])
     linear = tilt @ rotation(p["pitch_deg"], p["yaw_deg"], p["roll_deg"])
+    offset = tilt @ (p["offset_x"], p["offset_y"], p["distance"])
     if p["flip"]:
         linear[0] *= -1  # a mirror image; viewer_order renames the corners
-    offset = tilt @ np.array([p["offset_x"], p["offset_y"], p["distance"]])
-    return points @ linear.T + offset * np.array([-1.0 if p["flip"] else 1.0, 1.0, 1.0])
+        offset[0] = -offset[0]
+    return points @ linear.T + offset
 
 
 def viewer_order(shape: Shape, camera: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -127,15 +134,24 @@ def viewer_order(shape: Shape, camera: np.ndarray, image: np.ndarray) -> tuple[n
 
     LEFT must be image-left of RIGHT, FRONT nearer the camera than BACK.
     """
-    left, right, front, back = (_having(shape, w) for w in ("LEFT", "RIGHT", "FRONT", "BACK"))
-    order = np.arange(shape.num_keypoints)
-    swap_lr = image[left, 0].mean() > image[right, 0].mean()
+    left, right, front, back, mirror_lr, mirror_fb = _naming_tables(shape)
+    xs, zs = image[:, 0].tolist(), camera[:, 2].tolist()
+    order = list(range(shape.num_keypoints))
+    # Mirrored sets have equal sizes, so comparing sums compares means.
+    swap_lr = sum(xs[i] for i in left) > sum(xs[i] for i in right)
     if swap_lr:
-        order = order[shape.mirror_left_right]
-    swap_fb = camera[order[front], 2].mean() > camera[order[back], 2].mean()
+        order = [order[i] for i in mirror_lr]
+    swap_fb = sum(zs[order[i]] for i in front) > sum(zs[order[i]] for i in back)
     if swap_fb:
-        order = order[shape.mirror_front_back]
-    return order, {"swap_left_right": bool(swap_lr), "swap_front_back": bool(swap_fb)}
+        order = [order[i] for i in mirror_fb]
+    return np.array(order), {"swap_left_right": swap_lr, "swap_front_back": swap_fb}
+
+
+@functools.cache
+def _naming_tables(shape: Shape) -> tuple[list[int], ...]:
+    """LEFT, RIGHT, FRONT and BACK keypoints and the two mirror permutations, as lists."""
+    sides = [_having(shape, w).tolist() for w in ("LEFT", "RIGHT", "FRONT", "BACK")]
+    return (*sides, shape.mirror_left_right.tolist(), shape.mirror_front_back.tolist())
 
 
 @functools.cache
@@ -147,11 +163,14 @@ def frame(image: np.ndarray, size: int, scene: SceneConfig, rng: np.random.Gener
     """Scale and shift projected points so the silhouette's longer side spans the image
     less two margins, centred with a small random shift (kept inside the image)."""
     margin = uniform(rng, scene.margin)
-    lo, hi = image.min(axis=0), image.max(axis=0)
-    scale = size * (1 - 2 * margin) / float(max(hi - lo))
-    extent = (hi - lo) * scale
-    slack = np.maximum(size - 1 - extent, 0.0)  # free room per axis, in px
-    jitter = (rng.random(2) - 0.5) * scene.centre_jitter * np.minimum(slack, size * margin)
-    origin = (slack / 2 + jitter) - lo * scale  # pixel centres: the image spans 0 .. size - 1
+    xs, ys = image[:, 0].tolist(), image[:, 1].tolist()
+    lo = (min(xs), min(ys))
+    spans = (max(xs) - lo[0], max(ys) - lo[1])
+    scale = size * (1 - 2 * margin) / max(spans)
+    origin = []
+    for low, span, draw in zip(lo, spans, rng.random(2).tolist()):
+        slack = max(size - 1 - span * scale, 0.0)  # free room on this axis, in px
+        jitter = (draw - 0.5) * scene.centre_jitter * min(slack, size * margin)
+        origin.append(slack / 2 + jitter - low * scale)  # pixel centres: the image spans 0 .. size - 1
     keypoints = image * scale + origin
-    return keypoints, {"margin": margin, "frame_scale": float(scale), "frame_origin": [float(v) for v in origin]}
+    return keypoints, {"margin": margin, "frame_scale": scale, "frame_origin": origin}
