@@ -42,12 +42,12 @@ def timed(fn, repeats: int) -> list[float]:
     return times
 
 
-def bench_generate(size: int, samples: int, repeats: int, library) -> dict:
+def bench_generate(size: int, samples: int, repeats: int, library, where: str = ".") -> dict:
     """One core: draw + encode only, and draw + encode + publish into a capped spool."""
     cv2.setNumThreads(1)
     seeds = iter(range(10**9))
     draw = lambda: [encode(make_sample("box", PAPER, size, next(seeds), library)) for _ in range(samples)]  # noqa: E731
-    with tempfile.TemporaryDirectory() as spool, SpoolWriter(Path(spool), limit=samples) as writer:
+    with tempfile.TemporaryDirectory(dir=where, prefix=".bench-") as spool, SpoolWriter(Path(spool), limit=samples) as writer:
         def publish():
             for _ in range(samples):
                 writer.publish(encode(make_sample("box", PAPER, size, next(seeds), library)))
@@ -67,11 +67,11 @@ def bench_generate(size: int, samples: int, repeats: int, library) -> dict:
     }
 
 
-def bench_daemon(size: int, samples: int, workers: int) -> dict:
+def bench_daemon(size: int, samples: int, workers: int, where: str = ".") -> dict:
     """The real daemon on all cores, process start-up included."""
     from cuboidgen.daemon import run
 
-    with tempfile.TemporaryDirectory() as spool:
+    with tempfile.TemporaryDirectory(dir=where, prefix=".bench-") as spool:
         config = GenConfig(spool=Path(spool), limit=samples, max_samples=samples, workers=workers, size=size,
                            seed=0, dashboard=False)
         start = time.perf_counter()
@@ -80,11 +80,11 @@ def bench_daemon(size: int, samples: int, workers: int) -> dict:
     return {"workers": workers, "samples": samples, "published_per_s": rate(samples, seconds)}
 
 
-def bench_read(size: int, samples: int, batch: int, repeats: int, library) -> dict:
+def bench_read(size: int, samples: int, batch: int, repeats: int, library, where: str = ".") -> dict:
     """One core: enumerate, read, decode and collate into torch tensors, every epoch anew."""
     import torch
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(dir=where, prefix=".bench-") as tmp:
         spool = Path(tmp)
         with SpoolWriter(spool, limit=0) as writer:
             for seed in range(samples):
@@ -137,16 +137,19 @@ def bench_on_the_fly(size: int, samples: int, batch: int, workers: int, repeats:
     return {"workers": workers, "samples": samples, "on_the_fly_per_s": rate(samples, statistics.median(times))}
 
 
-def run_benchmarks(size: int = 256, samples: int = 400, repeats: int = 5, batch: int = 64) -> dict:
-    """Every benchmark in one process, with the ratios the targets are stated in."""
+def run_benchmarks(size: int = 256, samples: int = 400, repeats: int = 5, batch: int = 64, where: str = ".") -> dict:
+    """Every benchmark in one process, with the ratios the targets are stated in.
+
+    Spools are made under `where`: measure on the filesystem the real spool lives on
+    (file creation cost differs tenfold between mounts of one machine)."""
     library = OccluderLibrary.builtin()
     cores = os.cpu_count() or 1
-    generate = bench_generate(size, samples, repeats, library)
-    read = bench_read(size, max(samples * 5, 1000), batch, repeats, library)
+    generate = bench_generate(size, samples, repeats, library, where)
+    read = bench_read(size, max(samples * 5, 1000), batch, repeats, library, where)
     fly = bench_on_the_fly(size, samples, batch, cores, max(repeats // 2, 2))
-    daemon = bench_daemon(size, samples * 4, cores)
+    daemon = bench_daemon(size, samples * 4, cores, where)
     results = {
-        "machine": {"cores": cores, "cpu": _cpu_name()},
+        "machine": {"cores": cores, "cpu": _cpu_name(), "spool_dir": str(Path(where).resolve())},
         "generate": generate, "daemon": daemon, "read": read, "on_the_fly": fly,
         "ratios": {
             "read_unpacked_over_generate_per_core": read["read_unpacked_per_s"] / generate["published_per_s_per_core"],

@@ -136,12 +136,13 @@ def bench(
     samples: int = typer.Option(400, help="Samples per repeat."),
     repeats: int = typer.Option(5, help="Repeats; medians are reported."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the results as JSON here."),
+    where: Path = typer.Option(Path("."), "--dir", help="Make the benchmark spools here (the spool's filesystem)."),
 ) -> None:
     """Generation and spool read throughput on this machine (table and JSON)."""
     from cuboidgen.bench import run_benchmarks
 
     setup_logging()
-    results = run_benchmarks(size=size, samples=samples, repeats=repeats)
+    results = run_benchmarks(size=size, samples=samples, repeats=repeats, where=str(where))
     text = json.dumps(results, indent=2)
     if json_out:
         json_out.write_text(text)
