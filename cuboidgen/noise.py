@@ -68,8 +68,10 @@ def _normals(xs: np.ndarray, ys: np.ndarray, lengths: np.ndarray) -> tuple[np.nd
 
 
 def _signals(lengths: np.ndarray, amount: float, wavelength: float, rng: np.random.Generator) -> np.ndarray:
-    """`smooth_signal` for every contour at once: each contour's knots occupy their own
-    block of one knot array, so one interpolation serves all contours."""
+    """A periodic random signal along each contour: knots every `wavelength` points,
+    linearly interpolated, plus jitter; its standard deviation is about `amount`.
+    Each contour's knots occupy their own block of one knot array, so one
+    interpolation serves all contours."""
     knots = np.maximum((lengths / max(wavelength, 1.0)).astype(int), 3)
     block_end = np.cumsum(knots + 1)
     block_start = block_end - knots - 1
@@ -83,8 +85,3 @@ def _signals(lengths: np.ndarray, amount: float, wavelength: float, rng: np.rand
     # Linear interpolation between independent knots keeps two thirds of the variance.
     return signal * 1.22 + rng.normal(0.0, amount * JITTER, len(step))
 
-
-def smooth_signal(n: int, amount: float, wavelength: float, rng: np.random.Generator) -> np.ndarray:
-    """A periodic random signal of length n: knots every `wavelength` samples, linearly
-    interpolated, plus jitter; its standard deviation is about `amount`."""
-    return _signals(np.array([n]), amount, wavelength, rng)

@@ -44,8 +44,9 @@ def inspect_spool(spool: Path) -> dict:
         "corrupt_reasons": dict(problems),
         "vanished": vanished,
         "temporary": sum(1 for e in entries if e.name.startswith(TMP_PREFIX)),
+        # Hidden files (.gitkeep) and the spool's own metadata are not foreign.
         "foreign": sum(1 for e in entries if e.is_file() and not is_sample_name(e.name)
-                       and not e.name.startswith(TMP_PREFIX) and e.name != META_NAME),
+                       and not e.name.startswith(".") and e.name != META_NAME),
         "shapes": dict(shapes),
         "size": next(iter(sizes)) if len(sizes) == 1 else sorted(sizes) or None,
         "scenes": dict(scenes),

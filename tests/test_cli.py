@@ -28,6 +28,7 @@ def test_inspect_counts_corrupt_and_foreign_files(tmp_path, library):
     fill_spool(tmp_path, 3, library=library)
     (tmp_path / "9999999999999999999-x-1-ab-000000001.cub").write_bytes(b"garbage")
     (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / ".gitkeep").write_text("")
     report = json.loads(runner.invoke(app, ["inspect", str(tmp_path), "--json"]).stdout)
     assert report["samples"] == 3 and report["corrupt"] == 1 and report["foreign"] == 1
 
