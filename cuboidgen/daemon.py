@@ -171,7 +171,8 @@ def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threadin
             rates = [(p - q) / max(now - last[0], 1e-9) for p, q in zip(published, last[1])]
             if now - last[0] >= 2.0 or finished:
                 last = (now, published)
-            dashboard.update(snapshot(config, shared, rates, now - started), final=finished)
+            if dashboard.due(final=finished):
+                dashboard.update(snapshot(config, shared, rates, now - started), final=finished)
             if finished:
                 return
 

@@ -114,7 +114,7 @@ class Dashboard:
         self.console = console or Console()
         self.live = Live(console=self.console, refresh_per_second=4) if live and self.console.is_terminal else None
         self.log_every = log_every
-        self._last_log = 0.0
+        self._last_log: float | None = None  # nothing logged yet: the first update logs
 
     def __enter__(self) -> "Dashboard":
         if self.live:
@@ -125,9 +125,15 @@ class Dashboard:
         if self.live:
             self.live.__exit__(*exc)
 
+    def due(self, final: bool = False) -> bool:
+        """Whether an update would be shown now: lets the caller skip building a snapshot
+        (a scan of the spool) that no one would see."""
+        return (bool(self.live) or final or self._last_log is None
+                or time.monotonic() - self._last_log >= self.log_every)
+
     def update(self, snapshot: GenSnapshot, final: bool = False) -> None:
         if self.live:
             self.live.update(render(snapshot))
-        elif final or time.monotonic() - self._last_log >= self.log_every:
+        elif self.due(final):
             self._last_log = time.monotonic()
             log.info("%s", log_line(snapshot))

@@ -79,11 +79,6 @@ def placement_affine(shape: tuple[int, int], p: dict) -> tuple[float, float, flo
     return a, b, p["x"] - a * foot_x - b * foot_y, c, d, p["foot_y"] - c * foot_x - d * foot_y
 
 
-def placement_matrix(shape: tuple[int, int], p: dict) -> np.ndarray:
-    """2x3 affine from cutout pixels to image pixels: foot (bottom centre) to (x, foot_y)."""
-    return np.array(placement_affine(shape, p)).reshape(2, 3)
-
-
 def subtract(mask: np.ndarray, cutout: np.ndarray, p: dict, limit: Box | None = None) -> None:
     """Clear the pixels of `mask` covered by the placed cutout, warping only the part of
     its bounding box inside the image (and inside `limit`, beyond which `mask` is known

@@ -150,13 +150,8 @@ def viewer_order(shape: Shape, camera: np.ndarray, image: np.ndarray) -> tuple[n
 @functools.cache
 def _naming_tables(shape: Shape) -> tuple[list[int], ...]:
     """LEFT, RIGHT, FRONT and BACK keypoints and the two mirror permutations, as lists."""
-    sides = [_having(shape, w).tolist() for w in ("LEFT", "RIGHT", "FRONT", "BACK")]
+    sides = [shape.having(w).tolist() for w in ("LEFT", "RIGHT", "FRONT", "BACK")]
     return (*sides, shape.mirror_left_right.tolist(), shape.mirror_front_back.tolist())
-
-
-@functools.cache
-def _having(shape: Shape, word: str) -> np.ndarray:
-    return shape.having(word)
 
 
 def frame(image: np.ndarray, size: int, scene: SceneConfig, rng: np.random.Generator) -> tuple[np.ndarray, dict]:

@@ -41,3 +41,12 @@ def test_log_line_has_the_same_figures():
 def test_human_units():
     assert human_bytes(512) == "512 B" and human_bytes(17 * 1024) == "17.0 KB"
     assert human_age(None) == "-" and human_age(5400) == "90.0 min" and human_age(9000) == "2.5 h"
+
+
+def test_log_mode_is_due_only_every_log_interval():
+    from cuboidgen.dashboard import Dashboard
+
+    board = Dashboard(live=False, log_every=3600.0, console=Console(file=open("/dev/null", "w")))
+    assert board.due()  # nothing logged yet
+    board.update(snapshot())
+    assert not board.due() and board.due(final=True)
