@@ -114,6 +114,8 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared, parent: i
     from cuboidgen.synth import make_sample, sample_seed
 
     library = OccluderLibrary.load(config.occluders)
+    if os.getppid() != parent:
+        return  # the daemon died while we started: touch nothing (not even an eviction)
     with SpoolWriter(config.spool, config.limit, config.evict_every, config.fsync) as writer:
         count = 0
         # A SIGKILLed main process cannot tell us to stop: being re-parented is the sign.
