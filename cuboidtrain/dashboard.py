@@ -1,0 +1,335 @@
+"""The trainer's dashboard: a rich panel when stdout is a terminal, log lines otherwise.
+
+The trainer builds a JSON-able `status` dict about once a second, hands it to
+`Dashboard.update` and writes it to OUT/status.json with `write_status`.
+Rendering is a pure function of that dict, so it can be tested as text and
+`watch` can show a run from another terminal by re-reading the file. Any value
+may be None (or missing) while it is not known yet; it then shows as "—".
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from rich.console import Console, Group, RenderableType
+from rich.live import Live
+from rich.panel import Panel
+from rich.progress_bar import ProgressBar
+from rich.table import Table
+from rich.text import Text
+
+log = logging.getLogger(__name__)
+
+STATUS_FILE = "status.json"
+FINISHED = ("done", "stopped")
+DASH = "—"
+SPARK = "▁▂▃▄▅▆▇█"
+SPARK_POINTS = 30  # points of loss_history drawn as the trend
+WAIT_TARGET = 0.05  # data-wait fraction of step time above which the loader is starving the GPU
+# Short words for the title line; config.PHASES has the full sentences.
+PHASE_MEANING = {"1": "separate networks", "2": "chained", "e2e": "ablation: end to end",
+                 "finetune": "ablation: fine-tune"}
+LOSSES = (("D_R", "Refiner"), ("D_S", "Estimator"), ("D_T", "Tabulator"), ("total", "weighted sum"))
+STATE_STYLE = {"training": "green", "waiting for samples": "yellow", "checkpointing": "cyan",
+               "evaluating": "cyan", "done": "bold green", "stopped": "bold yellow"}
+
+
+# --- formatting: every helper takes None and gives "—" -----------------------------------
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def fmt_duration(seconds: float | None) -> str:
+    """42s, 3m05s, 1h02m."""
+    if not _finite(seconds):
+        return DASH
+    s = max(0, round(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+def fmt_loss(x: float | None) -> str:
+    """Four figures that stay readable as a loss falls: 4.650, 0.0500, 1.23e-05; NaN shows as nan."""
+    if x is None:
+        return DASH
+    if x != 0 and abs(x) < 1e-3:
+        return f"{x:.2e}"
+    return f"{x:.4f}" if abs(x) < 1 else f"{x:.3f}"
+
+
+def _num(x, spec: str, suffix: str = "") -> str:
+    return DASH if x is None else f"{x:{spec}}{suffix}"
+
+
+def _of(done, total) -> str:
+    return _num(done, ",") + (f" / {total:,}" if total is not None else "")
+
+
+def sparkline(values: list[float] | None, points: int = SPARK_POINTS) -> str:
+    """The last `points` finite values as block characters, scaled to their own range."""
+    ys = [v for v in (values or [])[-points:] if _finite(v)]
+    if not ys:
+        return DASH
+    lo, hi = min(ys), max(ys)
+    if hi - lo <= 1e-12 * max(1.0, abs(hi)):  # flat: a mid line, not a row of minimum blocks
+        return SPARK[3] * len(ys)
+    return "".join(SPARK[round((y - lo) / (hi - lo) * (len(SPARK) - 1))] for y in ys)
+
+
+def trend(values: list[float] | None) -> Text:
+    """Change from the first to the last point of the history; a falling loss is green."""
+    ys = [v for v in (values or []) if _finite(v)]
+    if len(ys) < 2 or ys[0] == 0:
+        return Text(DASH)
+    pct = (ys[-1] - ys[0]) / abs(ys[0]) * 100
+    if abs(pct) < 1:
+        return Text(f"→ {pct:+.0f}%", style="dim")
+    return Text(f"↓ {-pct:.0f}%", style="green") if pct < 0 else Text(f"↑ {pct:.0f}%", style="red")
+
+
+def wait_cell(fraction: float | None) -> Text:
+    """Data wait as a share of step time: the target is under 5%; above it the GPU idles."""
+    if fraction is None:
+        return Text(DASH)
+    if fraction > WAIT_TARGET:
+        return Text(f"{fraction:.1%} > {WAIT_TARGET:.0%}: loader starving", style="bold red")
+    return Text(f"{fraction:.1%}")
+
+
+def _skipped(skipped: dict | None) -> str:
+    if not skipped:
+        return DASH
+    counts = ", ".join(f"{reason.replace('_', ' ')} {n}" for reason, n in skipped.items())
+    return f"{sum(n or 0 for n in skipped.values())} ({counts})"
+
+
+# --- the panel ----------------------------------------------------------------------------
+
+def _title(s: dict) -> Text:
+    phase, size, state = s.get("phase"), s.get("size"), s.get("state") or DASH
+    meaning = PHASE_MEANING.get(str(phase))
+    text = Text(f"phase {phase or DASH}" + (f" ({meaning})" if meaning else ""), style="bold")
+    sample = " ".join(part for part in (s.get("shape"), f"{size}x{size} px" if size else None) if part)
+    text.append(f" · {sample or DASH} · {s.get('device') or DASH} · ")
+    text.append(state, style=STATE_STYLE.get(state, ""))
+    return text
+
+
+def _progress(s: dict) -> Table:
+    step, total = s.get("step"), s.get("steps_total")
+    grid = Table.grid(padding=(0, 2))
+    row: list[RenderableType] = [f"step {_of(step, total)}"]
+    if step is not None and total:  # a bar only when the end is known in steps
+        row += [ProgressBar(total=total, completed=min(step, total), width=30), f"{step / total:.1%}"]
+    row += [f"epoch {_of(s.get('epoch'), s.get('epochs_total'))}",
+            f"batch {_of(s.get('batch_in_epoch'), s.get('batches_in_epoch'))}",
+            f"ETA {fmt_duration(s.get('eta_s'))}"]
+    grid.add_row(*row)
+    return grid
+
+
+def _losses(s: dict) -> Table:
+    losses, history = s.get("losses") or {}, s.get("loss_history") or {}
+    weights = list(s.get("loss_weights") or [])
+    table = Table("loss", "", "value", "weight", f"trend (last {SPARK_POINTS})", "change", box=None)
+    for i, (name, network) in enumerate(LOSSES):
+        weight = _num(weights[i] if i < len(weights) else None, "g")
+        weight = "" if name == "total" else weight  # the total is the weighted sum itself
+        table.add_row(name, Text(network, style="dim"), fmt_loss(losses.get(name)), weight,
+                      sparkline(history.get(name)), trend(history.get(name)), style="bold" if name == "total" else "")
+    return table
+
+
+def _checkpoint(ckpt: dict | None, now: float) -> str:
+    if not ckpt:
+        return DASH
+    age = f", {fmt_duration(now - ckpt['time'])} ago" if ckpt.get("time") is not None else ""
+    return f"step {_num(ckpt.get('step'), ',')}{age}"
+
+
+def _validation(val: dict | None) -> str:
+    if not val:
+        return DASH
+    return (f"mean {_num(val.get('mean_px_error'), '.2f', ' px')}, median "
+            f"{_num(val.get('median_px_error'), '.2f', ' px')} (step {_num(val.get('step'), ',')})")
+
+
+def _facts(s: dict, now: float) -> Table:
+    fresh, skipped = s.get("freshness") or {}, s.get("skipped") or {}
+    updated = fmt_duration(now - s["updated"]) if s.get("updated") is not None else DASH
+    grid = Table.grid(padding=(0, 2))
+    grid.add_row("throughput", f"{_num(s.get('samples_per_s'), ',.1f')} samples/s, "
+                 f"{_num(s.get('step_time_s'), '.2f', ' s')}/step",
+                 "data wait", wait_cell(s.get("data_wait_fraction")))
+    grid.add_row("spool", f"{s.get('spool') or DASH}: {_num(s.get('spool_samples'), ',')} samples, "
+                 f"{_num(s.get('spool_arrivals_per_s'), ',.0f')} arriving/s",
+                 "freshness", f"mean age {fmt_duration(fresh.get('mean_age_s'))}, "
+                 f"mean reuse {_num(fresh.get('mean_reuse'), '.1f')}")
+    grid.add_row("skipped", Text(_skipped(skipped), style="yellow" if any(skipped.values()) else ""),
+                 "checkpoint", _checkpoint(s.get("last_checkpoint"), now))
+    grid.add_row("validation", _validation(s.get("val")),
+                 "run", f"{s.get('out') or DASH}, pid {_num(s.get('pid'), 'd')}, updated {updated} ago")
+    return grid
+
+
+def render(status: dict, now: float | None = None) -> Panel:
+    """The dashboard for one status dict; `now` (unix s) dates the checkpoint and the update."""
+    now = time.time() if now is None else now
+    parts: list[RenderableType] = [_title(status), _progress(status), _losses(status), _facts(status, now)]
+    parts += [Text(note, style="yellow") for note in status.get("notes") or []]
+    return Panel(Group(*parts), title="cuboidtrain", title_align="left")
+
+
+def log_line(status: dict) -> str:
+    """The main figures as one plain line, for log files and non-terminals."""
+    s, losses, fresh = status, status.get("losses") or {}, status.get("freshness") or {}
+    total = f"/{s['steps_total']}" if s.get("steps_total") else ""
+    progress = f"step {_num(s.get('step'), 'd')}{total} epoch {_num(s.get('epoch'), 'd')}"
+    if s.get("eta_s") is not None:
+        progress += f" eta {fmt_duration(s['eta_s'])}"
+    wait = s.get("data_wait_fraction")
+    parts = [progress,
+             " ".join(f"{name} {fmt_loss(losses.get(name))}" for name, _ in LOSSES),
+             f"{_num(s.get('samples_per_s'), '.1f')} samples/s wait {_num(wait, '.1%')}",
+             f"age {fmt_duration(fresh.get('mean_age_s'))} reuse {_num(fresh.get('mean_reuse'), '.1f')}",
+             f"skipped {sum(n or 0 for n in (s.get('skipped') or {}).values())}",
+             f"ckpt step {_num((s.get('last_checkpoint') or {}).get('step'), 'd')}"]
+    if s.get("val"):
+        parts.append(f"val {_num(s['val'].get('mean_px_error'), '.2f')} px")
+    if s.get("state") not in (None, "training"):  # the usual state goes without saying
+        parts.insert(0, str(s["state"]))
+    return " | ".join(parts + list(s.get("notes") or []))
+
+
+class Dashboard:
+    """A live panel redrawn on each update, or else a log line at most every `log_interval`
+    seconds and on every change of state."""
+
+    def __init__(self, live: bool, console: Console | None = None, log_interval: float = 10.0):
+        self.console = console or Console()
+        self.log_interval = log_interval
+        # No auto refresh: the trainer updates about once a second, and a redraw between
+        # updates would show nothing new.
+        self._live = Live(console=self.console, auto_refresh=False, transient=False) if live else None
+        self._started = False
+        self._last_log: float | None = None  # nothing logged yet: the first update logs
+        self._last_state: str | None = None
+        self._unlogged: dict | None = None  # the newest status not yet logged: close() logs it
+
+    def __enter__(self) -> "Dashboard":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def update(self, status: dict) -> None:
+        if self._live is not None:
+            if not self._started:  # started on first use so the panel never shows empty
+                self._live.start()
+                self._started = True
+            self._live.update(render(status), refresh=True)
+            return
+        state = status.get("state")
+        if (self._last_log is None or state != self._last_state
+                or time.monotonic() - self._last_log >= self.log_interval):
+            self._last_log, self._last_state, self._unlogged = time.monotonic(), state, None
+            log.info("%s", log_line(status))
+        else:
+            self._unlogged = status
+
+    def close(self) -> None:
+        """Stop the live panel (it stays on screen), or log the last figures if they were not."""
+        if self._started:
+            self._live.stop()
+            self._started = False
+        if self._unlogged is not None:
+            log.info("%s", log_line(self._unlogged))
+            self._unlogged = None
+
+
+# --- status.json: written by the trainer, read by `watch` ---------------------------------
+
+def write_status(out: Path, status: dict) -> None:
+    """Replace OUT/status.json atomically, so a reader sees the old file or the new, never half."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".status.", suffix=".tmp", dir=out)  # same folder: os.replace stays atomic
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(status, f)  # NaN stays NaN: a diverged loss must show, not crash the writer
+        os.replace(tmp, out / STATUS_FILE)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_status(out: Path) -> dict:
+    path = Path(out) / STATUS_FILE
+    try:
+        try:
+            status = json.loads(path.read_text())
+        except json.JSONDecodeError:  # replaces are atomic, but copies and network filesystems may tear
+            time.sleep(0.05)
+            status = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{out}: no status.json — is it a cuboidtrain run folder?") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(status, dict):
+        raise ValueError(f"{path}: expected a JSON object, found {type(status).__name__}")
+    return status
+
+
+def pid_alive(pid: int | None) -> bool:
+    """Whether process `pid` exists on this machine; unknown pids count as alive."""
+    if not isinstance(pid, int) or pid <= 0:  # os.kill(0 or -n) would signal a process group
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, owned by someone else
+        pass
+    return True
+
+
+def _trainer_gone(status: dict) -> bool:
+    return status.get("state") not in FINISHED and not pid_alive(status.get("pid"))
+
+
+def _annotated(status: dict) -> dict:
+    if not _trainer_gone(status):
+        return status
+    note = f"trainer (pid {status['pid']}) is not running; showing its last status"
+    return {**status, "notes": [note, *(status.get("notes") or [])]}
+
+
+def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console | None = None) -> int:
+    """Show the dashboard of the run in `out` until it is done or stopped, its trainer dies,
+    or Ctrl-C. Returns 1 when the trainer died before finishing, else 0."""
+    console = console or Console()
+    status = read_status(out)
+    if once:
+        console.print(render(_annotated(status)))
+        return int(_trainer_gone(status))
+    try:
+        with Live(render(_annotated(status)), console=console, auto_refresh=False, transient=False) as live:
+            while status.get("state") not in FINISHED and not _trainer_gone(status):
+                time.sleep(interval)
+                try:
+                    status = read_status(out)
+                except ValueError:  # moved away or garbled for a moment: keep showing the last one
+                    pass
+                live.update(render(_annotated(status)), refresh=True)
+    except KeyboardInterrupt:
+        return 0
+    return int(_trainer_gone(status))

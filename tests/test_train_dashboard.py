@@ -1,0 +1,185 @@
+"""The trainer's dashboard renders a status dict as text, logs it as one line, and
+`watch` shows a run's status.json from another terminal."""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import re
+import subprocess
+import threading
+
+import pytest
+from rich.console import Console
+
+from cuboidtrain.dashboard import (Dashboard, fmt_duration, log_line, read_status, render, sparkline,
+                                   trend, wait_cell, watch, write_status)
+
+NOW = 1_700_000_000.0
+
+
+def status(**changes) -> dict:
+    values = {
+        "phase": "1", "shape": "box", "size": 64, "device": "cuda:0", "out": "runs/p1", "spool": "data_spool",
+        "state": "training", "pid": os.getpid(), "started": NOW - 600, "updated": NOW - 1,
+        "step": 120, "steps_total": 1000, "epoch": 3, "epochs_total": None, "batch_in_epoch": 7, "batches_in_epoch": 312,
+        "losses": {"D_R": 0.05, "D_S": 1.2, "D_T": 3.4, "total": 4.65},
+        "loss_history": {"D_R": [0.1, 0.08, 0.05], "D_S": [1.2, 1.2], "D_T": [3.0, 3.4], "total": [5.0, 4.65]},
+        "loss_weights": [1.0, 0.5, 2.0],
+        "samples_per_s": 41.0, "step_time_s": 0.78, "data_wait_fraction": 0.012,
+        "freshness": {"mean_age_s": 35.2, "mean_reuse": 1.4},
+        "skipped": {"vanished": 3, "corrupt": 1, "other_shape": 0, "other_size": 0},
+        "spool_samples": 10_000, "spool_arrivals_per_s": 850.0, "eta_s": 1234.0,
+        "last_checkpoint": {"path": "runs/p1/last.pt", "step": 100, "time": NOW - 125},
+        "val": {"step": 100, "mean_px_error": 2.3, "median_px_error": 1.9},
+        "notes": ["spool is small: samples are reused"],
+    }
+    values.update(changes)
+    return values
+
+
+def as_text(renderable) -> str:
+    console = Console(record=True, width=120, color_system=None, file=io.StringIO())
+    console.print(renderable)
+    return console.export_text()
+
+
+def record_console() -> Console:
+    return Console(record=True, width=120, color_system=None, file=io.StringIO())
+
+
+def test_render_shows_progress_losses_throughput_and_spool():
+    text = as_text(render(status(), now=NOW))
+    for expected in ("phase 1 (separate networks)", "box 64x64 px", "cuda:0", "training",
+                     "step 120 / 1,000", "12.0%", "epoch 3", "batch 7 / 312", "ETA 20m34s",
+                     "0.0500", "1.200", "3.400", "4.650", "Refiner", "Tabulator",
+                     "41.0 samples/s", "0.78 s/step", "1.2%", "10,000 samples", "850 arriving/s",
+                     "mean age 35s", "mean reuse 1.4", "4 (vanished 3, corrupt 1, other shape 0, other size 0)",
+                     "step 100, 2m05s ago", "mean 2.30 px, median 1.90 px", "spool is small"):
+        assert expected in text, expected
+    assert "↓ 50%" in text and "↑ 13%" in text  # D_R fell 0.1 -> 0.05, D_T rose 3.0 -> 3.4
+    assert "loader starving" not in text
+
+
+def test_each_loss_row_carries_its_weight():
+    rows = {line.split()[1]: line.split() for line in as_text(render(status(), now=NOW)).splitlines()
+            if len(line.split()) > 1 and line.split()[1] in ("D_R", "D_S", "D_T")}
+    assert rows["D_R"][3:5] == ["0.0500", "1"] and rows["D_S"][3:5] == ["1.200", "0.5"]
+    assert rows["D_T"][3:5] == ["3.400", "2"]
+
+
+def test_data_wait_over_five_percent_is_flagged():
+    text = as_text(render(status(data_wait_fraction=0.12), now=NOW))
+    assert "12.0% > 5%: loader starving" in text
+    assert wait_cell(0.12).style == "bold red" and wait_cell(0.04).style == ""
+
+
+def test_unknown_values_render_as_dashes():
+    blank = {key: None for key in status()}
+    text = as_text(render(blank, now=NOW))
+    assert "phase — · — · — · —" in text and "step —  epoch —" in text and "ETA —" in text
+    assert re.search(r"data wait +—", text) and re.search(r"D_R +Refiner +— +— +— +—", text)
+    assert "total" in as_text(render({}, now=NOW))  # even an empty status draws the loss table
+    assert "step — epoch —" in log_line(blank)
+
+
+def test_phase_two_and_ablations_are_named():
+    assert "phase 2 (chained)" in as_text(render(status(phase="2"), now=NOW))
+    assert "ablation" in as_text(render(status(phase="finetune"), now=NOW))
+
+
+def test_formatting_helpers():
+    assert fmt_duration(42) == "42s" and fmt_duration(185) == "3m05s" and fmt_duration(3725) == "1h02m"
+    assert fmt_duration(None) == "—" and fmt_duration(float("nan")) == "—"
+    assert sparkline([1, 2, 3, 4, 5, 6, 7, 8]) == "▁▂▃▄▅▆▇█"
+    assert sparkline(list(range(100))) .__len__() == 30  # only the last 30 points
+    assert sparkline([2.0, 2.0]) == "▄▄" and sparkline([]) == "—" and sparkline(None) == "—"
+    assert trend([4, 3, 2, 1]).plain == "↓ 75%" and trend([1.0]).plain == "—"
+
+
+def test_log_line_has_the_figures():
+    line = log_line(status())
+    assert line.startswith("step 120/1000 epoch 3 eta 20m34s | D_R 0.0500 D_S 1.200 D_T 3.400 total 4.650 | ")
+    for expected in ("41.0 samples/s wait 1.2%", "age 35s reuse 1.4", "skipped 4", "ckpt step 100",
+                     "val 2.30 px", "spool is small"):
+        assert expected in line, expected
+    assert log_line(status(state="waiting for samples")).startswith("waiting for samples | step 120")
+
+
+def test_write_then_read_status_round_trips(tmp_path):
+    out = tmp_path / "run"
+    write_status(out, status())
+    write_status(out, status(step=121))  # replaces, leaving no temp file behind
+    assert read_status(out) == json.loads(json.dumps(status(step=121)))
+    assert [p.name for p in out.iterdir()] == ["status.json"]
+
+
+def test_read_status_names_a_garbled_file(tmp_path):
+    (tmp_path / "status.json").write_text('{"step": 1')
+    with pytest.raises(ValueError, match="status.json: not valid JSON"):
+        read_status(tmp_path)
+
+
+def test_watch_once_renders_the_step(tmp_path):
+    write_status(tmp_path, status(step=777))
+    console = record_console()
+    assert watch(tmp_path, once=True, console=console) == 0
+    text = console.export_text()
+    assert "step 777 / 1,000" in text and "not running" not in text
+
+
+def test_watch_without_status_json_says_so(tmp_path):
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path}: no status.json")):
+        watch(tmp_path, once=True, console=record_console())
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen(["true"])
+    proc.wait()  # reaped: the pid no longer exists
+    return proc.pid
+
+
+def test_watch_notes_a_dead_trainer(tmp_path):
+    pid = dead_pid()
+    write_status(tmp_path, status(pid=pid))
+    console = record_console()
+    assert watch(tmp_path, console=console) == 1  # returns at once: nothing will change
+    assert f"trainer (pid {pid}) is not running; showing its last status" in console.export_text()
+    write_status(tmp_path, status(pid=pid, state="done"))  # a finished run is no cause for alarm
+    console = record_console()
+    assert watch(tmp_path, once=True, console=console) == 0 and "not running" not in console.export_text()
+
+
+def test_watch_follows_the_file_until_done(tmp_path):
+    write_status(tmp_path, status(step=5))
+    finisher = threading.Timer(0.1, write_status, (tmp_path, status(step=1000, state="done")))
+    finisher.start()
+    console = record_console()
+    try:
+        assert watch(tmp_path, interval=0.02, console=console) == 0
+    finally:
+        finisher.join()
+    text = console.export_text()
+    assert "step 1,000 / 1,000" in text and "done" in text
+
+
+def test_log_mode_logs_on_interval_and_on_state_change(caplog):
+    caplog.set_level(logging.INFO, logger="cuboidtrain.dashboard")
+    with Dashboard(live=False, log_interval=3600.0) as board:
+        board.update(status(step=1))  # the first update always logs
+        board.update(status(step=2))  # within the interval, same state: held back
+        assert [r.getMessage().split(" epoch")[0] for r in caplog.records] == ["step 1/1000"]
+        board.update(status(step=3, state="checkpointing"))  # a new state logs at once
+        board.update(status(step=4, state="checkpointing"))
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 3 and messages[1].startswith("checkpointing | step 3/")
+    assert messages[2].startswith("checkpointing | step 4/")  # close() logs the last figures
+
+
+def test_live_mode_leaves_the_last_panel_on_screen():
+    console = record_console()
+    with Dashboard(live=True, console=console) as board:
+        board.update(status(step=10))
+        board.update(status(step=11))
+    assert "step 11 / 1,000" in console.export_text()
