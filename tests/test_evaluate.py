@@ -1,0 +1,186 @@
+"""Evaluation: the metric functions on hand-made values, and `evaluate` on tiny spools."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from cuboidtrain.checkpoint import save_checkpoint
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
+from cuboidtrain.networks import build_model
+from shared.sample import encode, signed
+from shared.shapes import get_shape
+from shared.spool import SpoolWriter
+from tests.conftest import build_sample
+
+SIZE = 32  # px: the smallest size a ResNet-18 model takes
+CPU = torch.device("cpu")
+KEYS = {
+    "mean_px_error", "median_px_error", "per_keypoint_px_error", "pck", "mean_ratio_error", "per_ratio_error",
+    "refiner_iou", "tabulator_px_error_on_true_heatmaps", "samples", "skipped", "shape", "size",
+}
+
+
+def publish(spool: Path, samples) -> None:
+    with SpoolWriter(spool, limit=0) as writer:
+        for sample in samples:
+            writer.publish(encode(sample))
+
+
+@pytest.fixture(scope="module")
+def box_samples():
+    return [build_sample(seed, "box", size=SIZE) for seed in range(6)]
+
+
+@pytest.fixture(scope="module")
+def box_spool(tmp_path_factory, box_samples) -> Path:
+    spool = tmp_path_factory.mktemp("val")
+    publish(spool, box_samples)
+    return spool
+
+
+# --- the metric functions ---------------------------------------------------------------------
+
+
+def test_keypoint_errors_are_euclidean_px():
+    pred = torch.tensor([[[0.0, 0.0], [10.0, 10.0]], [[1.5, 2.0], [-3.0, 0.0]]])
+    true = torch.tensor([[[3.0, 4.0], [10.0, 10.0]], [[1.5, 2.0], [0.0, 4.0]]])
+    assert torch.allclose(keypoint_errors(pred, true), torch.tensor([[5.0, 0.0], [0.0, 5.0]]))
+
+
+def test_keypoint_errors_reject_mismatched_shapes():
+    with pytest.raises(ValueError, match=r"\(1, 8, 2\) and \(1, 14, 2\)"):
+        keypoint_errors(torch.zeros(1, 8, 2), torch.zeros(1, 14, 2))
+
+
+def test_mask_iou_on_hand_made_masks():
+    clean = -torch.ones(4, 1, 2, 2)
+    refined = -torch.ones(4, 1, 2, 2)
+    clean[0, 0, 0, :] = 1; refined[0, 0, 0, :] = 0.3  # identical objects (refined > 0 is object)
+    clean[1, 0, 0, 0] = 1; refined[1, 0, 1, 1] = 0.9  # disjoint
+    clean[2, 0, 0, :] = 1; refined[2, 0, :, 0] = 0.5  # overlap 1 of union 3
+    refined[3, 0, 0, 0] = -0.01  # both empty: they agree
+    assert torch.allclose(mask_iou(refined, clean), torch.tensor([1.0, 0.0, 1 / 3, 1.0]))
+
+
+# --- evaluate --------------------------------------------------------------------------------
+
+
+def test_evaluate_reports_every_metric_in_range(box_spool):
+    model = build_model("box", SIZE, seed=0).train()
+    result = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=4)  # batches of 4 and 2
+    assert KEYS <= set(result)
+    assert (result["shape"], result["size"], result["samples"]) == ("box", SIZE, 6)
+    assert not any(result["skipped"].values())
+    assert 0 <= result["median_px_error"] and 0 <= result["mean_px_error"] < SIZE * math.sqrt(2)
+    geometry = get_shape("box")
+    assert list(result["per_keypoint_px_error"]) == list(geometry.keypoint_names)
+    assert np.mean(list(result["per_keypoint_px_error"].values())) == pytest.approx(result["mean_px_error"])
+    assert list(result["per_ratio_error"]) == list(geometry.ratio_names)
+    assert result["mean_ratio_error"] >= 0 and result["tabulator_px_error_on_true_heatmaps"] >= 0
+    assert 0 <= result["refiner_iou"] <= 1
+    pck = list(result["pck"].values())
+    assert list(result["pck"]) == ["0.5", "1.0", "2.0", "5.0"]
+    assert all(0 <= p <= 1 for p in pck) and pck == sorted(pck)
+    assert model.training, "evaluate must hand a training model back in train mode"
+
+
+def test_evaluate_is_deterministic_and_independent_of_batch_size(box_spool):
+    model = build_model("box", SIZE, seed=1)
+    a = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=6)
+    b = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=1)
+    assert a["mean_px_error"] == pytest.approx(b["mean_px_error"], rel=1e-5)
+    assert a["refiner_iou"] == pytest.approx(b["refiner_iou"], rel=1e-5)
+
+
+class CentroidTabulator(nn.Module):
+    """Heat maps -> their centres of mass (pixel-centre convention), ratios 0."""
+
+    def forward(self, heatmaps: torch.Tensor):
+        b, n, h, w = heatmaps.shape
+        mass = heatmaps.sum(dim=(-2, -1))  # (B, N)
+        x = (heatmaps.sum(-2) * torch.arange(w)).sum(-1) / mass
+        y = (heatmaps.sum(-1) * torch.arange(h)).sum(-1) / mass
+        return torch.stack([x, y], dim=-1), torch.zeros(b, 2)
+
+
+class Oracle(nn.Module):
+    """Answers each noisy mask with the truth of the sample it was drawn with.
+
+    It looks the mask up by its pixels, so if evaluate compared a sample's
+    prediction with another sample's keypoints, or shifted the convention, the
+    errors would not be zero.
+    """
+
+    def __init__(self, samples, shape: str, size: int):
+        super().__init__()
+        self.shape, self.size = shape, size
+        self.truth = {s.noisy.tobytes(): s for s in samples}
+        self.tabulator = CentroidTabulator()
+
+    def forward(self, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        found = [self.truth[(m[0] > 0).numpy().tobytes()] for m in mask]
+        geometry = get_shape(self.shape)
+        return {
+            "refined": torch.from_numpy(np.stack([signed(s.clean) for s in found]))[:, None],
+            "heatmaps": torch.zeros(len(found), geometry.num_keypoints, self.size, self.size),
+            "keypoints": torch.tensor(np.stack([s.keypoints for s in found]), dtype=torch.float32),
+            "ratios": torch.tensor(np.stack([geometry.ratio_vector(s.ratios) for s in found]), dtype=torch.float32),
+        }
+
+
+def test_an_oracle_scores_perfectly(box_spool, box_samples):
+    result = evaluate(Oracle(box_samples, "box", SIZE), box_spool, sigma=1.0, device=CPU, batch_size=4)
+    assert result["samples"] == 6
+    assert result["mean_px_error"] == pytest.approx(0, abs=1e-5)
+    assert result["median_px_error"] == pytest.approx(0, abs=1e-5)
+    assert all(p == 1.0 for p in result["pck"].values())
+    assert result["mean_ratio_error"] == pytest.approx(0, abs=1e-6)
+    assert result["refiner_iou"] == 1.0
+    # x3 is rendered at x4 in the pixel-centre convention: its centroid lands on it (a 0.5 px slip would show)
+    assert result["tabulator_px_error_on_true_heatmaps"] < 0.05
+
+
+def test_evaluate_skips_and_counts_other_samples(tmp_path):
+    spool = tmp_path / "mix"
+    publish(spool, [build_sample(0, "twobox", size=SIZE), build_sample(1, "box", size=SIZE),
+                    build_sample(2, "box", size=64), build_sample(3, "box", size=SIZE),
+                    build_sample(4, "box", size=SIZE)])
+    (spool / "0000000000000000001-junk.cub").write_bytes(b"not a sample")  # sorts first
+    model = build_model("box", SIZE)
+    result = evaluate(model, spool, sigma=1.0, device=CPU)
+    assert result["samples"] == 3
+    assert result["skipped"] == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 1}
+    first_two = evaluate(model, spool, sigma=1.0, device=CPU, batch_size=1, max_samples=2)
+    assert first_two["samples"] == 2  # the first two box 32 px samples, past the others
+
+
+def test_a_spool_without_the_models_samples_is_a_clear_error(tmp_path):
+    spool = tmp_path / "val"
+    publish(spool, [build_sample(i, "twobox", size=SIZE) for i in range(2)])
+    model = build_model("box", SIZE)
+    with pytest.raises(ValueError, match=r"spool .*val: 0 box 32 px samples among 2 \(2 twobox 32 px\)"):
+        evaluate(model, spool, sigma=1.0, device=CPU)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="empty, no box 32 px samples"):
+        evaluate(model, empty, sigma=1.0, device=CPU)
+
+
+def test_evaluate_checkpoint_reports_the_random_weights_row(tmp_path, box_spool):
+    config = TrainConfig(shape="box", size=SIZE, steps=1, sigma=1.5)
+    path = save_checkpoint(tmp_path / "random.pt", build_model("box", SIZE, seed=3), config, step=7)
+    result = evaluate_checkpoint(path, box_spool, device="cpu", max_samples=4, random_init_seed=3)
+    assert {"random_init_mean_px_error", "random_init_median_px_error", "checkpoint", "step", "spool"} <= set(result)
+    assert (result["step"], result["samples"], result["sigma"]) == (7, 4, 1.5)
+    assert result["mean_px_error"] == result["random_init_mean_px_error"]
+    assert result["median_px_error"] == result["random_init_median_px_error"]
+    other = evaluate_checkpoint(path, box_spool, device="cpu", max_samples=4, random_init_seed=4)
+    assert other["random_init_mean_px_error"] != other["mean_px_error"]
+    report = format_report(result)
+    assert "random init" in report and "BACK-RIGHT-TOP" in report and "step 7" in report
