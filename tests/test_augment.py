@@ -67,3 +67,29 @@ def test_recorded_amounts_and_occluded_fraction_are_consistent(library):
     if p["occluders"] == [] and p["contour_noise"] == 0:
         assert (sample.noisy == sample.clean).all()
     assert visible <= sample.clean.sum()
+
+
+def test_contour_normals_match_the_neighbour_differences():
+    """The table lookup gives each contour point the unit normal of its two neighbours on
+    its own (wrapped) contour; one- and two-point contours get none."""
+    import cv2
+
+    from cuboidgen.noise import _normals
+
+    mask = disc(96, 36) & ~disc(96, 12)
+    mask[5, 5] = mask[5, 8] = mask[6, 8] = True  # a one-point and a two-point contour
+    mask[80:84, 2:90:7] = True  # a row of small blobs
+    contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    lengths = [len(c) for c in contours]
+    assert {1, 2} <= set(lengths) and len(contours) > 10
+    points = np.concatenate(contours).reshape(-1, 2)
+    got = _normals(points.view(np.int64).ravel(), lengths)
+    expected, start = [], 0
+    for n in lengths:
+        p = points[start : start + n].astype(float)
+        d = np.roll(p, -1, axis=0) - np.roll(p, 1, axis=0)
+        norm = np.hypot(d[:, 0], d[:, 1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            expected.append(np.where(norm > 0, (d[:, 1] - 1j * d[:, 0]) / norm, 0))
+        start += n
+    assert np.allclose(got, np.concatenate(expected), atol=1e-12)
