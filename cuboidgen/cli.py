@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import os
 import sys
 from dataclasses import asdict
@@ -12,35 +11,19 @@ from typing import Optional
 
 import typer
 from rich.console import Console
-from rich.logging import RichHandler
 from rich.table import Table
+
+from shared.console import console, fail, setup_logging
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Synthetic cuboid samples into a capped spool.")
 occluders_app = typer.Typer(no_args_is_help=True, help="Occluder libraries: extract cutouts, preview them.")
 app.add_typer(occluders_app, name="occluders")
-console = Console(stderr=True)
 
 
 class ShapeChoice(str, Enum):
     box = "box"
     twobox = "twobox"
     mix = "mix"
-
-
-def setup_logging(verbose: bool = False) -> None:
-    if console.is_terminal:
-        handler = RichHandler(console=console, show_path=False)
-        handler.setFormatter(logging.Formatter("%(message)s"))  # rich adds time and level itself
-    else:
-        handler = logging.StreamHandler()
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
-
-
-def fail(message: str) -> None:
-    """One line on stderr and a non-zero exit: how every bad value is reported."""
-    console.print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
-    raise typer.Exit(2)
 
 
 @app.command()

@@ -1,14 +1,125 @@
-"""`cuboidtrain`: the trainer daemon's command line (training arrives with its issue)."""
+"""`cuboidtrain`: parse options, build a TrainConfig, call the library. Nothing else lives here."""
 from __future__ import annotations
+
+import json
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Optional
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True)
+from shared.console import console, fail, setup_logging
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run.")
 
 
-@app.callback()
-def cuboidtrain() -> None:
-    """Train the Refiner, Estimator and Tabulator from a spool (training is not implemented yet)."""
+class PhaseChoice(str, Enum):
+    one = "1"
+    two = "2"
+    e2e = "e2e"
+    finetune = "finetune"
+
+
+class ShapeChoice(str, Enum):
+    box = "box"
+    twobox = "twobox"
+
+
+@app.command()
+def run(
+    phase: PhaseChoice = typer.Option(PhaseChoice.one, help="1: each network alone; 2: chained with all losses; e2e / finetune: the paper's ablations (final loss only)."),
+    spool: Path = typer.Option(Path("data_spool"), help="Spool folder, enumerated afresh every epoch."),
+    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Shape class of the model."),
+    size: int = typer.Option(256, help="Model input size in px (a multiple of 32); the spool's samples must match."),
+    steps: Optional[int] = typer.Option(None, help="Train until this step (neither --steps nor --epochs: until stopped)."),
+    epochs: Optional[int] = typer.Option(None, help="Or this many epochs over the spool."),
+    batch_size: int = typer.Option(32, help="Samples per step."),
+    lr: float = typer.Option(1e-3, help="Adam learning rate."),
+    lr_schedule: str = typer.Option("constant", help="constant, or cosine (decays to lr/100 at --steps)."),
+    max_minutes: Optional[float] = typer.Option(None, help="Stop, with a checkpoint, after this many minutes."),
+    weight_decay: float = typer.Option(1e-5, help="Adam's L2 penalty."),
+    sigma: Optional[float] = typer.Option(None, help="Heat-map Gaussian std in px (default size/128, at least 1)."),
+    alpha_r: float = typer.Option(1.0, help="Phase 2 weight of D_R."),
+    alpha_s: float = typer.Option(1.0, help="Phase 2 weight of D_S."),
+    alpha_t: float = typer.Option(1.0, help="Phase 2 weight of D_T."),
+    ratio_weight: float = typer.Option(1.0, help="Weight of the ratio term in D_T."),
+    init: Optional[Path] = typer.Option(None, help="Start from this checkpoint's weights (phase 2, finetune)."),
+    out: Optional[Path] = typer.Option(None, help="Run folder (default runs/p1, runs/p2, runs/e2e, runs/finetune)."),
+    resume: bool = typer.Option(False, help="Continue OUT/last.pt exactly: weights, optimizer, step, data order, RNG."),
+    checkpoint_every: int = typer.Option(500, help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
+    log_every: int = typer.Option(10, help="Steps between records in OUT/metrics.jsonl."),
+    loader_workers: int = typer.Option(2, help="DataLoader worker processes reading the spool."),
+    seed: int = typer.Option(0, help="Seed of the initial weights and the epoch order."),
+    device: str = typer.Option("auto", help="auto (CUDA when present), cpu, cuda or cuda:N."),
+    amp: bool = typer.Option(True, "--amp/--no-amp", help="bfloat16 autocast on CUDA (ignored on the CPU)."),
+    dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", help="Live dashboard (else log lines)."),
+    val_spool: Optional[Path] = typer.Option(None, help="Validation spool, evaluated every --val-every steps."),
+    val_every: int = typer.Option(1000, help="Steps between validations."),
+    val_samples: int = typer.Option(256, help="Validation samples per evaluation."),
+) -> None:
+    """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
+    from cuboidtrain.config import TrainConfig
+    from cuboidtrain.dashboard import Dashboard
+    from cuboidtrain.train import run as run_training
+
+    setup_logging()
+    try:
+        config = TrainConfig(
+            phase=phase.value, spool=str(spool), shape=shape.value, size=size, steps=steps, epochs=epochs,
+            batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, max_minutes=max_minutes, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
+            alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
+            out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
+            resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
+            seed=seed, device=device, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
+            val_every=val_every, val_samples=val_samples,
+        ).validate()
+        if not spool.is_dir():
+            raise ValueError(f"--spool {spool}: no such folder (start `cuboidgen run --spool {spool} --size {size}` first)")
+        with Dashboard(live=dashboard and sys.stdout.isatty()) as board:
+            status = run_training(config, dashboard=board)
+    except ValueError as exc:
+        fail(str(exc))
+    console.print(f"{status['state']} at step {status['step']}; checkpoint {status['last_checkpoint']['path']}")
+
+
+@app.command("eval")
+def evaluate(
+    checkpoint: Path = typer.Option(..., help="Checkpoint to evaluate."),
+    spool: Path = typer.Option(..., help="Validation spool (e.g. `cuboidgen run --scene paper-clean --limit 0 --max-samples 1000`)."),
+    batch_size: int = typer.Option(32, help="Samples per forward pass."),
+    max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
+    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
+    from cuboidtrain.evaluate import evaluate_checkpoint, format_report
+
+    setup_logging()
+    try:
+        result = evaluate_checkpoint(checkpoint, spool, device=device, batch_size=batch_size, max_samples=max_samples)
+    except ValueError as exc:
+        fail(str(exc))
+    typer.echo(json.dumps(result, indent=2) if as_json else format_report(result))
+
+
+@app.command()
+def watch(
+    out: Path = typer.Argument(..., help="A run folder (holding status.json)."),
+    interval: float = typer.Option(1.0, help="Seconds between refreshes."),
+    once: bool = typer.Option(False, help="Print the dashboard once and exit."),
+) -> None:
+    """Show a running (or finished) training run's dashboard from another terminal."""
+    from cuboidtrain.dashboard import watch as watch_run
+
+    try:
+        code = watch_run(out, interval=interval, once=once)
+    except ValueError as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        code = 0
+    raise typer.Exit(code)
 
 
 @app.command()

@@ -1,0 +1,99 @@
+"""Checkpoints: one torch file with explicit keys, a format and a version, written atomically.
+
+A checkpoint records the shape class, size, heat-map sigma and the whole
+TrainConfig beside the weights; for `--resume` also the optimizer, the step,
+the loader's position and every RNG, so the next step is the one that would
+have run. Writing goes to a temporary file in the same folder, then
+`os.replace`: a reader (or a crash) sees the old file or the new one, never half.
+"""
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.data import LoaderState
+from cuboidtrain.networks import CuboidNet
+
+FORMAT = "cuboid-fit/checkpoint"
+VERSION = 1
+
+
+def rng_state() -> dict:
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, step: int,
+                    optimizer: torch.optim.Optimizer | None = None, loader: LoaderState | None = None,
+                    metrics: dict | None = None) -> Path:
+    path = Path(path)
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "shape": model.shape,
+        "size": model.size,
+        "sigma": config.heatmap_sigma,
+        "config": config.resolved().to_dict(),
+        "step": step,
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict() if optimizer is not None else None,
+        "loader": vars(loader) if loader is not None else None,
+        "rng": rng_state(),
+        "metrics": metrics or {},
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None = None) -> dict:
+    """The checkpoint's dict, checked; ValueError names what is wrong with it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"checkpoint {path}: no such file")
+    try:
+        # weights_only=False: the payload holds RNG states (numpy arrays, tuples); only load your own files
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises many types for a truncated or foreign file
+        raise ValueError(f"checkpoint {path}: cannot read it ({type(exc).__name__}: {exc})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ValueError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r})")
+    if ckpt.get("version") != VERSION:
+        raise ValueError(f"checkpoint {path}: format version {ckpt.get('version')!r}, expected {VERSION}")
+    if shape is not None and ckpt["shape"] != shape:
+        raise ValueError(f"checkpoint {path}: a {ckpt['shape']!r} model, expected {shape!r}")
+    if size is not None and ckpt["size"] != size:
+        raise ValueError(f"checkpoint {path}: a {ckpt['size']} px model, expected {size} px")
+    return ckpt
+
+
+def load_model(path: str | Path, shape: str | None = None, size: int | None = None) -> tuple[CuboidNet, dict]:
+    """A model rebuilt from its checkpoint (on the CPU, in eval mode) and the checkpoint dict."""
+    ckpt = load_checkpoint(path, shape, size)
+    model = CuboidNet(ckpt["shape"], ckpt["size"])
+    model.load_state_dict(ckpt["model"])
+    return model.eval(), ckpt
+
+
+def loader_state(ckpt: dict) -> LoaderState | None:
+    return LoaderState(**ckpt["loader"]) if ckpt.get("loader") else None

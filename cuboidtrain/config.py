@@ -1,0 +1,105 @@
+"""TrainConfig: every option of `cuboidtrain run`, one field each, with units.
+
+The resolved config is stored in every checkpoint (STYLE.md), so a model file
+says exactly how it was trained.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+
+from shared.shapes import get_shape
+
+# Phase 1 and 2 are the paper's scheme (3.3.2); the other two are its ablations (4.1.1).
+PHASES = {
+    "1": "each network alone on ground-truth inputs (x1->R, x2->S, x3->T)",
+    "2": "R, S, T chained, loss aR*D_R + aS*D_S + aT*D_T",
+    "e2e": "ablation: R, S, T chained from scratch, final loss D_T only",
+    "finetune": "ablation: a trained model fine-tuned chained, final loss D_T only",
+}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    phase: str = "1"
+    spool: str = "data_spool"
+    shape: str = "box"
+    size: int = 256  # px, the model's square input
+    steps: int | None = None  # train until this step (a run's steps count from 0; --resume continues the count)
+    epochs: int | None = None  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
+    batch_size: int = 32
+    lr: float = 1e-3  # Adam
+    lr_schedule: str = "constant"  # or "cosine": decays to lr/100 at --steps (needs --steps)
+    max_minutes: float | None = None  # stop (with a checkpoint) after this much wall time
+    weight_decay: float = 1e-5  # Adam's L2 penalty (paper 3.2)
+    sigma: float | None = None  # heat-map Gaussian std in px; None: size/128, at least 1
+    alpha_r: float = 1.0  # phase 2 weights of eq. (1)
+    alpha_s: float = 1.0
+    alpha_t: float = 1.0
+    ratio_weight: float = 1.0  # weight of the ratio term inside D_T
+    init: str | None = None  # checkpoint whose weights start this run (phase 2, finetune)
+    out: str = "runs/p1"
+    resume: bool = False  # continue OUT/last.pt exactly
+    checkpoint_every: int = 500  # steps
+    log_every: int = 10  # steps between metrics.jsonl records
+    loader_workers: int = 2  # DataLoader processes reading the spool
+    seed: int = 0
+    device: str = "auto"  # auto: cuda when present, else cpu
+    amp: bool = True  # mixed precision (CUDA only)
+    dashboard: bool = True
+    val_spool: str | None = None  # evaluated every val_every steps when set
+    val_every: int = 1000
+    val_samples: int = 256
+
+    def validate(self) -> "TrainConfig":
+        if self.phase not in PHASES:
+            raise ValueError(f"--phase {self.phase!r}: expected one of {', '.join(PHASES)}")
+        get_shape(self.shape)
+        if self.size < 32 or self.size % 32:
+            raise ValueError(f"--size {self.size}: expected a multiple of 32, at least 32 (ResNet-18 halves it 5 times)")
+        if self.steps is not None and self.epochs is not None:
+            raise ValueError("give --steps or --epochs, not both")
+        for name in ("steps", "epochs", "batch_size", "checkpoint_every", "log_every", "val_every", "val_samples"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"--{name.replace('_', '-')} {value}: expected a positive integer")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"--lr-schedule {self.lr_schedule!r}: expected constant or cosine")
+        if self.lr_schedule == "cosine" and self.steps is None:
+            raise ValueError("--lr-schedule cosine needs --steps N: the step it decays to")
+        if self.max_minutes is not None and self.max_minutes <= 0:
+            raise ValueError(f"--max-minutes {self.max_minutes}: expected a positive number")
+        if self.loader_workers < 0:
+            raise ValueError(f"--loader-workers {self.loader_workers}: expected 0 or more")
+        if self.sigma is not None and self.sigma <= 0:
+            raise ValueError(f"--sigma {self.sigma}: expected a positive number of px")
+        if self.lr <= 0 or self.weight_decay < 0:
+            raise ValueError(f"--lr {self.lr} / --weight-decay {self.weight_decay}: expected lr > 0, decay >= 0")
+        if self.phase == "finetune" and not (self.init or self.resume):
+            raise ValueError("--phase finetune needs --init CKPT: the trained model to fine-tune")
+        if self.phase == "e2e" and self.init:
+            raise ValueError("--phase e2e trains from scratch: drop --init (or use --phase finetune)")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"--device {self.device!r}: expected auto, cpu, cuda or cuda:N")
+        return self
+
+    @property
+    def heatmap_sigma(self) -> float:
+        return self.sigma if self.sigma is not None else max(1.0, self.size / 128)
+
+    @property
+    def loss_weights(self) -> tuple[float, float, float]:
+        """(aR, aS, aT) for this phase: the ablations keep only the final loss."""
+        if self.phase in ("e2e", "finetune"):
+            return (0.0, 0.0, 1.0)
+        return (self.alpha_r, self.alpha_s, self.alpha_t)
+
+    def resolved(self) -> "TrainConfig":
+        return replace(self, sigma=self.heatmap_sigma)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known})

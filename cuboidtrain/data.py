@@ -1,0 +1,177 @@
+"""Spool-backed data loading: the spool is enumerated afresh at every epoch (paper 3.3.2).
+
+The sampler runs in the main process. At each epoch's start it lists the spool,
+shuffles the names with a seed derived from (run seed, epoch) and yields
+batches of names; DataLoader workers turn a batch of names into packed arrays.
+So the loader's state is just (epoch, order, position): a checkpoint stores it
+and `--resume` continues with the very next batch.
+
+A name may vanish (the generator evicted it) or hold bad bytes between listing
+and reading; such samples are skipped and counted, never a crash. Samples of
+another shape class or size are skipped and counted too: a `mix` spool feeds a
+`box` and a `twobox` trainer at once.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from shared.sample import collate, decode_record
+from shared.spool import enumerate_spool, name_time, read_sample_bytes
+
+log = logging.getLogger(__name__)
+
+SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size")
+
+
+class SpoolBatches(Dataset):
+    """Index: a list of sample names. Item: one collated batch, masks still bit-packed."""
+
+    def __init__(self, spool: str | Path, shape: str, size: int):
+        self.spool, self.shape, self.size = Path(spool), shape, size
+
+    def __getitem__(self, names: list[str]) -> dict:
+        records, kept, skipped = [], [], dict.fromkeys(SKIP_REASONS, 0)
+        for name in names:
+            reason, record = self._read(name)
+            if reason:
+                skipped[reason] += 1
+                continue
+            records.append(record)
+            kept.append(name)
+        batch = collate(records, unpack=False) if records else {}
+        batch = {k: torch.from_numpy(v) for k, v in batch.items()}
+        batch["names"] = kept
+        batch["skipped"] = skipped
+        return batch
+
+    def _read(self, name: str) -> tuple[str | None, dict | None]:
+        data = read_sample_bytes(self.spool, name)
+        if data is None:
+            return "vanished", None
+        try:
+            record = decode_record(data)
+        except ValueError:
+            return "corrupt", None
+        if record["shape"] != self.shape:
+            return "other_shape", None
+        if record["size"] != self.size:
+            return "other_size", None
+        return None, record
+
+    def __len__(self) -> int:  # DataLoader asks; the sampler decides what an epoch is
+        return len(enumerate_spool(self.spool))
+
+
+@dataclass
+class LoaderState:
+    """Where the loader stands: the current epoch's order and the next batch to train on."""
+
+    epoch: int = 0
+    order: list[str] = field(default_factory=list)
+    position: int = 0  # batches of `order` already trained on
+
+
+class EpochSampler(Sampler):
+    """Yields the batches of one epoch per `iter()`: the spool as listed at the epoch's start.
+
+    Waits (polling) while the spool holds fewer than one batch, so a trainer can
+    start before its generator.
+    """
+
+    def __init__(self, spool: str | Path, batch_size: int, seed: int, wait: float = 0.5, timeout: float | None = None):
+        self.spool, self.batch_size, self.seed = Path(spool), batch_size, seed
+        self.wait, self.timeout = wait, timeout
+        self.state = LoaderState()
+        self.on_listing = None  # called with each epoch's listing (the trainer's freshness and spool count)
+        self._resume = False  # True: the next iter() continues `state` instead of starting a new epoch
+
+    def resume_from(self, state: LoaderState) -> None:
+        self.state, self._resume = state, True
+
+    def __iter__(self):
+        if not self._resume:
+            epoch = self.state.epoch + 1 if self.state.order else 0
+            self.state = LoaderState(epoch, self._shuffled(epoch), 0)
+        self._resume = False
+        state = self.state
+        for start in range(state.position * self.batch_size, len(state.order) - self.batch_size + 1, self.batch_size):
+            yield state.order[start : start + self.batch_size]
+
+    def __len__(self) -> int:
+        return len(self.state.order) // self.batch_size
+
+    def epochs_done(self) -> int:
+        """Epochs trained to their end: the current one counts once its last batch is taken."""
+        s = self.state
+        return s.epoch + (1 if s.order and s.position >= len(self) else 0)
+
+    def _shuffled(self, epoch: int) -> list[str]:
+        names = self._listing()
+        rng = np.random.default_rng([self.seed, epoch])
+        return [names[i] for i in rng.permutation(len(names))]
+
+    def _listing(self) -> list[str]:
+        started = time.monotonic()
+        while True:
+            names = enumerate_spool(self.spool)
+            if len(names) >= self.batch_size:
+                if self.on_listing is not None:
+                    self.on_listing(names)
+                return names
+            if self.timeout is not None and time.monotonic() - started > self.timeout:
+                raise TimeoutError(
+                    f"spool {self.spool}: {len(names)} samples after {self.timeout:.0f} s, need at least one batch ({self.batch_size})"
+                )
+            time.sleep(self.wait)
+
+
+def make_loader(spool: str | Path, shape: str, size: int, batch_size: int, seed: int, workers: int,
+                pin_memory: bool = False, timeout: float | None = None,
+                worker_init_fn=None) -> tuple[DataLoader, EpochSampler]:
+    sampler = EpochSampler(spool, batch_size, seed, timeout=timeout)
+    loader = DataLoader(
+        SpoolBatches(spool, shape, size),
+        sampler=sampler,
+        batch_size=None,  # the sampler yields whole batches of names
+        num_workers=workers,
+        pin_memory=pin_memory,
+        persistent_workers=workers > 0,
+        prefetch_factor=4 if workers > 0 else None,
+        collate_fn=_as_is,
+        worker_init_fn=worker_init_fn,
+    )
+    return loader, sampler
+
+
+def _as_is(batch: dict) -> dict:
+    return batch  # SpoolBatches already returns tensors
+
+
+class Freshness:
+    """How fresh the samples trained on are: their age and how often each was used before."""
+
+    def __init__(self):
+        self.uses: dict[str, int] = {}
+
+    def observe(self, names: list[str], now: float | None = None) -> tuple[float, float]:
+        """Counts one more use of each name; returns (mean age s, mean earlier uses) of the batch."""
+        now = time.time() if now is None else now
+        if not names:
+            return 0.0, 0.0
+        ages = [now - name_time(n) for n in names]
+        earlier = [self.uses.get(n, 0) for n in names]
+        for n in names:
+            self.uses[n] = self.uses.get(n, 0) + 1
+        return float(np.mean(ages)), float(np.mean(earlier))
+
+    def forget_except(self, names: list[str]) -> None:
+        """Drop counts of evicted samples so memory stays bounded by the spool."""
+        live = set(names)
+        self.uses = {n: c for n, c in self.uses.items() if n in live}

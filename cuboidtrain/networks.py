@@ -1,0 +1,146 @@
+"""The three networks of paper 3.2, all on torchvision's ResNet-18.
+
+Refiner (R): FCN, mask (B, 1, H, W) -> refined mask (B, 1, H, W), tanh.
+Estimator (S): FCN, mask (B, 1, H, W) -> heat maps (B, N, H, W), sigmoid.
+Tabulator (T): CNN, heat maps (B, N, H, W) -> keypoints (B, N, 2) in px and ratios (B, R).
+
+The FCNs are U-Nets: the ResNet-18 encoder runs at strides 2..32 and a decoder
+climbs back with a skip connection at every stride, down to a full-resolution
+branch on the input itself. Without that last skip a peak could only be placed
+to within the stride of the coarsest feature it came from; with it the
+heat maps are sharp at the pixel, which the sub-pixel target needs.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchvision.models import resnet18
+
+from shared.shapes import get_shape
+
+DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1
+
+
+def resnet18_backbone(in_channels: int) -> nn.Module:
+    """torchvision's ResNet-18, untrained, its stem taking `in_channels` channels."""
+    net = resnet18(weights=None)
+    net.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
+    return net
+
+
+def conv_block(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+        nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+    )
+
+
+class UNetResNet18(nn.Module):
+    """ResNet-18 encoder, skip-connected decoder, 1x1 head: (B, cin, H, W) -> (B, cout, H, W) logits."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__()
+        r = resnet18_backbone(in_channels)
+        self.stem = nn.Sequential(r.conv1, r.bn1, r.relu)  # stride 2, 64 ch
+        self.pool = r.maxpool
+        self.layers = nn.ModuleList([r.layer1, r.layer2, r.layer3, r.layer4])  # strides 4, 8, 16, 32
+        self.full = conv_block(in_channels, DECODER_WIDTHS[-1])  # stride 1: the input's own detail
+        skips = (256, 128, 64, 64, DECODER_WIDTHS[-1])  # channels of what joins at strides 16, 8, 4, 2, 1
+        cin = 512
+        self.up = nn.ModuleList()
+        for skip, width in zip(skips, DECODER_WIDTHS):
+            self.up.append(conv_block(cin + skip, width))
+            cin = width
+        self.head = nn.Conv2d(cin, out_channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        full = self.full(x)
+        s2 = self.stem(x)
+        features = [self.pool(s2)]
+        for layer in self.layers:
+            features.append(layer(features[-1]))
+        s4, s8, s16, s32 = features[1:]
+        y = s32
+        for block, skip in zip(self.up, (s16, s8, s4, s2, full)):
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            y = block(torch.cat([y, skip], dim=1))
+        return self.head(y)
+
+
+class Refiner(nn.Module):
+    """Noisy, occluded mask -> clean mask, both +1 object / -1 background."""
+
+    def __init__(self):
+        super().__init__()
+        self.net = UNetResNet18(1, 1)
+
+    def forward(self, mask: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(mask))
+
+
+class Estimator(nn.Module):
+    """Mask -> one heat map per keypoint, each in (0, 1)."""
+
+    def __init__(self, num_keypoints: int):
+        super().__init__()
+        self.net = UNetResNet18(1, num_keypoints)
+
+    def forward(self, mask: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.net(mask))
+
+
+class Tabulator(nn.Module):
+    """Heat maps -> keypoints (px, pixel-centre convention) and the shape's ratios.
+
+    Two coordinate channels (x and y in [-1, 1], CoordConv) join the heat maps:
+    a pooled CNN must otherwise infer position from padding effects alone.
+    Coordinates are sigmoid * size - 0.5, which spans the image edge to edge
+    when integers are pixel centres. The head runs in float32 even under
+    autocast: a float16 256 has a step of 0.25 px, a bfloat16 one of 2 px.
+    """
+
+    def __init__(self, num_keypoints: int, num_ratios: int, size: int):
+        super().__init__()
+        self.num_keypoints, self.num_ratios, self.size = num_keypoints, num_ratios, size
+        net = resnet18_backbone(num_keypoints + 2)
+        self.features = nn.Sequential(*list(net.children())[:-1])  # everything up to the pooled 512 vector
+        self.fc = nn.Linear(512, num_keypoints * 2 + num_ratios)
+        ramp = torch.linspace(-1.0, 1.0, size)
+        self.register_buffer("coords", torch.stack(torch.meshgrid(ramp, ramp, indexing="xy")), persistent=False)
+
+    def forward(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        b = heatmaps.shape[0]
+        coords = self.coords.to(heatmaps.dtype).expand(b, -1, -1, -1)
+        pooled = self.features(torch.cat([heatmaps, coords], dim=1)).flatten(1)  # (B, 512)
+        with torch.autocast(device_type=pooled.device.type, enabled=False):
+            out = self.fc(pooled.float())
+        n = self.num_keypoints
+        keypoints = torch.sigmoid(out[:, : 2 * n]).view(b, n, 2) * self.size - 0.5
+        ratios = F.softplus(out[:, 2 * n :])  # ratios of extents are positive
+        return keypoints, ratios
+
+
+class CuboidNet(nn.Module):
+    """R, S and T for one shape class at one size; `forward` chains them (inference, phase 2)."""
+
+    def __init__(self, shape: str, size: int):
+        super().__init__()
+        geometry = get_shape(shape)
+        self.shape, self.size = shape, size
+        self.refiner = Refiner()
+        self.estimator = Estimator(geometry.num_keypoints)
+        self.tabulator = Tabulator(geometry.num_keypoints, len(geometry.ratio_names), size)
+
+    def forward(self, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        refined = self.refiner(mask)
+        heatmaps = self.estimator(refined)
+        keypoints, ratios = self.tabulator(heatmaps)
+        return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios}
+
+
+def build_model(shape: str, size: int, seed: int = 0) -> CuboidNet:
+    """A freshly initialised model; the same seed gives the same weights."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return CuboidNet(shape, size)

@@ -1,0 +1,198 @@
+"""What a training run reports: the status (dashboard, `OUT/status.json`), metrics.jsonl, TensorBoard.
+
+The loop tells `Progress` what happened (a batch fetched, a step taken, a
+checkpoint written); Progress keeps the running figures and publishes them at
+most once a second, so reporting costs nothing next to a step.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections import Counter, deque
+from pathlib import Path
+
+import torch
+
+from cuboidtrain.config import PHASES, TrainConfig
+from cuboidtrain.dashboard import write_status
+
+log = logging.getLogger(__name__)
+
+WINDOW = 20  # steps over which rates and the data-wait fraction are measured
+HISTORY = 120  # loss values kept for the dashboard's trend
+EMA = 0.1  # weight of the newest loss in the smoothed value
+STARVING = 0.05  # data wait above this fraction of step time is a problem (DESIGN.md)
+PUBLISH_EVERY = 1.0  # s
+
+
+def tensorboard_writer(out: Path):
+    """A SummaryWriter when tensorboard is installed, else None (it is optional)."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(out / "tensorboard"))
+
+
+class Progress:
+    def __init__(self, config: TrainConfig, device: torch.device, watcher, dashboard=None):
+        self.config, self.out, self.watcher, self.dashboard = config, Path(config.out), watcher, dashboard
+        self.tensorboard = tensorboard_writer(self.out)
+        self.smoothed: dict[str, float] = {}
+        self.history = {k: deque(maxlen=HISTORY) for k in ("D_R", "D_S", "D_T", "total")}
+        self.recent = deque(maxlen=WINDOW)  # (samples, waited s, step s) per step
+        self.logged = {"losses": Counter(), "steps": 0}  # sums since the last metrics record
+        self.skipped = Counter(dict.fromkeys(("vanished", "corrupt", "other_shape", "other_size"), 0))
+        self.freshness = {"mean_age_s": None, "mean_reuse": None}
+        self.last_end = time.perf_counter()
+        self.last_publish = 0.0
+        self._status = {
+            "phase": config.phase, "phase_meaning": PHASES[config.phase], "shape": config.shape, "size": config.size,
+            "device": str(device), "out": str(self.out), "spool": config.spool, "state": "starting",
+            "pid": os.getpid(), "started": time.time(), "updated": time.time(),
+            "step": 0, "steps_total": config.steps, "epoch": 0, "epochs_total": config.epochs,
+            "batch_in_epoch": 0, "batches_in_epoch": 0, "loss_weights": list(config.loss_weights),
+            "last_checkpoint": None, "val": None, "notes": [],
+        }
+
+    # ---- events from the loop
+
+    def begin(self, step: int, sampler) -> None:
+        self.sampler = sampler
+        self._status["step"] = step
+        self._publish(force=True)
+
+    def state(self, state: str) -> None:
+        if state != self._status["state"]:
+            self._status["state"] = state
+            self._publish(force=True)
+
+    def fetched(self) -> float:
+        """Called when a batch arrives: seconds waited for it since the last step ended."""
+        self.fetch_time = time.perf_counter()
+        return self.fetch_time - self.last_end
+
+    def skip(self, skipped: dict) -> None:
+        self.skipped.update(skipped)
+
+    def step(self, step: int, losses: dict, samples: int, waited: float, age: float, reuse: float, skipped: dict) -> None:
+        now = time.perf_counter()
+        self.recent.append((samples, waited, now - self.last_end))
+        self.last_end = now
+        self.skipped.update(skipped)
+        self.freshness = {"mean_age_s": age, "mean_reuse": reuse}
+        for key, value in losses.items():
+            previous = self.smoothed.get(key, value)
+            self.smoothed[key] = previous + EMA * (value - previous)
+            self.history[key].append(value)
+        self.logged["losses"].update(losses)
+        self.logged["steps"] += 1
+        self._status["step"] = step
+        if step % self.config.log_every == 0:
+            self._record(step)
+        self._publish()
+
+    def checkpointed(self, path: Path, step: int) -> None:
+        self._status["last_checkpoint"] = {"path": str(path), "step": step, "time": time.time()}
+        self._publish(force=True)
+
+    def validated(self, step: int, result: dict) -> None:
+        self._status["val"] = {"step": step, **{k: result[k] for k in ("mean_px_error", "median_px_error")}}
+        self._write_metrics({"step": step, "time": time.time(), "val": self._status["val"]})
+        if self.tensorboard is not None:
+            self.tensorboard.add_scalar("val/mean_px_error", result["mean_px_error"], step)
+        self._publish(force=True)
+
+    # ---- figures
+
+    def rates(self) -> dict:
+        samples = sum(r[0] for r in self.recent)
+        total = sum(r[2] for r in self.recent)
+        waited = sum(r[1] for r in self.recent)
+        return {
+            "samples_per_s": samples / total if total else None,
+            "step_time_s": total / len(self.recent) if self.recent else None,
+            "data_wait_fraction": waited / total if total else None,
+        }
+
+    def metrics(self) -> dict:
+        return {**self.smoothed, **self.rates()}
+
+    def status(self) -> dict:
+        s = self.sampler.state
+        rates = self.rates()
+        self._status.update(
+            rates,
+            updated=time.time(),
+            epoch=s.epoch,
+            batch_in_epoch=s.position,
+            batches_in_epoch=len(self.sampler),
+            losses=dict(self.smoothed),
+            loss_history={k: list(v) for k, v in self.history.items()},
+            freshness=dict(self.freshness),
+            skipped=dict(self.skipped),
+            spool_samples=self.watcher.count,
+            eta_s=self._eta(rates["step_time_s"]),
+            notes=self._notes(rates),
+        )
+        return dict(self._status)
+
+    def _eta(self, step_time: float | None) -> float | None:
+        if step_time is None or (self.config.steps is None and self.config.epochs is None):
+            return None
+        if self.config.steps is not None:
+            return max(0, self.config.steps - self._status["step"]) * step_time
+        s, per_epoch = self.sampler.state, len(self.sampler)
+        remaining = (self.config.epochs - s.epoch - 1) * per_epoch + (per_epoch - s.position)
+        return max(0, remaining) * step_time
+
+    def _notes(self, rates: dict) -> list[str]:
+        notes = []
+        wait = rates["data_wait_fraction"]
+        if wait is not None and wait > STARVING and len(self.recent) == WINDOW:
+            notes.append(f"data wait {wait:.0%} of step time: the loader is starving (more --loader-workers, or a faster spool disk)")
+        if self.skipped["other_size"]:
+            notes.append(f"{self.skipped['other_size']} samples of another size skipped: run cuboidgen with --size {self.config.size}")
+        if self.skipped["other_shape"]:
+            notes.append(f"{self.skipped['other_shape']} samples of another shape skipped (a mix spool, or the wrong --shape)")
+        return notes
+
+    # ---- outputs
+
+    def _record(self, step: int) -> None:
+        n = max(self.logged["steps"], 1)
+        record = {"step": step, "epoch": self.sampler.state.epoch, "time": time.time(),
+                  **{k: v / n for k, v in self.logged["losses"].items()}, **self.rates(),
+                  **self.freshness, "skipped": dict(self.skipped)}
+        self.logged = {"losses": Counter(), "steps": 0}
+        self._write_metrics(record)
+        if self.tensorboard is not None:
+            for key in ("D_R", "D_S", "D_T", "total", "samples_per_s", "data_wait_fraction"):
+                if record.get(key) is not None:
+                    self.tensorboard.add_scalar(key if key.startswith("D_") or key == "total" else f"speed/{key}",
+                                                record[key], step)
+
+    def _write_metrics(self, record: dict) -> None:
+        with open(self.out / "metrics.jsonl", "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def _publish(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self.last_publish < PUBLISH_EVERY:
+            return
+        self.last_publish = now
+        status = self.status()
+        status["spool_arrivals_per_s"] = self.watcher.arrivals_per_s()
+        self._status["spool_arrivals_per_s"] = status["spool_arrivals_per_s"]
+        write_status(self.out, status)
+        if self.dashboard is not None:
+            self.dashboard.update(status)
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.tensorboard is not None:
+            self.tensorboard.close()

@@ -1,0 +1,177 @@
+"""The training daemon: `run(config)` trains R, S and T from the rolling spool.
+
+One loop, in labelled phases: fetch a batch (timed: that is the data wait),
+render its targets on the device, forward/backward/step, account, report,
+checkpoint, stop. SIGTERM and Ctrl-C finish the step in hand, write a
+checkpoint and return.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import signal
+import time
+from pathlib import Path
+
+import torch
+
+from cuboidtrain.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.data import SKIP_REASONS, Freshness, make_loader
+from cuboidtrain.heatmaps import prepare_batch
+from cuboidtrain.losses import combine, phase_losses
+from cuboidtrain.networks import CuboidNet, build_model
+from cuboidtrain.progress import Progress
+from cuboidtrain.spoolwatch import SpoolWatcher
+
+log = logging.getLogger(__name__)
+
+LAST = "last.pt"
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine")
+    return torch.device(name)
+
+
+class StopRequest:
+    """Set by SIGTERM or SIGINT; the loop checks it between steps."""
+
+    def __init__(self):
+        self.signal: int | None = None
+
+    def __bool__(self) -> bool:
+        return self.signal is not None
+
+    @contextlib.contextmanager
+    def installed(self):
+        handler = lambda signum, frame: setattr(self, "signal", signum)  # noqa: E731
+        previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            yield self
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+
+def _ignore_sigint(_worker_id: int) -> None:
+    # Ctrl-C reaches the whole process group; the main process decides when to stop,
+    # so a loader worker must not die under it mid-epoch.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def build_state(config: TrainConfig, device: torch.device) -> tuple[CuboidNet, torch.optim.Optimizer, int, dict | None]:
+    """Model, optimizer, first step and a checkpoint to resume from (None for a fresh run)."""
+    torch.manual_seed(config.seed)
+    model = build_model(config.shape, config.size, config.seed)
+    resume = None
+    if config.resume:
+        resume = load_checkpoint(Path(config.out) / LAST, config.shape, config.size)
+        if resume["config"]["phase"] != config.phase:
+            raise ValueError(f"--resume: {config.out}/{LAST} is phase {resume['config']['phase']}, not {config.phase}")
+        model.load_state_dict(resume["model"])
+    elif config.init:
+        model.load_state_dict(load_checkpoint(config.init, config.shape, config.size)["model"])
+    model.to(device)
+    if device.type == "cuda":
+        model.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    if resume is not None:
+        optimizer.load_state_dict(resume["optimizer"])
+        set_rng_state(resume["rng"])
+    return model, optimizer, (resume["step"] if resume else 0), resume
+
+
+def train_step(model: CuboidNet, optimizer: torch.optim.Optimizer, x: dict, config: TrainConfig,
+               device: torch.device) -> dict[str, float]:
+    model.train()
+    amp = config.amp and device.type == "cuda"
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+        losses = phase_losses(model, x, config.phase, config.ratio_weight)
+    total = combine(losses, config.phase, config.loss_weights)
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    optimizer.step()
+    return {"D_R": losses["D_R"].item(), "D_S": losses["D_S"].item(), "D_T": losses["D_T"].item(), "total": total.item()}
+
+
+def learning_rate(config: TrainConfig, step: int) -> float:
+    """The rate for the step after `step`: constant, or cosine from lr down to lr/100 at --steps."""
+    if config.lr_schedule == "constant":
+        return config.lr
+    progress = min(step / config.steps, 1.0)
+    floor = config.lr / 100
+    return floor + (config.lr - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def finished(config: TrainConfig, step: int, epoch: int, started: float | None = None) -> bool:
+    if config.max_minutes is not None and started is not None and time.monotonic() - started > config.max_minutes * 60:
+        return True
+    if config.steps is not None:
+        return step >= config.steps
+    return config.epochs is not None and epoch >= config.epochs
+
+
+def run(config: TrainConfig, dashboard=None, stop: StopRequest | None = None, loader_timeout: float | None = None) -> dict:
+    """Trains until --steps or --epochs are done or a stop is requested; returns the final status."""
+    config = config.validate()
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(config.device)
+    model, optimizer, step, resume = build_state(config, device)
+    sigma = config.heatmap_sigma
+    loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
+                                  config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,
+                                  worker_init_fn=_ignore_sigint)
+    if resume is not None and loader_state(resume) is not None:
+        sampler.resume_from(loader_state(resume))
+    freshness = Freshness()
+    stop = stop if stop is not None else StopRequest()
+    started = time.monotonic()
+    (out / "config.json").write_text(json.dumps(config.resolved().to_dict(), indent=2))
+    with SpoolWatcher(config.spool) as watcher, Progress(config, device, watcher, dashboard) as progress:
+        sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names))
+        progress.begin(step, sampler)
+        while not stop and not finished(config, step, sampler.epochs_done(), started):
+            progress.state("waiting for samples" if watcher.count < config.batch_size else "training")
+            for batch in loader:  # one epoch: the spool as listed now
+                # 1. fetch: the time spent waiting for this batch is the data wait
+                waited = progress.fetched()
+                sampler.state.position += 1
+                if len(batch["names"]) < 2:  # BatchNorm needs two; the rest of this batch vanished
+                    progress.skip(batch["skipped"])
+                    continue
+                # 2. targets rendered on the device; forward, backward, step
+                x = prepare_batch(batch, device, sigma, config.size)
+                for group in optimizer.param_groups:
+                    group["lr"] = learning_rate(config, step)
+                losses = train_step(model, optimizer, x, config, device)
+                step += 1
+                # 3. account and report
+                age, reuse = freshness.observe(batch["names"])
+                progress.step(step, losses, len(batch["names"]), waited, age, reuse, batch["skipped"])
+                # 4. checkpoint, and validate when asked
+                if step % config.checkpoint_every == 0:
+                    progress.checkpointed(save_checkpoint(out / LAST, model, config, step, optimizer, sampler.state,
+                                                          progress.metrics()), step)
+                if config.val_spool and step % config.val_every == 0:
+                    progress.validated(step, validate(model, config, device))
+                if stop or finished(config, step, sampler.epochs_done(), started):
+                    break
+        # 5. the last checkpoint, also on SIGTERM / Ctrl-C
+        progress.state("checkpointing")
+        path = save_checkpoint(out / LAST, model, config, step, optimizer, sampler.state, progress.metrics())
+        progress.checkpointed(path, step)
+        progress.state("stopped" if stop else "done")
+        return progress.status()
+
+
+def validate(model: CuboidNet, config: TrainConfig, device: torch.device) -> dict:
+    from cuboidtrain.evaluate import evaluate  # evaluation pulls in nothing the loop needs otherwise
+
+    return evaluate(model, Path(config.val_spool), config.heatmap_sigma, device, max_samples=config.val_samples)
