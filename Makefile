@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean-spool
+.PHONY: demo test bench clean-spool recipe-cpu
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -29,3 +29,8 @@ bench: $(STAMP)
 
 clean-spool:
 	find data_spool -mindepth 1 ! -name .gitkeep -delete
+
+# The CPU recipe (recipes/cpu.sh): a 64 px box and twobox model, under an hour each on 2 cores.
+recipe-cpu: $(STAMP)
+	recipes/cpu.sh box
+	recipes/cpu.sh twobox

@@ -106,7 +106,10 @@ def scenes(name: Optional[str] = typer.Argument(None, help="Show one preset's ra
 
     if name is None:
         for preset in SCENES.values():
-            typer.echo(f"{preset.name}: {'ground-standing, tilted camera' if preset.eye_height else 'paper Table 4'}")
+            kind = "ground-standing, tilted camera" if preset.eye_height else "paper Table 4"
+            if preset.occluders == (0, 0) and preset.contour_noise == (0.0, 0.0):
+                kind += ", no occlusion or contour noise (Table 3's validation)"
+            typer.echo(f"{preset.name}: {kind}")
         return
     if name not in SCENES:
         fail(f"scene {name!r}: expected one of {', '.join(SCENES)}")
