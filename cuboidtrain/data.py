@@ -23,6 +23,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from shared.sample import collate, decode_record
+from shared.shapes import get_shape
 from shared.spool import enumerate_spool, name_time, read_sample_bytes
 
 log = logging.getLogger(__name__)
@@ -57,7 +58,9 @@ class SpoolBatches(Dataset):
             return "vanished", None
         try:
             record = decode_record(data)
-        except ValueError:
+            # decode_record checks the byte fields, not the ratio record; collate needs it whole
+            get_shape(record["shape"]).ratio_vector(record["ratios"])
+        except (ValueError, KeyError, TypeError):
             return "corrupt", None
         if record["shape"] != self.shape:
             return "other_shape", None

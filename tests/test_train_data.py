@@ -1,0 +1,309 @@
+"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, Freshness, SpoolWatcher."""
+from __future__ import annotations
+
+import os
+import re
+import threading
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+from cuboidtrain.data import SKIP_REASONS, EpochSampler, Freshness, LoaderState, SpoolBatches, make_loader
+from cuboidtrain.spoolwatch import SpoolWatcher
+from shared.sample import VERSION, encode
+from shared.shapes import get_shape
+from shared.spool import SpoolWriter, enumerate_spool
+from tests.conftest import SIZE, build_sample, fill_spool
+
+
+def sample_name(seq: int = 1, t_ns: int | None = None) -> str:
+    """A name a writer could have published (so the spool lists it)."""
+    t_ns = time.time_ns() if t_ns is None else t_ns
+    return f"{t_ns:019d}-testhost-1-abcdef-{seq:09d}.cub"
+
+
+def publish(spool: Path, samples, limit: int = 0) -> list[str]:
+    with SpoolWriter(spool, limit=limit) as writer:
+        return [writer.publish(encode(s)) for s in samples]
+
+
+def no_skips(**counts) -> dict:
+    return {**dict.fromkeys(SKIP_REASONS, 0), **counts}
+
+
+def consume(sampler: EpochSampler, batches: int | None = None) -> list[list[str]]:
+    """Iterate one epoch the way the trainer does: position advances with every batch taken."""
+    taken = []
+    for names in sampler:
+        taken.append(names)
+        sampler.state.position += 1
+        if batches is not None and len(taken) == batches:
+            break
+    return taken
+
+
+# ---- SpoolBatches ---------------------------------------------------------------------
+
+
+def test_spool_batches_returns_packed_masks_and_keeps_names(tmp_path):
+    names = fill_spool(tmp_path, 3)
+    dataset = SpoolBatches(tmp_path, "box", SIZE)
+    assert len(dataset) == 3
+    batch = dataset[[names[2], names[0]]]
+    assert batch["names"] == [names[2], names[0]]
+    assert batch["skipped"] == no_skips()
+    assert batch["noisy"].shape == batch["clean"].shape == (2, SIZE * SIZE // 8)
+    assert batch["noisy"].dtype == torch.uint8
+    assert batch["keypoints"].shape == (2, 8, 2) and batch["keypoints"].dtype == torch.float32
+    assert batch["ratios"].shape == (2, 2)
+    for row, seed in enumerate([2, 0]):  # fill_spool publishes seeds 0.. in order
+        sample = build_sample(seed)
+        assert np.array_equal(batch["noisy"][row].numpy(), np.packbits(sample.noisy))
+        assert np.array_equal(batch["clean"][row].numpy(), np.packbits(sample.clean))
+        assert np.allclose(batch["keypoints"][row].numpy(), sample.keypoints)
+        assert np.allclose(batch["ratios"][row].numpy(), get_shape("box").ratio_vector(sample.ratios))
+
+
+def test_a_name_evicted_after_listing_is_skipped_as_vanished(tmp_path):
+    names = fill_spool(tmp_path, 3)
+    listed = enumerate_spool(tmp_path)
+    os.unlink(tmp_path / names[1])
+    batch = SpoolBatches(tmp_path, "box", SIZE)[listed]
+    assert batch["names"] == [names[0], names[2]]
+    assert batch["skipped"] == no_skips(vanished=1)
+    assert batch["noisy"].shape[0] == 2
+
+
+def good_record() -> dict:
+    return msgpack.unpackb(encode(build_sample(0)))
+
+
+@pytest.mark.parametrize("bad_bytes", [
+    lambda: np.random.default_rng(0).bytes(300),  # garbage
+    lambda: b"",  # an empty file
+    lambda: encode(build_sample(0))[:-40],  # truncated
+    lambda: msgpack.packb({**good_record(), "version": VERSION + 1}, use_bin_type=True),  # a future format
+    lambda: msgpack.packb({**good_record(), "keypoints": b"\x00" * 8}, use_bin_type=True),  # a short field
+    lambda: msgpack.packb({**good_record(), "ratios": "none"}, use_bin_type=True),  # a malformed ratio record
+    lambda: msgpack.packb({**good_record(), "ratios": {"depth_height": 1.0}}, use_bin_type=True),  # one missing
+], ids=["garbage", "empty", "truncated", "future_version", "short_field", "ratios_not_a_map", "ratio_missing"])
+def test_bad_bytes_under_a_sample_name_are_skipped_as_corrupt(tmp_path, bad_bytes):
+    names = fill_spool(tmp_path, 2)
+    bad = sample_name()
+    (tmp_path / bad).write_bytes(bad_bytes())
+    batch = SpoolBatches(tmp_path, "box", SIZE)[[names[0], bad, names[1]]]
+    assert batch["names"] == names
+    assert batch["skipped"] == no_skips(corrupt=1)
+    assert batch["keypoints"].shape[0] == 2
+
+
+def test_other_shapes_and_sizes_are_skipped_and_counted(tmp_path):
+    boxes = publish(tmp_path, [build_sample(0), build_sample(1)])
+    twoboxes = publish(tmp_path, [build_sample(2, "twobox")])
+    small = publish(tmp_path, [build_sample(3, size=32), build_sample(4, size=32)])
+    everything = boxes + twoboxes + small
+    batch = SpoolBatches(tmp_path, "box", SIZE)[everything]
+    assert batch["names"] == boxes
+    assert batch["skipped"] == no_skips(other_shape=1, other_size=2)
+    batch = SpoolBatches(tmp_path, "twobox", SIZE)[everything]
+    assert batch["names"] == twoboxes and batch["keypoints"].shape == (1, 14, 2) and batch["ratios"].shape == (1, 4)
+    assert batch["skipped"] == no_skips(other_shape=4)  # the 32 px samples are boxes
+    batch = SpoolBatches(tmp_path, "box", 32)[everything]
+    assert batch["names"] == small
+    assert batch["skipped"] == no_skips(other_shape=1, other_size=2)
+
+
+def test_a_batch_with_nothing_usable_is_empty_not_an_error(tmp_path):
+    names = fill_spool(tmp_path, 1)
+    garbage = sample_name()
+    (tmp_path / garbage).write_bytes(b"\xc1" * 64)
+    os.unlink(tmp_path / names[0])
+    batch = SpoolBatches(tmp_path, "box", SIZE)[[names[0], garbage, sample_name(2)]]
+    assert batch["names"] == []
+    assert batch["skipped"] == no_skips(vanished=2, corrupt=1)
+    assert "noisy" not in batch
+    assert SpoolBatches(tmp_path, "box", SIZE)[[]]["names"] == []
+
+
+# ---- EpochSampler ---------------------------------------------------------------------
+
+
+def test_an_epoch_is_floor_n_over_batch_batches_of_distinct_spool_names(tmp_path):
+    names = fill_spool(tmp_path, 10)
+    sampler = EpochSampler(tmp_path, batch_size=3, seed=0)
+    batches = consume(sampler)
+    assert len(batches) == 3 == len(sampler)
+    assert all(len(b) == 3 for b in batches)
+    flat = [n for b in batches for n in b]
+    assert len(set(flat)) == 9 and set(flat) <= set(names)
+    assert sorted(sampler.state.order) == sorted(names)
+
+
+def test_each_epoch_lists_the_spool_again(tmp_path):
+    first = fill_spool(tmp_path, 6)
+    sampler = EpochSampler(tmp_path, batch_size=2, seed=0)
+    assert sorted(n for b in consume(sampler) for n in b) == sorted(first)
+    added = publish(tmp_path, [build_sample(s) for s in (10, 11)])
+    epoch1 = [n for b in consume(sampler) for n in b]
+    assert sorted(epoch1) == sorted(first + added)
+    for name in first[:3]:
+        os.unlink(tmp_path / name)
+    epoch2 = [n for b in consume(sampler) for n in b]
+    assert sorted(sampler.state.order) == sorted(first[3:] + added)
+    assert set(epoch2) < set(first[3:] + added) and len(set(epoch2)) == 4  # 5 left, two batches of 2
+    assert sampler.state.epoch == 2
+
+
+def test_epoch_order_is_seeded_and_changes_between_epochs(tmp_path):
+    fill_spool(tmp_path, 10)
+    a, b, c = (EpochSampler(tmp_path, 2, seed=s) for s in (4, 4, 5))
+    a0, b0, c0 = consume(a), consume(b), consume(c)
+    assert a0 == b0
+    assert a0 != c0
+    a1, b1 = consume(a), consume(b)
+    assert a1 == b1
+    assert a1 != a0
+
+
+def test_epochs_done_counts_finished_epochs(tmp_path):
+    fill_spool(tmp_path, 6)
+    sampler = EpochSampler(tmp_path, 2, seed=0)
+    assert sampler.epochs_done() == 0
+    consume(sampler, batches=2)  # 2 of 3 batches
+    assert sampler.epochs_done() == 0
+    sampler.state.position += 1  # the trainer takes the third
+    assert sampler.epochs_done() == 1
+    consume(sampler)
+    assert sampler.epochs_done() == 2
+    consume(sampler, batches=1)
+    assert sampler.epochs_done() == 2
+
+
+def test_resume_continues_with_the_batches_after_the_saved_position(tmp_path):
+    fill_spool(tmp_path, 12)
+    original = EpochSampler(tmp_path, 3, seed=7)
+    epoch0 = consume(original)
+    epoch1 = consume(original)  # what an uninterrupted run takes next
+    saved = LoaderState(epoch=0, order=list(epoch0[0] + epoch0[1] + epoch0[2] + epoch0[3]), position=1)
+    publish(tmp_path, [build_sample(20)])  # changes to the spool do not change a saved epoch
+    resumed = EpochSampler(tmp_path, 3, seed=7)
+    resumed.resume_from(saved)
+    assert resumed.epochs_done() == 0
+    assert consume(resumed) == epoch0[1:]
+    assert resumed.epochs_done() == 1
+    os.unlink(tmp_path / enumerate_spool(tmp_path)[-1])  # the spool as the original saw it at epoch 1
+    assert consume(resumed) == epoch1
+    assert resumed.state.epoch == 1
+
+
+def test_resume_mid_order_from_a_saved_state_object(tmp_path):
+    fill_spool(tmp_path, 8)
+    order = enumerate_spool(tmp_path)[::-1]
+    sampler = EpochSampler(tmp_path, 2, seed=0)
+    sampler.resume_from(LoaderState(epoch=5, order=order, position=3))
+    assert consume(sampler) == [order[6:8]]
+    assert sampler.state.epoch == 5 and sampler.state.position == 4
+    consume(sampler)
+    assert sampler.state.epoch == 6
+
+
+def test_a_spool_smaller_than_a_batch_times_out_naming_the_spool(tmp_path):
+    fill_spool(tmp_path, 2)
+    sampler = EpochSampler(tmp_path, 4, seed=0, wait=0.02, timeout=0.1)
+    with pytest.raises(TimeoutError, match=re.escape(str(tmp_path))):
+        next(iter(sampler))
+
+
+def test_the_sampler_waits_for_a_generator_that_starts_late(tmp_path):
+    fill_spool(tmp_path, 1)
+    sampler = EpochSampler(tmp_path, 3, seed=0, wait=0.02, timeout=10)
+    late = threading.Timer(0.2, lambda: publish(tmp_path, [build_sample(s) for s in (5, 6)]))
+    late.start()
+    try:
+        batches = consume(sampler)
+    finally:
+        late.join()
+    assert len(batches) == 1 and len(set(batches[0])) == 3
+
+
+def test_make_loader_gives_the_same_batches_with_and_without_workers(tmp_path):
+    fill_spool(tmp_path, 7)
+    results = []
+    for workers in (0, 1):
+        loader, sampler = make_loader(tmp_path, "box", SIZE, batch_size=2, seed=3, workers=workers, timeout=1.0)
+        epochs = []
+        for _ in range(2):
+            epochs.append([batch for batch in loader])
+        results.append(epochs)
+        assert loader.num_workers == workers
+        del loader
+    (zero, one) = results
+    for e0, e1 in zip(zero, one):
+        assert len(e0) == len(e1) == 3
+        for b0, b1 in zip(e0, e1):
+            assert b0["names"] == b1["names"] and len(b0["names"]) == 2
+            for key in ("noisy", "clean", "keypoints", "ratios"):
+                assert torch.equal(b0[key], b1[key]), key
+    assert [b["names"] for b in zero[0]] != [b["names"] for b in zero[1]]  # a new order each epoch
+
+
+# ---- Freshness ------------------------------------------------------------------------
+
+
+def test_freshness_counts_earlier_uses_and_ages_from_names():
+    t0 = 1_700_000_000.0
+    a, b, c = (sample_name(i, int(t0 * 1e9) + i * 1_000_000_000) for i in range(3))  # published t0, t0+1, t0+2
+    fresh = Freshness()
+    age, reuse = fresh.observe([a, b], now=t0 + 10)
+    assert age == pytest.approx(9.5) and reuse == 0.0
+    age, reuse = fresh.observe([a, b], now=t0 + 20)
+    assert age == pytest.approx(19.5) and reuse == 1.0
+    age, reuse = fresh.observe([a, c], now=t0 + 20)
+    assert age == pytest.approx(19.0) and reuse == 1.0  # a: 2 earlier uses, c: none
+    assert fresh.observe([], now=t0) == (0.0, 0.0)
+    fresh.forget_except([b, c])  # a was evicted
+    assert set(fresh.uses) == {b, c}
+    assert fresh.observe([a], now=t0 + 20)[1] == 0.0
+    assert fresh.observe([b], now=t0 + 20)[1] == 2.0
+
+
+# ---- SpoolWatcher ---------------------------------------------------------------------
+
+
+def settles_at(read, expected, deadline: float = 5.0, hold: float = 0.2) -> bool:
+    """True once read() == expected and stays so for `hold` s (inotify is asynchronous)."""
+    end, since = time.monotonic() + deadline, None
+    while time.monotonic() < end:
+        if read() == expected:
+            since = since or time.monotonic()
+            if time.monotonic() - since >= hold:
+                return True
+        else:
+            since = None
+        time.sleep(0.02)
+    return False
+
+
+def test_spool_watcher_follows_publishes_and_evictions(tmp_path):
+    names = fill_spool(tmp_path, 3)
+    with SpoolWatcher(tmp_path) as watcher:
+        assert watcher.count == 3
+        watcher.arrivals_per_s()  # start the rate's window now
+        publish(tmp_path, [build_sample(s) for s in range(10, 15)])
+        assert settles_at(lambda: watcher.count, 8), watcher.count
+        assert watcher.arrivals_per_s() > 0
+        for name in names[:2]:
+            os.unlink(tmp_path / name)
+        assert settles_at(lambda: watcher.count, 6), watcher.count
+        assert watcher.arrivals_per_s() == 0.0  # deletions are not arrivals
+        (tmp_path / "notes.txt").write_text("not a sample")  # ignored
+        (tmp_path / ".tmp-x.cub").write_bytes(b"")  # a writer's temporary file: ignored
+        publish(tmp_path, [build_sample(s) for s in range(20, 26)], limit=4)  # evicts down to 4
+        assert settles_at(lambda: watcher.count, 4), (watcher.count, len(enumerate_spool(tmp_path)))
+        assert len(enumerate_spool(tmp_path)) == 4
+        watcher.anchor(11)
+        assert watcher.count == 11
