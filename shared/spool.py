@@ -16,14 +16,29 @@ The spool folder is the only link between the generator and the trainer. Its rul
   spool never holds more than `limit + writers * evict_every` samples, however
   many writers on however many hosts share it.
 * `limit == 0` retains the spool: nothing is ever evicted.
+* On a local filesystem a writer recycles the file it evicted instead of creating
+  a new one: creating files is what publishing costs most, and on ext4 without a
+  journal it grows with the recently deleted files the spool itself leaves (the
+  allocator skips each of them). Evicting then hard-links the sample to a hidden
+  spare `.tmp-0-<host>-<pid>-<token>-spare.cub` and deletes its sample name
+  (readers see an ordinary deletion); the next publish rewrites the spare and
+  renames it to the new sample name. It rewrites only while it holds a write
+  lease (`F_SETLEASE`), which the kernel grants only when no other process has
+  the file open, and only while the spare is the file's one name: a reader that
+  opened the sample before it was evicted keeps its bytes, and the spare is
+  deleted and a new file written instead. Without `fsync`, a power cut may then
+  leave a just-published sample holding parts of the one it replaced (with
+  `fsync` nothing changes). `SpoolWriter(recycle=False)` turns recycling off.
 """
 from __future__ import annotations
 
 import errno
+import fcntl
 import logging
 import os
 import re
 import secrets
+import signal
 import socket
 import time
 from collections import deque
@@ -38,6 +53,12 @@ META_NAME = "SPOOL.json"
 EVICT_EVERY = 64  # publishes between listings; the spool bound is limit + writers * EVICT_EVERY
 ORPHAN_AGE = 60.0  # s: a temporary file this old belongs to no live writer on any host
 _NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+_NO_LEASES = (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK)
+# Filesystems whose files only this kernel opens, so a lease sees every reader (not
+# NFS, SMB or FUSE, where a reader on another host would go unseen).
+LOCAL_FILESYSTEMS = frozenset({"ext2", "ext3", "ext4", "xfs", "btrfs", "tmpfs", "f2fs", "bcachefs"})
+_CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
+_REWRITE = os.O_WRONLY | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
 
 
 class SpoolError(ValueError):
@@ -117,6 +138,22 @@ def sweep_orphans(spool: Path, max_age: float = ORPHAN_AGE) -> int:
     return swept
 
 
+def filesystem_type(path: Path) -> str | None:
+    """The type (`ext4`, `nfs`, ...) of the filesystem holding `path`, from
+    /proc/self/mountinfo; None where that cannot be told."""
+    try:
+        device = os.stat(path).st_dev
+        wanted = f"{os.major(device)}:{os.minor(device)}"
+        with open("/proc/self/mountinfo") as f:
+            for line in f:
+                fields = line.split()
+                if len(fields) > 3 and fields[2] == wanted and "-" in fields:
+                    return fields[fields.index("-", 6) + 1]
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -140,7 +177,12 @@ class SpoolWriter:
     Use as a context manager; `publish` is the only write path.
     """
 
-    def __init__(self, spool: Path, limit: int, evict_every: int = EVICT_EVERY, fsync: bool = False):
+    def __init__(
+        self, spool: Path, limit: int, evict_every: int = EVICT_EVERY, fsync: bool = False,
+        recycle: bool | None = None,
+    ):
+        """`recycle`: rewrite evicted files rather than create new ones (see the module's
+        rules); None (the default) recycles on local filesystems that allow it."""
         if limit < 0:
             raise ValueError(f"limit {limit} is negative: expected 0 (retain everything) or a sample count")
         if evict_every < 1:
@@ -149,6 +191,10 @@ class SpoolWriter:
         self.limit, self.evict_every, self.fsync = limit, evict_every, fsync
         self.counts = WriterCounts()
         self._prefix = f"{host_tag()}-{os.getpid()}-{secrets.token_hex(3)}"
+        self._dir = os.fspath(self.spool)
+        self._recycle = recycle
+        self._spare_path = os.path.join(self._dir, f"{TMP_PREFIX}0-{self._prefix}-spare{SUFFIX}")
+        self._spare = False  # whether _spare_path holds an evicted file to rewrite
         self._seq = 0
         self._known: deque[str] = deque()  # names believed present, oldest first
         self._believed = 0  # samples believed present
@@ -159,18 +205,25 @@ class SpoolWriter:
         swept = sweep_orphans(self.spool)
         if swept:
             log.info("swept %d orphaned temporary files from %s", swept, self.spool)
+        if not hasattr(fcntl, "F_SETLEASE"):  # leases are Linux's
+            self._recycle = False
+        elif self._recycle is None:
+            self._recycle = bool(self.limit) and filesystem_type(self.spool) in LOCAL_FILESYSTEMS
         if self.limit:
             self._list_and_evict()
         return self
 
     def __exit__(self, *exc) -> None:
-        pass
+        if self._spare:
+            self._spare = False
+            _unlink_quietly(self._spare_path)
 
     def publish(self, data: bytes) -> str:
         """Atomically add one sample; returns its file name. Raises SpoolFull on a full disk."""
         self._seq += 1
         name = f"{time.time_ns():019d}-{self._prefix}-{self._seq:09d}{SUFFIX}"
-        self._write_atomically(name, data)
+        if not (self._spare and self._rewrite_spare(name, data)):
+            self._write_atomically(name, data)
         self.counts.published += 1
         self.counts.published_bytes += len(data)
         if self.limit:
@@ -184,19 +237,62 @@ class SpoolWriter:
         return name
 
     def _write_atomically(self, name: str, data: bytes) -> None:
-        tmp = os.path.join(self.spool, TMP_PREFIX + name)
+        tmp = os.path.join(self._dir, TMP_PREFIX + name)
         try:
-            with open(tmp, "xb") as f:
-                f.write(data)
+            fd = os.open(tmp, _CREATE, 0o666)  # open(..., 'xb')'s mode, less the umask
+            try:
+                _write_all(fd, data)
                 if self.fsync:
-                    f.flush()
-                    os.fsync(f.fileno())
-            os.rename(tmp, os.path.join(self.spool, name))
+                    os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.rename(tmp, os.path.join(self._dir, name))
         except BaseException as exc:
             _unlink_quietly(tmp)
             if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
                 raise SpoolFull(exc.errno, f"no space left under {self.spool}") from None
             raise
+
+    def _rewrite_spare(self, name: str, data: bytes) -> bool:
+        """Publish `data` as `name` by rewriting the spare (an evicted sample's file);
+        False, with the spare gone, when it cannot be rewritten safely."""
+        self._spare = False
+        spare = self._spare_path
+        try:
+            fd = os.open(spare, _REWRITE)
+        except OSError:  # swept by a starting writer, or replaced by something we must not touch
+            _unlink_quietly(spare)
+            return False
+        try:
+            # A lease break signals the holder (SIGIO, fatal by default): ask for SIGURG,
+            # ignored by default, should anything open the spare in these microseconds.
+            fcntl.fcntl(fd, fcntl.F_SETSIG, signal.SIGURG)
+            fcntl.fcntl(fd, fcntl.F_SETLEASE, fcntl.F_WRLCK)  # refused while anyone else has it open
+            status = os.fstat(fd)
+            if status.st_nlink != 1:  # another writer linked it too (both evicted it), or a copy did
+                raise BlockingIOError(errno.EAGAIN, "spare has another name")
+            _write_all(fd, data)
+            if status.st_size > len(data):
+                os.ftruncate(fd, len(data))
+            if self.fsync:
+                os.fsync(fd)
+        except BaseException as exc:
+            _unlink_quietly(spare)
+            if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
+                raise SpoolFull(exc.errno, f"no space left under {self.spool}") from None
+            if not isinstance(exc, OSError):
+                raise
+            if exc.errno in _NO_LEASES:  # this filesystem or kernel grants none: stop trying
+                log.info("spool %s: not recycling evicted files (%s)", self.spool, exc.strerror)
+                self._recycle = False
+            return False
+        finally:
+            os.close(fd)  # also ends the lease
+        try:
+            os.rename(spare, os.path.join(self._dir, name))
+        except FileNotFoundError:  # swept while we wrote it
+            return False
+        return True
 
     def _list_and_evict(self) -> None:
         names = enumerate_spool(self.spool)
@@ -212,12 +308,34 @@ class SpoolWriter:
         of our publishes at the limit is matched by exactly one deletion.
         """
         while self._believed > self.limit and self._known:
+            path = os.path.join(self._dir, self._known.popleft())
+            if self._recycle and not self._spare:
+                self._keep_as_spare(path)
             try:
-                os.unlink(os.path.join(self.spool, self._known.popleft()))
+                os.unlink(path)
             except FileNotFoundError:
                 continue
             self._believed -= 1
             self.counts.evicted += 1
+
+    def _keep_as_spare(self, path: str) -> None:
+        """Hard-link a sample about to be evicted to the spare name, to rewrite it later."""
+        try:
+            os.link(path, self._spare_path)
+            self._spare = True
+        except FileNotFoundError:  # another writer evicted it first
+            pass
+        except FileExistsError:  # a spare left over (we were interrupted): it goes, this one stays
+            _unlink_quietly(self._spare_path)
+        except OSError as exc:  # no hard links here
+            log.info("spool %s: not recycling evicted files (%s)", self.spool, exc.strerror)
+            self._recycle = False
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view, offset = memoryview(data), 0
+    while offset < len(view):
+        offset += os.pwrite(fd, view[offset:], offset)
 
 
 def _unlink_quietly(path: str) -> None:

@@ -12,7 +12,8 @@ import pytest
 
 from shared.sample import decode, encode
 from shared.spool import (
-    SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, read_sample_bytes, sweep_orphans,
+    LOCAL_FILESYSTEMS, SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, filesystem_type,
+    read_sample_bytes, sweep_orphans,
 )
 from tests.conftest import build_sample, fill_spool
 
@@ -120,24 +121,102 @@ def test_sweep_removes_orphans_of_dead_writers_only(tmp_path):
     assert live.exists() and not dead.exists() and not stale.exists()
 
 
-def test_full_disk_publishes_nothing_and_says_so(tmp_path, monkeypatch):
-    with SpoolWriter(tmp_path, limit=5) as writer:
-        real_open = open
+@pytest.mark.parametrize("recycle", [False, True])
+def test_full_disk_publishes_nothing_and_says_so(tmp_path, monkeypatch, recycle):
+    def full_disk(fd, data, offset):
+        raise OSError(errno.ENOSPC, "No space left on device")
 
-        def full_open(path, mode="r", *args, **kwargs):
-            if "x" in mode:
-                f = real_open(path, mode, *args, **kwargs)
-                f.write = lambda data: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device"))
-                return f
-            return real_open(path, mode, *args, **kwargs)
-
-        monkeypatch.setattr("builtins.open", full_open)
+    with SpoolWriter(tmp_path, limit=5, recycle=recycle) as writer:
+        monkeypatch.setattr(os, "pwrite", full_disk)
         with pytest.raises(SpoolFull, match="no space left"):
             writer.publish(b"data")
         monkeypatch.undo()
         assert os.listdir(tmp_path) == []
+        names = [writer.publish(encode(build_sample(seed))) for seed in range(7)]  # at the limit: evicting
+        monkeypatch.setattr(os, "pwrite", full_disk)  # now with an evicted file in hand to rewrite
+        with pytest.raises(SpoolFull, match="no space left"):
+            writer.publish(b"data")
+        monkeypatch.undo()
+        assert sorted(os.listdir(tmp_path)) == names[-5:]  # nothing published, nothing partial left
         writer.publish(encode(build_sample(0)))  # space is back: publishing resumes
-    assert len(enumerate_spool(tmp_path)) == 1
+    assert len(enumerate_spool(tmp_path)) == 5
+
+
+def recycles_here(path) -> bool:
+    return filesystem_type(path) in LOCAL_FILESYSTEMS
+
+
+def test_recycling_rewrites_evicted_files_but_never_one_a_reader_holds(tmp_path, library):
+    data = [encode(build_sample(seed, library=library)) for seed in range(12)]
+    inodes = []
+    with SpoolWriter(tmp_path, limit=3, recycle=True) as writer:
+        def publish(payload):
+            name = writer.publish(payload)
+            inodes.append(os.stat(tmp_path / name).st_ino)
+            return name
+
+        names = [publish(d) for d in data[:3]]
+        with open(tmp_path / names[0], "rb") as held:  # a reader opened the oldest sample
+            names += [publish(d) for d in data[3:]]  # evicts it (and the next ones)
+            assert held.read() == data[0]  # its bytes were left alone
+    assert enumerate_spool(tmp_path) == names[-3:]
+    assert [read_sample_bytes(tmp_path, n) for n in names[-3:]] == data[-3:]
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # the spare goes with the writer
+    if recycles_here(tmp_path):
+        # Sample 1's file, evicted by the fifth publish, was rewritten as the sixth sample.
+        assert inodes[5] == inodes[1] and inodes[0] not in inodes[3:]
+
+
+def test_a_spare_with_another_name_is_not_rewritten(tmp_path, library):
+    # Two writers can evict the same sample, each linking it as its spare: neither may rewrite it.
+    data = [encode(build_sample(seed, library=library)) for seed in range(4)]
+    with SpoolWriter(tmp_path, limit=2, recycle=True) as writer:
+        names = [writer.publish(d) for d in data[:3]]  # the third evicts the first into the spare
+        spares = [n for n in os.listdir(tmp_path) if n.endswith("spare.cub")]
+        if recycles_here(tmp_path):
+            assert len(spares) == 1
+        for spare in spares:
+            os.link(tmp_path / spare, tmp_path / ".tmp-0-otherwriter-spare.cub")
+        names.append(writer.publish(data[3]))
+    assert [read_sample_bytes(tmp_path, n) for n in enumerate_spool(tmp_path)] == data[2:]
+    for spare in spares:
+        assert (tmp_path / ".tmp-0-otherwriter-spare.cub").read_bytes() == data[0]
+
+
+def test_readers_holding_samples_never_see_them_rewritten(tmp_path):
+    """Recycling under load: a reader that opened a sample reads exactly the bytes published."""
+    from cuboidgen.config import PAPER
+    from cuboidgen.occluders import OccluderLibrary
+    from cuboidgen.synth import make_sample
+
+    library = OccluderLibrary.builtin(variants_per_kind=1)  # what tests/spool_writer.py publishes
+    published = {encode(make_sample("box", PAPER, 32, seed, library)) for seed in range(8)}
+    writer = start_writer(tmp_path, limit=10, count=0, evict_every=4)
+    read = spares = 0
+    deadline = time.monotonic() + 1.5
+    try:
+        while time.monotonic() < deadline:
+            spares += any(n.endswith("spare.cub") for n in os.listdir(tmp_path))
+            for name in enumerate_spool(tmp_path):
+                try:
+                    f = open(tmp_path / name, "rb")
+                except FileNotFoundError:
+                    continue
+                with f:
+                    time.sleep(0.0005)  # hold it open while the writer evicts and recycles
+                    assert f.read() in published
+                read += 1
+    finally:
+        writer.kill()
+        writer.wait()
+    assert read > 0
+    if recycles_here(tmp_path):
+        assert spares > 0  # the writer really was recycling
+
+
+def test_filesystem_type_names_the_mount():
+    assert filesystem_type(Path("/proc")) == "proc"
+    assert filesystem_type(Path("/no/such/path")) is None
 
 
 def test_bad_spool_paths_are_one_line_errors(tmp_path, monkeypatch):
