@@ -118,22 +118,29 @@ def finished(config: TrainConfig, step: int, epoch: int, started: float | None =
 
 
 def run(config: TrainConfig, dashboard=None, stop: StopRequest | None = None, loader_timeout: float | None = None) -> dict:
-    """Trains until --steps or --epochs are done or a stop is requested; returns the final status."""
-    config = config.validate()
+    """Trains until --steps or --epochs are done or a stop is requested; returns the final status.
+
+    Without a `stop` of the caller's, SIGTERM and Ctrl-C end the step in hand, then checkpoint.
+    """
+    with contextlib.ExitStack() as stack:
+        if stop is None:
+            stop = stack.enter_context(StopRequest().installed())
+        return _train(config.validate(), dashboard, stop, loader_timeout)
+
+
+def _train(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None) -> dict:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.device)
     model, optimizer, step, resume = build_state(config, device)
-    sigma = config.heatmap_sigma
+    (out / "config.json").write_text(json.dumps(config.resolved().to_dict(), indent=2))
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
                                   config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,
                                   worker_init_fn=_ignore_sigint)
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))
     freshness = Freshness()
-    stop = stop if stop is not None else StopRequest()
-    started = time.monotonic()
-    (out / "config.json").write_text(json.dumps(config.resolved().to_dict(), indent=2))
+    started, sigma = time.monotonic(), config.heatmap_sigma
     with SpoolWatcher(config.spool) as watcher, Progress(config, device, watcher, dashboard) as progress:
         sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names))
         progress.begin(step, sampler)

@@ -6,15 +6,15 @@
 # On two cores a generator running beside the trainer would take half the machine,
 # so this recipe first draws a frozen 20,000-sample spool (--limit 0, about 10 s at
 # 64 px) and trains on it; with a GPU, run `cuboidgen run` alongside instead (GPU.md).
-# Budgets: phase 1 at most 32 minutes, phase 2 at most 16, evaluation about 2.
+# Budgets: phase 1 at most 24 minutes, phase 2 at most 10, evaluation about 2.
 set -euo pipefail
 SHAPE=${1:?usage: recipes/cpu.sh box|twobox}
 SIZE=${SIZE:-64}
 BIN=${BIN:-.venv/bin}
 SPOOLS=${SPOOLS:-spools}
 RUN=${RUN:-runs/cpu-$SHAPE}
-PHASE1_STEPS=${PHASE1_STEPS:-2000}
-PHASE2_STEPS=${PHASE2_STEPS:-600}
+PHASE1_STEPS=${PHASE1_STEPS:-1500}
+PHASE2_STEPS=${PHASE2_STEPS:-500}
 
 train=$SPOOLS/train-$SHAPE-$SIZE
 clean=$SPOOLS/val-clean-$SHAPE-$SIZE
@@ -33,9 +33,9 @@ spool "$noisy" 3 paper 500
 
 common=(--spool "$train" --shape "$SHAPE" --size "$SIZE" --batch-size 16 --loader-workers 1
         --lr-schedule cosine --checkpoint-every 200 --val-spool "$clean" --val-every 400 --val-samples 128)
-"$BIN/cuboidtrain" run --phase 1 "${common[@]}" --steps "$PHASE1_STEPS" --lr 1e-3 --max-minutes 32 \
+"$BIN/cuboidtrain" run --phase 1 "${common[@]}" --steps "$PHASE1_STEPS" --lr 1e-3 --max-minutes 24 \
     --out "$RUN/p1" --no-dashboard
-"$BIN/cuboidtrain" run --phase 2 "${common[@]}" --steps "$PHASE2_STEPS" --lr 2e-4 --max-minutes 16 \
+"$BIN/cuboidtrain" run --phase 2 "${common[@]}" --steps "$PHASE2_STEPS" --lr 2e-4 --max-minutes 10 \
     --init "$RUN/p1/last.pt" --out "$RUN/p2" --no-dashboard
 
 for model in p1 p2; do

@@ -22,16 +22,6 @@ SIZE = 32  # px: the smallest size a ResNet-18 U-Net takes
 B = 4  # batch: at 32 px the stride-32 features are 1x1, and BatchNorm needs more than 2 values
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # Tiny 32 px models gain nothing from a second intra-op thread; on a busy 2-core
-    # machine its barrier waits made a forward pass ~50x slower (4.8 s against 0.1 s).
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @functools.cache
 def tiny_model(shape: str):
     """One model per shape for the whole file; tests that change it only touch grads or BN stats."""

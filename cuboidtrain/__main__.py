@@ -1,0 +1,3 @@
+from cuboidtrain.cli import main
+
+main()

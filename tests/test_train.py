@@ -1,0 +1,159 @@
+"""Training: loss wiring per phase, a short run that learns, exact resume, SIGTERM, the schedule."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from cuboidtrain.checkpoint import load_checkpoint, load_model
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.data import SpoolBatches
+from cuboidtrain.heatmaps import prepare_batch
+from cuboidtrain.losses import combine, phase_losses
+from cuboidtrain.networks import build_model
+from cuboidtrain.train import learning_rate, run
+from shared.sample import encode
+from shared.spool import SpoolWriter, enumerate_spool
+from tests.conftest import build_sample
+
+SIZE = 32
+CPU = torch.device("cpu")
+
+
+@pytest.fixture(scope="module")
+def spool(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("spool")
+    with SpoolWriter(path, limit=0) as writer:
+        for seed in range(12):
+            writer.publish(encode(build_sample(seed, "box", size=SIZE)))
+    return path
+
+
+def config(spool: Path, out: Path, **changes) -> TrainConfig:
+    base = TrainConfig(spool=str(spool), out=str(out), shape="box", size=SIZE, steps=4, batch_size=4,
+                       loader_workers=0, dashboard=False, log_every=1, checkpoint_every=1000)
+    return replace(base, **changes).validate()
+
+
+def batch_of(spool: Path, count: int = 4) -> dict:
+    batch = SpoolBatches(spool, "box", SIZE)[enumerate_spool(spool)[:count]]
+    return prepare_batch(batch, CPU, 1.0, SIZE)
+
+
+def grads_by_network(model, loss: torch.Tensor) -> dict[str, bool]:
+    model.zero_grad(set_to_none=True)
+    loss.backward(retain_graph=True)
+    return {
+        name: any(p.grad is not None and p.grad.abs().sum() > 0 for p in getattr(model, name).parameters())
+        for name in ("refiner", "estimator", "tabulator")
+    }
+
+
+def test_phase_1_trains_each_network_on_its_own_loss(spool):
+    model = build_model("box", SIZE)
+    losses = phase_losses(model, batch_of(spool), "1", ratio_weight=1.0)
+    assert grads_by_network(model, losses["D_R"]) == {"refiner": True, "estimator": False, "tabulator": False}
+    assert grads_by_network(model, losses["D_S"]) == {"refiner": False, "estimator": True, "tabulator": False}
+    assert grads_by_network(model, losses["D_T"]) == {"refiner": False, "estimator": False, "tabulator": True}
+
+
+def test_phase_2_chains_so_the_final_loss_reaches_every_network(spool):
+    model = build_model("box", SIZE)
+    losses = phase_losses(model, batch_of(spool), "2", ratio_weight=1.0)
+    assert grads_by_network(model, losses["D_T"]) == {"refiner": True, "estimator": True, "tabulator": True}
+    assert grads_by_network(model, losses["D_S"]) == {"refiner": True, "estimator": True, "tabulator": False}
+
+
+def test_eq_1_weights_and_the_ablations_final_loss_only():
+    losses = {"D_R": torch.tensor(1.0), "D_S": torch.tensor(10.0), "D_T": torch.tensor(100.0)}
+    assert combine(losses, "2", (1.0, 1.0, 1.0)).item() == 111.0
+    assert combine(losses, "2", (0.5, 0.1, 2.0)).item() == 201.5
+    for phase in ("e2e", "finetune"):
+        cfg = TrainConfig(phase=phase, init="x.pt", steps=1) if phase == "finetune" else TrainConfig(phase=phase, steps=1)
+        assert combine(losses, phase, cfg.loss_weights).item() == 100.0
+
+
+def test_a_short_run_lowers_every_loss_on_its_samples(spool, tmp_path):
+    # Train-mode BatchNorm (batch statistics) on both sides: 40 steps are too few for
+    # the running statistics that eval mode uses to settle.
+    x = batch_of(spool, 8)
+    with torch.no_grad():
+        before = phase_losses(build_model("box", SIZE, seed=0).train(), x, "1", 1.0)
+    status = run(config(spool, tmp_path, steps=40, lr=2e-3, batch_size=6))
+    with torch.no_grad():
+        after = phase_losses(load_model(tmp_path / "last.pt")[0].train(), x, "1", 1.0)
+    assert status["state"] == "done" and status["step"] == 40
+    for key in ("D_R", "D_S", "D_T"):
+        assert after[key].item() < 0.7 * before[key].item(), key
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records if "D_R" in r] == list(range(1, 41))
+
+
+def test_resume_reproduces_the_uninterrupted_run(spool, tmp_path):
+    # 3 batches per epoch (12 samples, batch 4): stopping at step 2 resumes mid-epoch,
+    # and steps 4-6 cross into a freshly shuffled epoch.
+    run(config(spool, tmp_path / "straight", steps=6))
+    run(config(spool, tmp_path / "split", steps=2))
+    run(config(spool, tmp_path / "split", steps=6, resume=True))
+    straight = load_checkpoint(tmp_path / "straight" / "last.pt")
+    split = load_checkpoint(tmp_path / "split" / "last.pt")
+    assert straight["step"] == split["step"] == 6
+    assert straight["loader"] == split["loader"]
+    for key, value in straight["model"].items():
+        assert torch.equal(value, split["model"][key]), key
+
+
+def test_resume_refuses_another_phase_and_init_another_shape(spool, tmp_path):
+    run(config(spool, tmp_path, steps=1))
+    with pytest.raises(ValueError, match="phase 1, not 2"):
+        run(config(spool, tmp_path, phase="2", steps=2, resume=True))
+    with pytest.raises(ValueError, match="'box' model, expected 'twobox'"):
+        run(config(spool, tmp_path / "b", shape="twobox", phase="2", init=str(tmp_path / "last.pt")))
+
+
+def test_epochs_mode_trains_whole_passes(spool, tmp_path):
+    status = run(config(spool, tmp_path, steps=None, epochs=2))
+    assert status["step"] == 6  # 2 epochs x 3 batches of 4 from 12 samples
+    assert load_checkpoint(tmp_path / "last.pt")["loader"]["epoch"] == 1
+
+
+def test_sigterm_writes_a_checkpoint_then_exits(spool, tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cuboidtrain", "run", "--spool", str(spool), "--size", str(SIZE), "--batch-size", "4",
+         "--out", str(out), "--no-dashboard", "--loader-workers", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1],
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not _stepped(out):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    output = proc.communicate(timeout=60)[0].decode()
+    assert proc.returncode == 0, output
+    ckpt = load_checkpoint(out / "last.pt")
+    assert ckpt["step"] >= 1
+    assert json.loads((out / "status.json").read_text())["state"] == "stopped"
+    assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
+
+
+def _stepped(out: Path) -> bool:
+    try:
+        return json.loads((out / "status.json").read_text())["step"] >= 1
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+def test_cosine_schedule_falls_from_lr_to_a_hundredth():
+    cfg = TrainConfig(steps=100, lr=1e-3, lr_schedule="cosine")
+    rates = [learning_rate(cfg, s) for s in range(101)]
+    assert rates[0] == pytest.approx(1e-3) and rates[-1] == pytest.approx(1e-5)
+    assert all(a >= b for a, b in zip(rates, rates[1:]))
+    assert learning_rate(TrainConfig(steps=100), 50) == 1e-3
