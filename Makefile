@@ -19,6 +19,12 @@ demo: $(STAMP)
 	$(BIN)/cuboidgen inspect data_spool
 	$(BIN)/cuboidgen preview data_spool --out preview.png
 	@echo "preview written to preview.png"
+	# A one-minute taste of training: a 64 px spool, phase 1 then phase 2, evaluated on clean masks.
+	$(BIN)/cuboidgen run --spool runs/demo/spool --size 64 --limit 0 --max-samples 400 --seed 1 --no-dashboard
+	$(BIN)/cuboidgen run --spool runs/demo/val --size 64 --scene paper-clean --limit 0 --max-samples 64 --seed 2 --no-dashboard
+	$(BIN)/cuboidtrain run --phase 1 --spool runs/demo/spool --size 64 --batch-size 8 --steps 40 --out runs/demo/p1 --no-dashboard
+	$(BIN)/cuboidtrain run --phase 2 --spool runs/demo/spool --size 64 --batch-size 8 --steps 10 --init runs/demo/p1/last.pt --out runs/demo/p2 --no-dashboard
+	$(BIN)/cuboidtrain eval --checkpoint runs/demo/p2/last.pt --spool runs/demo/val
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
@@ -26,6 +32,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_generate.py
 	$(BIN)/python benchmarks/bench_spool_read.py
+	$(BIN)/python benchmarks/bench_train.py
 
 clean-spool:
 	find data_spool -mindepth 1 ! -name .gitkeep -delete

@@ -18,6 +18,7 @@ import torch
 
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.data import SKIP_REASONS, SpoolBatches
+from cuboidtrain.device import resolve_device
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import decode_record
@@ -151,13 +152,6 @@ def _check_counts(batch_size: int, max_samples: int | None) -> None:
         raise ValueError(f"batch size {batch_size}: expected a positive integer")
     if max_samples is not None and max_samples < 1:
         raise ValueError(f"max samples {max_samples}: expected a positive integer or None (all)")
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """'auto' -> cuda when present, else cpu; anything else as torch names it."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def evaluate_checkpoint(checkpoint: Path, spool: Path, device: str | torch.device = "auto", batch_size: int = 32,

@@ -19,7 +19,8 @@ import torch
 
 from cuboidtrain.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
 from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import SKIP_REASONS, Freshness, make_loader
+from cuboidtrain.data import Freshness, make_loader
+from cuboidtrain.device import resolve_device
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.losses import combine, phase_losses
 from cuboidtrain.networks import CuboidNet, build_model
@@ -29,14 +30,6 @@ from cuboidtrain.spoolwatch import SpoolWatcher
 log = logging.getLogger(__name__)
 
 LAST = "last.pt"
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine")
-    return torch.device(name)
 
 
 class StopRequest:
