@@ -29,7 +29,8 @@ def roughen(mask: np.ndarray, amount: float, wavelength: float, rng: np.random.G
         return mask.copy()
     # Tracing only the silhouette's bounding box was measured no faster: the cost is in
     # following the contours, not in scanning the image.
-    contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    # RETR_LIST: every outer boundary and hole, without the hierarchy (unused; 30% dearer).
+    contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     lengths = [len(c) for c in contours]
     # (N, 2) int32 points, x then y; viewed as one int64 per point (x + y * 2**32 on a
     # little-endian machine, x >= 0) so differences of points are one flat subtraction.

@@ -31,11 +31,22 @@ def occlude(
         return out, []
     placed = []
     count = int(rng.integers(scene.occluders[0], scene.occluders[1] + 1))
+    keep = keep_masks(library) if count else None
     for _ in range(count):
         placement = draw_placement(library, box, scene, rng)
-        subtract(out, library.masks[placement["index"]], placement, limit=box)
+        _clear(out, keep[placement["index"]], placement, box)
         placed.append(placement)
     return out, placed
+
+
+def keep_masks(library) -> list[np.ndarray]:
+    """Each cutout inverted (1 off the occluder, 0 on it), made once per library: warped
+    with 1 outside the cutout, it is the mask of pixels that stay, ready to AND in."""
+    cached = getattr(library, "_keep_masks", None)
+    if cached is None or cached[0] is not library.masks or len(cached[1]) != len(library.masks):
+        cached = library.masks, [np.ascontiguousarray(m == 0, dtype=np.uint8) for m in library.masks]
+        library._keep_masks = cached
+    return cached[1]
 
 
 def bounding_box(mask: np.ndarray) -> Box | None:
@@ -83,8 +94,13 @@ def subtract(mask: np.ndarray, cutout: np.ndarray, p: dict, limit: Box | None = 
     """Clear the pixels of `mask` covered by the placed cutout, warping only the part of
     its bounding box inside the image (and inside `limit`, beyond which `mask` is known
     to be empty)."""
-    a, b, tx, c, d, ty = placement_affine(cutout.shape, p)
-    h, w = cutout.shape
+    _clear(mask, np.ascontiguousarray(cutout == 0, dtype=np.uint8), p, limit)
+
+
+def _clear(mask: np.ndarray, keep: np.ndarray, p: dict, limit: Box | None) -> None:
+    """`subtract` with the cutout given inverted (`keep_masks`): one warp and one AND."""
+    a, b, tx, c, d, ty = placement_affine(keep.shape, p)
+    h, w = keep.shape
     corners = [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)]
     xs = [a * u + b * v + tx for u, v in corners]
     ys = [c * u + d * v + ty for u, v in corners]
@@ -95,5 +111,8 @@ def subtract(mask: np.ndarray, cutout: np.ndarray, p: dict, limit: Box | None = 
     if right < left or bottom < top:
         return
     matrix = np.array([[a, b, tx - left], [c, d, ty - top]])  # warp into the region of interest only
-    warped = cv2.warpAffine(cutout, matrix, (right - left + 1, bottom - top + 1), flags=cv2.INTER_NEAREST)
-    mask[top : bottom + 1, left : right + 1] &= warped == 0
+    kept = cv2.warpAffine(
+        keep, matrix, (right - left + 1, bottom - top + 1), flags=cv2.INTER_NEAREST, borderValue=1
+    )
+    region = mask[top : bottom + 1, left : right + 1]
+    np.bitwise_and(region, kept.view(bool), out=region)

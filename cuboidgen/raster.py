@@ -16,31 +16,29 @@ import numpy as np
 from shared.shapes import Shape
 
 
-def hull(points: np.ndarray) -> np.ndarray:
-    """Convex hull vertices (float64, in order) of a point set."""
-    index = cv2.convexHull(points.astype(np.float32), returnPoints=False).ravel()
-    return points[np.sort(index)] if len(index) < 3 else points[index]
-
-
 def fill_convex(mask: np.ndarray, points: np.ndarray) -> None:
     """Set the pixels of `mask` whose centres lie in the convex hull of `points`."""
-    vertices = hull(np.asarray(points, dtype=np.float64))
-    if len(vertices) < 3:
+    points = np.asarray(points, dtype=np.float64)
+    index = cv2.convexHull(points.astype(np.float32), returnPoints=False).ravel().tolist()
+    if len(index) < 3:
         return
+    # A handful of vertices: Python floats and lists beat numpy calls here.
+    coords = points.tolist()
+    xs, ys = [coords[i][0] for i in index], [coords[i][1] for i in index]
     height, width = mask.shape
-    ys = vertices[:, 1].tolist()  # a few floats: Python's min/max beat numpy's here
     top = max(math.ceil(min(ys)), 0)
     bottom = min(math.floor(max(ys)), height - 1)
     if bottom < top:
         return
-    left, right = _spans(vertices, ys, np.arange(top, bottom + 1, dtype=np.float64))
+    left, right = _spans(xs, ys, _row_centres(height)[top : bottom + 1])
     first = np.ceil(left, out=left).astype(np.intp)  # first column inside
-    after = np.floor(right, out=right).astype(np.intp) + 1  # first column past it
+    after = np.floor(right, out=right).astype(np.intp)
+    after += 1  # first column past it
     from_first, before_after = _row_tables(width)
     # mode="clip" keeps spans that leave the image at its edges (columns 0 and width).
-    mask[top : bottom + 1] |= (
-        np.take(from_first, first, axis=0, mode="clip") & np.take(before_after, after, axis=0, mode="clip")
-    )
+    rows = np.take(from_first, first, axis=0, mode="clip")
+    rows &= np.take(before_after, after, axis=0, mode="clip")
+    mask[top : bottom + 1] |= rows
 
 
 @functools.cache
@@ -51,8 +49,13 @@ def _row_tables(width: int) -> tuple[np.ndarray, np.ndarray]:
     return cols >= k, cols < k
 
 
-def _spans(vertices: np.ndarray, ys: list[float], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Leftmost and rightmost x of a convex polygon (hull order, vertex y values `ys`)
+@functools.cache
+def _row_centres(height: int) -> np.ndarray:
+    return np.arange(height, dtype=np.float64)
+
+
+def _spans(xs: list[float], ys: list[float], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Leftmost and rightmost x of a convex polygon (vertices `xs`, `ys` in hull order)
     on each row centre.
 
     The hull splits at its top and bottom vertices into two chains that are
@@ -60,11 +63,11 @@ def _spans(vertices: np.ndarray, ys: list[float], rows: np.ndarray) -> tuple[np.
     """
     n = len(ys)
     top, bottom = ys.index(min(ys)), ys.index(max(ys))
-    one_way = vertices[[(top + k) % n for k in range((bottom - top) % n + 1)]]
-    other_way = vertices[[(top - k) % n for k in range((top - bottom) % n + 1)]]
-    xa = np.interp(rows, one_way[:, 1], one_way[:, 0])
-    xb = np.interp(rows, other_way[:, 1], other_way[:, 0])
-    return np.minimum(xa, xb), np.maximum(xa, xb)
+    one_way = [(top + k) % n for k in range((bottom - top) % n + 1)]
+    other_way = [(top - k) % n for k in range((top - bottom) % n + 1)]
+    xa = np.interp(rows, np.array([ys[i] for i in one_way]), np.array([xs[i] for i in one_way]))
+    xb = np.interp(rows, np.array([ys[i] for i in other_way]), np.array([xs[i] for i in other_way]))
+    return np.minimum(xa, xb), np.maximum(xa, xb, out=xb)
 
 
 def rasterize(shape: Shape, keypoints: np.ndarray, size: int) -> np.ndarray:

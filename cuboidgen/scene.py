@@ -101,32 +101,40 @@ def object_points(shape: Shape, p: dict) -> np.ndarray:
     return np.array(points)
 
 
-def rotation(pitch_deg: float, yaw_deg: float, roll_deg: float) -> np.ndarray:
-    """Yaw about the vertical, then pitch about x, then roll about the optical axis."""
+def rotation(pitch_deg: float, yaw_deg: float, roll_deg: float) -> list[list[float]]:
+    """Yaw about the vertical, then pitch about x, then roll about the optical axis:
+    Rz(roll) Rx(pitch) Ry(yaw), multiplied out by hand (rows, plain floats: numpy's
+    per-call cost is most of the work on nine numbers)."""
     a, b, c = math.radians(pitch_deg), math.radians(yaw_deg), math.radians(roll_deg)
     ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
-    rz, rx, ry = np.array([  # one array call for the three: numpy's per-call cost dominates here
-        [[cc, -sc, 0], [sc, cc, 0], [0, 0, 1]],
-        [[1, 0, 0], [0, ca, -sa], [0, sa, ca]],
-        [[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]],
-    ])
-    return rz @ rx @ ry
+    # Rx Ry has rows (cb, 0, sb), (sa sb, ca, -sa cb), (-ca sb, sa, ca cb); Rz mixes the first two.
+    r1, r2, r3 = (cb, 0.0, sb), (sa * sb, ca, -sa * cb), (-ca * sb, sa, ca * cb)
+    return [
+        [cc * r1[0] - sc * r2[0], -sc * r2[1], cc * r1[2] - sc * r2[2]],
+        [sc * r1[0] + cc * r2[0], cc * r2[1], sc * r1[2] + cc * r2[2]],
+        list(r3),
+    ]
 
 
-def camera_tilt(pitch_up_deg: float) -> np.ndarray:
-    """Level-frame points into the frame of a camera tilted up: things ahead move down."""
+def camera_tilt(pitch_up_deg: float) -> tuple[float, float]:
+    """(cos, sin) of a camera tilted up, which maps level-frame (y, z) to
+    (cos y + sin z, -sin y + cos z): things ahead move down."""
     t = math.radians(pitch_up_deg)
-    return np.array([[1, 0, 0], [0, math.cos(t), math.sin(t)], [0, -math.sin(t), math.cos(t)]])
+    return math.cos(t), math.sin(t)
 
 
 def to_camera(points: np.ndarray, p: dict) -> np.ndarray:
-    tilt = camera_tilt(p["camera_pitch_deg"])
-    linear = tilt @ rotation(p["pitch_deg"], p["yaw_deg"], p["roll_deg"])
-    offset = tilt @ (p["offset_x"], p["offset_y"], p["distance"])
+    ct, st = camera_tilt(p["camera_pitch_deg"])
+    r1, r2, r3 = rotation(p["pitch_deg"], p["yaw_deg"], p["roll_deg"])
+    y, z = p["offset_y"], p["distance"]
+    # The tilt mixes the rotation's last two rows, and the offset's y and z, alike.
+    linear = [r1, [ct * u + st * v for u, v in zip(r2, r3)], [ct * v - st * u for u, v in zip(r2, r3)]]
+    offset = [p["offset_x"], ct * y + st * z, ct * z - st * y]
     if p["flip"]:
-        linear[0] *= -1  # a mirror image; viewer_order renames the corners
+        linear[0] = [-u for u in linear[0]]  # a mirror image; viewer_order renames the corners
         offset[0] = -offset[0]
-    return points @ linear.T + offset
+    transform = np.array([*zip(*linear), offset])  # (4, 3): linear transposed, then the offset
+    return points @ transform[:3] + transform[3]
 
 
 def viewer_order(shape: Shape, camera: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, dict]:
