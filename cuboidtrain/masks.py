@@ -1,0 +1,141 @@
+"""Input masks for inference: read them, pick their components, frame them for a model.
+
+`load_mask` turns a PNG or JPG of any size into a bool mask, `components` splits it
+into 8-connected objects and `frame` maps one object onto the model's square input
+with a single affine map, kept as a `Framing` so that keypoints predicted at the
+model's resolution go back to the input image's own pixels. Integer coordinates are
+pixel centres in both images (DESIGN.md), so the map between them is
+`x_model = scale * x_input + offset` with no half-pixel terms anywhere.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def load_mask(path: Path, label_id: int | None = None) -> np.ndarray:
+    """The object pixels of a mask image as a bool (H, W) array.
+
+    Grey images (0/255, 0/1, JPEG-noisy) are thresholded at half their maximum;
+    colour images mark the object with any non-black colour, or with their alpha
+    channel where it is not constant; with `label_id` a grey label map's pixels
+    equal to it are the object.
+    """
+    image = _read(path)
+    if label_id is not None:
+        if image.ndim != 2:
+            raise ValueError(f"{path}: a label id needs a single-channel label map, "
+                             f"got a {image.shape[2]}-channel image")
+        mask = image == label_id
+        if not mask.any():
+            labels = np.unique(image).tolist()
+            present = ", ".join(map(str, labels[:12])) + (", ..." if len(labels) > 12 else "")
+            raise ValueError(f"{path}: label {label_id} not found in the label map "
+                             f"(labels present: {present})")
+        return mask
+    if image.ndim == 3 and image.shape[2] == 4 and image[..., 3].min() != image[..., 3].max():
+        # A varying alpha is the cut-out itself; the colour under a transparent pixel is arbitrary.
+        mask = image[..., 3] > np.iinfo(image.dtype).max // 2
+    else:
+        grey = image if image.ndim == 2 else image[..., :3].max(axis=2)
+        # Half the maximum serves 0/1 and 0/255 masks alike and drops JPEG ringing near black.
+        mask = grey > grey.max() / 2 if grey.max() > 0 else np.zeros(grey.shape, bool)
+    if not mask.any():
+        raise ValueError(f"{path}: empty mask: no object pixels")
+    return mask
+
+
+def _read(path: Path) -> np.ndarray:
+    # imdecode from bytes: cv2.imread fails silently on some non-ASCII paths.
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read image ({error.strerror or error})") from None
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None:
+        raise ValueError(f"{path}: cannot read image (not a PNG or JPG OpenCV can decode)")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    return image
+
+
+def components(mask: np.ndarray, all_components: bool = False, min_pixels: int = 16) -> list[np.ndarray]:
+    """The largest 8-connected component of `mask` as a bool mask of the same shape, or
+    with `all_components` every component of at least `min_pixels` pixels, largest first.
+    An empty mask has no components."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(-areas, kind="stable") + 1  # label 0 is the background
+    if not all_components:
+        order = order[:1]
+    else:
+        order = [k for k in order if stats[k, cv2.CC_STAT_AREA] >= min_pixels]
+    return [labels == k for k in order]
+
+
+@dataclass(frozen=True)
+class Framing:
+    """The affine map from an input image's pixels to the model's `size` x `size` input:
+    `model = scale * input + offset`, per axis, in pixel-centre coordinates."""
+
+    scale: float  # model px per input px
+    offset: tuple[float, float]  # model px (x, y)
+    size: int  # model input side, px
+    input_shape: tuple[int, int]  # (height, width) of the input image, px
+
+    def to_model(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) input-image (x, y) -> (N, 2) model-input (x, y)."""
+        return np.asarray(points, dtype=np.float64) * self.scale + np.asarray(self.offset)
+
+    def to_input(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) model-input (x, y) -> (N, 2) input-image (x, y); the inverse of to_model."""
+        return (np.asarray(points, dtype=np.float64) - np.asarray(self.offset)) / self.scale
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 2x3 input -> model matrix, as cv2.warpAffine takes it."""
+        (tx, ty), s = self.offset, self.scale
+        return np.array([[s, 0.0, tx], [0.0, s, ty]])
+
+
+def frame(mask: np.ndarray, size: int, margin: float = 0.1) -> tuple[np.ndarray, Framing]:
+    """Scale and centre the object of `mask` so its longer side spans the model input
+    less two margins (fraction of `size`, each side, as the generator frames its
+    scenes); returns the bool (size, size) model input and its Framing."""
+    if not 0 <= margin < 0.5:
+        raise ValueError(f"margin {margin} is outside the allowed range [0, 0.5)")
+    if not mask.any():
+        raise ValueError("cannot frame an empty mask")
+    x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))
+    # Pixels x .. x + w - 1 cover [x - 0.5, x + w - 0.5]: w px wide, centred on x + (w - 1) / 2,
+    # as the generator centres a polygon's extent on the model's middle pixel (size - 1) / 2.
+    scale = size * (1 - 2 * margin) / max(w, h)
+    centre = np.array([x + (w - 1) / 2, y + (h - 1) / 2])
+    offset = (size - 1) / 2 - scale * centre
+    framing = Framing(float(scale), (float(offset[0]), float(offset[1])), size, mask.shape[:2])
+    return _warp(mask, (x, y, w, h), framing) >= 0.5, framing
+
+
+def _warp(mask: np.ndarray, box: tuple[int, int, int, int], framing: Framing) -> np.ndarray:
+    """The float coverage of `mask` sampled at the model's pixel centres."""
+    s = framing.scale
+    # Shrinking: a Gaussian with the variance of a 1/s-wide box, then bilinear sampling,
+    # approximates INTER_AREA (which warpAffine lacks) without a half-pixel shift.
+    sigma = 0.29 / s if s < 1 else 0.0
+    # Crop to the box plus room for the blur, padded with background so objects that
+    # touch the image border are not mirrored or cut by the blur's border rule.
+    pad = math.ceil(3 * sigma) + 2
+    x, y, w, h = box
+    crop = np.zeros((h + 2 * pad, w + 2 * pad), np.float32)
+    crop[pad : pad + h, pad : pad + w] = mask[y : y + h, x : x + w]
+    if sigma > 0:
+        crop = cv2.GaussianBlur(crop, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    # Model pixel (u, v) samples crop pixel ((u - tx) / s - x + pad, ...): the inverse map.
+    (tx, ty), origin = framing.offset, (x - pad, y - pad)
+    inverse = np.array([[1 / s, 0.0, -tx / s - origin[0]], [0.0, 1 / s, -ty / s - origin[1]]])
+    return cv2.warpAffine(crop, inverse, (framing.size, framing.size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
