@@ -53,6 +53,7 @@ def run(
     loader_workers: int = typer.Option(2, help="DataLoader worker processes reading the spool."),
     seed: int = typer.Option(0, help="Seed of the initial weights and the epoch order."),
     device: str = typer.Option("auto", help="auto (CUDA when present), cpu, cuda or cuda:N."),
+    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
     amp: bool = typer.Option(True, "--amp/--no-amp", help="bfloat16 autocast on CUDA (ignored on the CPU)."),
     dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", help="Live dashboard (else log lines)."),
     val_spool: Optional[Path] = typer.Option(None, help="Validation spool, evaluated every --val-every steps."),
@@ -72,7 +73,7 @@ def run(
             alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
             out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
             resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
-            seed=seed, device=device, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
+            seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
             val_every=val_every, val_samples=val_samples,
         ).validate()
         if not spool.is_dir():

@@ -44,6 +44,7 @@ class TrainConfig:
     loader_workers: int = 2  # DataLoader processes reading the spool
     seed: int = 0
     device: str = "auto"  # auto: cuda when present, else cpu
+    threads: int | None = None  # CPU threads for torch; None: torch's default (all cores)
     amp: bool = True  # mixed precision (CUDA only)
     dashboard: bool = True
     val_spool: str | None = None  # evaluated every val_every steps when set
@@ -68,6 +69,8 @@ class TrainConfig:
             raise ValueError("--lr-schedule cosine needs --steps N: the step it decays to")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise ValueError(f"--max-minutes {self.max_minutes}: expected a positive number")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"--threads {self.threads}: expected a positive integer")
         if self.loader_workers < 0:
             raise ValueError(f"--loader-workers {self.loader_workers}: expected 0 or more")
         if self.sigma is not None and self.sigma <= 0:

@@ -52,10 +52,12 @@ class StopRequest:
                 signal.signal(s, h)
 
 
-def _ignore_sigint(_worker_id: int) -> None:
-    # Ctrl-C reaches the whole process group; the main process decides when to stop,
-    # so a loader worker must not die under it mid-epoch.
+def _leave_signals_to_main(_worker_id: int) -> None:
+    # Ctrl-C reaches the whole process group, and systemd or `pkill -f` send SIGTERM to
+    # every process: the main process decides when to stop (after a checkpoint), so a
+    # loader worker must not die under it. Workers exit on their own when main is gone.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def build_state(config: TrainConfig, device: torch.device) -> tuple[CuboidNet, torch.optim.Optimizer, int, dict | None]:
@@ -125,11 +127,15 @@ def _train(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: fl
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.device)
+    if config.threads is not None:
+        # On a shared CPU a second intra-op thread that gets descheduled stalls every
+        # barrier of the other; fewer threads can be faster than all cores.
+        torch.set_num_threads(config.threads)
     model, optimizer, step, resume = build_state(config, device)
     (out / "config.json").write_text(json.dumps(config.resolved().to_dict(), indent=2))
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
                                   config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,
-                                  worker_init_fn=_ignore_sigint)
+                                  worker_init_fn=_leave_signals_to_main)
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))
     freshness = Freshness()

@@ -125,17 +125,18 @@ def test_epochs_mode_trains_whole_passes(spool, tmp_path):
     assert load_checkpoint(tmp_path / "last.pt")["loader"]["epoch"] == 1
 
 
-def test_sigterm_writes_a_checkpoint_then_exits(spool, tmp_path):
+def test_sigterm_to_every_process_writes_a_checkpoint_then_exits(spool, tmp_path):
+    # The whole process group gets it, loader worker included, as from systemd or `pkill -f`.
     out = tmp_path / "run"
     proc = subprocess.Popen(
         [sys.executable, "-m", "cuboidtrain", "run", "--spool", str(spool), "--size", str(SIZE), "--batch-size", "4",
          "--out", str(out), "--no-dashboard", "--loader-workers", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1], start_new_session=True,
     )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not _stepped(out):
         time.sleep(0.2)
-    proc.send_signal(signal.SIGTERM)
+    os.killpg(proc.pid, signal.SIGTERM)
     output = proc.communicate(timeout=60)[0].decode()
     assert proc.returncode == 0, output
     ckpt = load_checkpoint(out / "last.pt")
