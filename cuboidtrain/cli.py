@@ -12,7 +12,7 @@ import typer
 from shared.console import console, fail, setup_logging
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run.")
+                  help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run; infer.")
 
 
 class PhaseChoice(str, Enum):
@@ -121,6 +121,56 @@ def watch(
     except KeyboardInterrupt:
         code = 0
     raise typer.Exit(code)
+
+
+class InferShape(str, Enum):
+    auto = "auto"
+    box = "box"
+    twobox = "twobox"
+
+
+def parse_refine_steps(value: str) -> int | None:
+    """`auto` -> None (until the Refiner settles); otherwise a count of Refiner passes."""
+    if value == "auto":
+        return None
+    try:
+        steps = int(value)
+    except ValueError:
+        steps = -1
+    if steps < 0:
+        raise ValueError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more) or auto")
+    return steps
+
+
+@app.command()
+def infer(
+    paths: list[str] = typer.Argument(..., metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id."),
+    checkpoint: list[Path] = typer.Option(..., metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input."),
+    json_out: str = typer.Option("-", "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout."),
+    shape: InferShape = typer.Option(InferShape.auto, help="auto: every given model, the best-explained fit wins."),
+    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, each on the last one's binary output; auto: until nothing changes (at most 16)."),
+    all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else the largest only."),
+    label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
+    margin: float = typer.Option(0.1, help="Empty border around the framed object, as a fraction of the model size per side."),
+    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+) -> None:
+    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON)."""
+    from cuboidtrain.infer import infer_paths, load_models, write_records
+
+    setup_logging()
+    try:
+        steps = parse_refine_steps(refine_steps)
+        records = infer_paths(paths, load_models(checkpoint), shape=shape.value, refine_steps=steps,
+                              all_components=all_components, label_id=label_id, margin=margin, device=device)
+        if json_out == "-":
+            typer.echo(json.dumps(records, indent=2))
+        else:
+            write_records(Path(json_out), records)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    failed = sum(r["error"] is not None for r in records)
+    if failed:
+        console.print(f"{failed} of {len(records)} records have an error (see their \"error\" field)", highlight=False)
 
 
 @app.command()

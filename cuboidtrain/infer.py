@@ -1,0 +1,208 @@
+"""Inference (paper 3.4): binary mask -> Refiner -> Estimator -> Tabulator -> keypoints.
+
+Each input image is read, split into components and framed at the model's
+resolution (`cuboidtrain.masks`); the chain runs there and the keypoints go back
+to the input's own pixels through the same Framing. The Refiner may be re-entered
+on its own binarised output (Figure 7: each pass removes more occlusion). With
+several models (one per shape class) the fit whose silhouette best explains the
+refined mask wins; that IoU is the record's `confidence`.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from cuboidgen.raster import rasterize
+from cuboidtrain.checkpoint import load_model
+from cuboidtrain.device import resolve_device
+from cuboidtrain.masks import components, frame, load_mask
+from cuboidtrain.networks import CuboidNet
+from shared.shapes import Shape, get_shape
+
+log = logging.getLogger(__name__)
+
+MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
+SHAPE_CHOICES = ("auto", "box", "twobox")
+
+
+def binarise(refined: torch.Tensor) -> torch.Tensor:
+    """Tanh output -> the +-1 mask the Refiner was trained on (> 0 is object, as everywhere)."""
+    return torch.where(refined > 0, 1.0, -1.0).to(refined.dtype)
+
+
+def refine(model: CuboidNet, mask_pm1: torch.Tensor, steps: int | None,
+           max_steps: int = MAX_REFINE_STEPS) -> tuple[torch.Tensor, int]:
+    """Iterative refinement (Figure 7): (1, 1, S, S) +-1 mask -> (refined tanh output, passes run).
+
+    `steps=K` runs R K times, each pass on the sign of the previous output (R was
+    trained on binary inputs, not tanh values); K=0 hands the raw mask on. `None`
+    ("auto") repeats until a pass flips no pixel of the binarised mask, or
+    `max_steps`: a stationary R (paper 3.4) then costs two passes.
+    """
+    if steps is not None and steps < 0:
+        raise ValueError(f"refine steps {steps}: expected 0 or more, or auto")
+    refined, previous = mask_pm1, None
+    limit = max_steps if steps is None else steps
+    for step in range(1, limit + 1):
+        refined = model.refiner(binarise(refined))
+        current = refined > 0
+        if steps is None and previous is not None and torch.equal(current, previous):
+            return refined, step
+        previous = current
+    return refined, limit
+
+
+def silhouette(shape: str | Shape, keypoints: np.ndarray, size: int) -> np.ndarray:
+    """The fitted cuboid's bool (S, S) silhouette: the union of its parts' convex hulls,
+    drawn by the generator's own rasteriser so a perfect fit reproduces a training mask."""
+    geometry = get_shape(shape) if isinstance(shape, str) else shape
+    return rasterize(geometry, np.asarray(keypoints, dtype=np.float64), size)
+
+
+def confidence(shape: str | Shape, keypoints: np.ndarray, refined) -> float:
+    """IoU of the fitted silhouette with the refined mask (> 0), in [0, 1].
+
+    The Tabulator outputs a geometrically valid cuboid (or two-box) whatever it is
+    shown, so when that silhouette explains the refined mask well, the model's
+    shape class fits the building. A box forced onto a two-box building must leave
+    one wing uncovered or overhang the notch between them, and the IoU drops; a
+    heavily occluded or non-cuboid mask that R could not clean lowers it as well.
+    Comparing with the refined mask, not the raw input, does not charge the fit
+    for occluders the Refiner has already removed.
+    """
+    target = np.asarray(refined.detach().cpu() if torch.is_tensor(refined) else refined).squeeze() > 0
+    fitted = silhouette(shape, keypoints, target.shape[-1])
+    union = np.logical_or(fitted, target).sum()
+    return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
+
+
+@torch.inference_mode()
+def fit(model: CuboidNet, framed_mask: np.ndarray, refine_steps: int | None,
+        device: str | torch.device = "cpu") -> dict:
+    """One framed bool (S, S) mask through R (iterated), S and T, at model resolution.
+
+    Returns keypoints (N, 2) model px, ratios (DESIGN.md's record), confidence,
+    refine_steps run, and the intermediates for explanations: refined (S, S) tanh
+    output and heatmaps (N, S, S).
+    """
+    if framed_mask.shape != (model.size, model.size):
+        raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
+    device = resolve_device(device)
+    mask = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None].to(device)
+    refined, steps_run = refine(model, mask, refine_steps)
+    heatmaps = model.estimator(refined)  # S sees R's tanh output, as in CuboidNet.forward and training
+    keypoints, ratios = model.tabulator(heatmaps)
+    keypoints = keypoints[0].double().cpu().numpy()
+    geometry = get_shape(model.shape)
+    refined_np = refined[0, 0].float().cpu().numpy()
+    return {
+        "shape": model.shape,
+        "keypoints": keypoints,
+        "ratios": geometry.ratio_dict(ratios[0].cpu().tolist()),
+        "confidence": confidence(geometry, keypoints, refined_np),
+        "refine_steps": steps_run,
+        "refined": refined_np,
+        "heatmaps": heatmaps[0].float().cpu().numpy(),
+    }
+
+
+def candidate_models(models: list[CuboidNet], shape: str) -> list[CuboidNet]:
+    """The models to try for `shape`: all of them for auto, else the one of that class."""
+    if shape not in SHAPE_CHOICES:
+        raise ValueError(f"--shape {shape!r}: expected one of {', '.join(SHAPE_CHOICES)}")
+    given = [m.shape for m in models]
+    if len(set(given)) != len(given):
+        raise ValueError(f"two models of the same shape class ({', '.join(given)}): give one per shape")
+    chosen = [m for m in models if shape == "auto" or m.shape == shape]
+    if not chosen:
+        raise ValueError(f"--shape {shape}: no {shape} model among the checkpoints given "
+                         f"({', '.join(given) or 'none'})")
+    return chosen
+
+
+def load_models(paths: list[Path]) -> list[CuboidNet]:
+    """One model per checkpoint, at most one per shape class (the error names both files)."""
+    models, seen = [], {}
+    for path in paths:
+        model, _ = load_model(path)
+        if model.shape in seen:
+            raise ValueError(f"--checkpoint {path}: a second {model.shape!r} model ({seen[model.shape]} is one "
+                             f"already); give at most one checkpoint per shape class")
+        seen[model.shape] = path
+        models.append(model)
+    return models
+
+
+def fit_component(mask: np.ndarray, models: list[CuboidNet], refine_steps: int | None,
+                  margin: float, device: torch.device) -> dict:
+    """Frame one component for every candidate and keep the best-explained fit,
+    its keypoints mapped back to the input image's pixels."""
+    fits = []
+    for model in models:
+        framed, framing = frame(mask, model.size, margin)  # each model at its own size
+        result = fit(model, framed, refine_steps, device)
+        fits.append((result, framing))
+    best, framing = max(fits, key=lambda f: f[0]["confidence"])  # ties: the first model given
+    return {
+        "shape": best["shape"],
+        "confidence": best["confidence"],
+        "keypoints": framing.to_input(best["keypoints"]).tolist(),
+        "ratios": best["ratios"],
+        "refine_steps": best["refine_steps"],
+        "error": None,
+        "candidates": {r["shape"]: r["confidence"] for r, _ in fits},
+    }
+
+
+def error_record(path: str, reason: str, all_components: bool) -> dict:
+    record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
+              "refine_steps": None, "error": reason, "candidates": {}}
+    return record | ({"component": None} if all_components else {})
+
+
+def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "auto",
+                refine_steps: int | None = 1, all_components: bool = False, label_id: int | None = None,
+                margin: float = 0.1, device: str | torch.device = "cpu") -> list[dict]:
+    """DESIGN.md's records, one per input (per component with `all_components`), in input order.
+
+    An input that cannot be processed gets a record with `error` and no keypoints;
+    bad options (shape, steps, margin) raise ValueError before any input is read.
+    """
+    chosen, device = candidate_models(models, shape), resolve_device(device)
+    if refine_steps is not None and refine_steps < 0:
+        raise ValueError(f"--refine-steps {refine_steps}: expected 0 or more, or auto")
+    if not 0 <= margin < 0.5:
+        raise ValueError(f"--margin {margin}: expected a fraction in [0, 0.5)")
+    for model in chosen:
+        model.to(device).eval()
+    records = []
+    for path in paths:
+        try:
+            parts = components(load_mask(Path(path), label_id), all_components)
+            if not parts:
+                raise ValueError(f"{path}: no component of at least 16 px")
+            fits = [fit_component(part, chosen, refine_steps, margin, device) for part in parts]
+        except (ValueError, OSError, cv2.error) as exc:  # bad data: this input only
+            reason = " ".join(str(exc).split())  # one line, whatever cv2 put in it
+            log.warning("%s", reason)
+            records.append(error_record(str(path), reason, all_components))
+            continue
+        for k, result in enumerate(fits):
+            records.append({"input": str(path), **result} | ({"component": k} if all_components else {}))
+    return records
+
+
+def write_records(path: Path, records: list[dict]) -> None:
+    """The JSON list, through a temporary file and os.replace: a reader never sees half of it."""
+    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+    try:
+        tmp.write_text(json.dumps(records, indent=2) + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

@@ -1,0 +1,292 @@
+"""Inference: DESIGN.md's records, keypoints in input pixels, iterative refinement, confidence, the CLI.
+
+Models are 32 px with random weights; where a test needs known outputs, the
+Refiner or Tabulator of a real CuboidNet is swapped for a stub.
+"""
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+from typer.testing import CliRunner
+
+from cuboidtrain.checkpoint import save_checkpoint
+from cuboidtrain.cli import app
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.infer import confidence, fit, infer_paths, refine, silhouette
+from cuboidtrain.masks import components, frame, load_mask
+from cuboidtrain.networks import build_model
+from shared.sample import signed
+from shared.shapes import get_shape
+from tests.conftest import build_sample
+
+SIZE = 32
+RECORD_KEYS = {"input", "shape", "confidence", "keypoints", "ratios", "refine_steps", "error", "candidates"}
+runner = CliRunner()
+
+
+# --- builders ------------------------------------------------------------------
+
+class Identity(nn.Module):
+    """A stationary Refiner: its output is its input."""
+
+    def forward(self, mask):
+        return mask
+
+
+class Erode(nn.Module):
+    """A Refiner that peels one pixel off the object per pass, at half strength so that
+    passing its raw output back (instead of the binarised one) would show."""
+
+    def __init__(self):
+        super().__init__()
+        self.inputs = []
+
+    def forward(self, mask):
+        self.inputs.append(mask.clone())
+        padded = F.pad(mask, (1, 1, 1, 1), value=-1.0)  # outside the image is background
+        return 0.5 * -F.max_pool2d(-padded, 3, stride=1)  # a 3x3 min-pool
+
+
+class Recording(Identity):
+    """A stationary Refiner that keeps the last mask it was shown (the framed component)."""
+
+    def forward(self, mask):
+        self.last = (mask[0, 0] > 0).numpy()
+        return mask
+
+
+class FixedTabulator(nn.Module):
+    """A Tabulator that returns known model-px keypoints (from a function of nothing, or of the
+    framed mask the test recorded), whatever the heat maps."""
+
+    def __init__(self, points, num_ratios: int):
+        super().__init__()
+        self.points, self.num_ratios = points, num_ratios
+
+    def forward(self, heatmaps):
+        points = self.points() if callable(self.points) else self.points
+        keypoints = torch.as_tensor(np.asarray(points, dtype=np.float64))[None]
+        return keypoints, torch.ones(1, self.num_ratios)
+
+
+def stub_model(shape: str, refiner: nn.Module | None = None, points=None):
+    model = build_model(shape, SIZE)
+    if refiner is not None:
+        model.refiner = refiner
+    if points is not None:
+        model.tabulator = FixedTabulator(points, len(get_shape(shape).ratio_names))
+    return model.eval()
+
+
+def write_png(path: Path, mask: np.ndarray) -> str:
+    cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
+    return str(path)
+
+
+def rectangles(shape, *boxes) -> np.ndarray:
+    """A bool (H, W) mask holding the given (x0, y0, x1, y1) rectangles, ends inclusive."""
+    mask = np.zeros(shape, bool)
+    for x0, y0, x1, y1 in boxes:
+        mask[y0 : y1 + 1, x0 : x1 + 1] = True
+    return mask
+
+
+def hexagon(shape=(60, 90)) -> np.ndarray:
+    mask = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(mask, np.array([[12, 20], [40, 6], [70, 15], [72, 45], [45, 55], [10, 42]], np.int32), 1)
+    return mask.astype(bool)
+
+
+def rect_keypoints(framed: np.ndarray, n: int) -> np.ndarray:
+    """n keypoints on the corners of a framed rectangle: their silhouette is the rectangle exactly."""
+    ys, xs = np.nonzero(framed)
+    corners = np.array([[xs.max(), ys.min()], [xs.max(), ys.max()], [xs.min(), ys.min()], [xs.min(), ys.max()]], float)
+    return np.resize(corners, (n, 2))  # box: each corner twice; twobox: both parts span the rectangle
+
+
+@pytest.fixture(scope="module")
+def random_models():
+    return [build_model("box", SIZE, seed=1).eval(), build_model("twobox", SIZE, seed=2).eval()]
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory, random_models):
+    folder = tmp_path_factory.mktemp("ckpt")
+    return {m.shape: save_checkpoint(folder / f"{m.shape}.pt", m, TrainConfig(shape=m.shape, size=SIZE), step=0)
+            for m in random_models}
+
+
+# --- records -------------------------------------------------------------------
+
+def check_record(record: dict, path: str, shape: str | None = None) -> None:
+    assert set(record) == RECORD_KEYS
+    assert record["input"] == path and record["error"] is None
+    assert record["shape"] in ("box", "twobox") and (shape is None or record["shape"] == shape)
+    geometry = get_shape(record["shape"])
+    assert isinstance(record["confidence"], float) and 0 <= record["confidence"] <= 1
+    assert len(record["keypoints"]) == geometry.num_keypoints
+    assert all(len(p) == 2 and all(isinstance(v, float) for v in p) for p in record["keypoints"])
+    ratios = record["ratios"]
+    if record["shape"] == "box":
+        assert set(ratios) == {"depth_height", "width_height"}
+    else:
+        assert set(ratios) == {"right", "left"} and all(set(r) == {"depth_height", "width_height"} for r in ratios.values())
+    assert isinstance(record["refine_steps"], int) and record["refine_steps"] >= 1
+    assert record["candidates"][record["shape"]] == record["confidence"]
+
+
+@pytest.mark.parametrize("shape", ["auto", "box", "twobox"])
+def test_records_follow_the_design_schema(tmp_path, random_models, shape):
+    path = write_png(tmp_path / "house.png", hexagon())
+    records = infer_paths([path], random_models, shape=shape)
+    assert len(records) == 1
+    check_record(records[0], path, None if shape == "auto" else shape)
+    assert set(records[0]["candidates"]) == ({"box", "twobox"} if shape == "auto" else {shape})
+    assert json.loads(json.dumps(records)) == records
+
+
+def test_keypoints_are_mapped_back_to_input_pixels(tmp_path):
+    points = np.random.default_rng(0).uniform(-0.5, SIZE - 0.5, (8, 2))
+    path = write_png(tmp_path / "house.png", hexagon((75, 110)))
+    [record] = infer_paths([path], [stub_model("box", points=points)], margin=0.15)
+    _, framing = frame(components(load_mask(Path(path)))[0], SIZE, margin=0.15)
+    assert framing.scale != 1 and np.allclose(record["keypoints"], framing.to_input(points), atol=1e-9)
+
+
+def test_fit_with_one_step_is_the_chained_forward(random_models):
+    model, framed = random_models[0], rectangles((SIZE, SIZE), (6, 9, 25, 22))
+    result = fit(model, framed, refine_steps=1)
+    with torch.inference_mode():
+        expected = model(torch.from_numpy(signed(framed))[None, None])
+    assert np.allclose(result["keypoints"], expected["keypoints"][0].numpy(), atol=1e-6)
+    assert result["refined"].shape == (SIZE, SIZE) and result["heatmaps"].shape == (8, SIZE, SIZE)
+    assert result["refine_steps"] == 1 and set(result["ratios"]) == {"depth_height", "width_height"}
+
+
+# --- iterative refinement (Figure 7) -------------------------------------------
+
+def test_a_stationary_refiner_stops_after_two_passes(tmp_path):
+    model = stub_model("box", refiner=Identity())
+    mask = torch.from_numpy(signed(rectangles((SIZE, SIZE), (4, 4, 20, 20))))[None, None]
+    refined, steps = refine(model, mask, None)
+    assert steps == 2 and torch.equal(refined, mask)  # the second pass changed nothing
+    assert refine(model, mask, 5)[1] == 5
+    path = write_png(tmp_path / "a.png", hexagon())
+    assert infer_paths([path], [model], refine_steps=None)[0]["refine_steps"] == 2
+
+
+def test_an_eroding_refiner_runs_to_the_limit_on_binary_inputs(tmp_path):
+    model = stub_model("box", refiner=(erode := Erode()))
+    full = torch.ones(1, 1, SIZE, SIZE)  # 16 one-pixel peels to empty: every pass changes something
+    refined, steps = refine(model, full, None)
+    assert steps == 16 and not (refined > 0).any()
+    assert all(set(x.unique().tolist()) <= {-1.0, 1.0} for x in erode.inputs)  # the sign went back in, not 0.5
+    refined, steps = refine(model, full, None, max_steps=5)
+    assert steps == 5 and int((refined > 0).sum()) == (SIZE - 10) ** 2
+    assert refine(model, full, 3)[1] == 3
+    path = write_png(tmp_path / "a.png", hexagon())
+    assert infer_paths([path], [model], refine_steps=3)[0]["refine_steps"] == 3
+
+
+# --- confidence ----------------------------------------------------------------
+
+def test_confidence_is_high_for_the_true_keypoints_and_lower_when_perturbed():
+    sample = build_sample(seed=3, shape="box", size=48)
+    true = confidence("box", sample.keypoints, signed(sample.clean))
+    assert true > 0.97
+    assert silhouette("box", sample.keypoints, 48).sum() > 0
+    rng = np.random.default_rng(0)
+    for scale in (1.5, 4.0):
+        perturbed = sample.keypoints + rng.normal(0, scale, sample.keypoints.shape)
+        assert confidence("box", perturbed, signed(sample.clean)) < true
+
+
+@pytest.mark.parametrize("winner", ["box", "twobox"])
+def test_auto_picks_the_model_with_the_higher_confidence(tmp_path, winner):
+    path = write_png(tmp_path / "block.png", rectangles((50, 70), (10, 8, 55, 40)))
+    framed, _ = frame(components(load_mask(Path(path)))[0], SIZE)
+    bad = np.resize([[1.0, 1.0], [4.0, 1.0], [1.0, 4.0]], (14, 2))  # a small triangle in a corner
+    models = [stub_model(s, Identity(), rect_keypoints(framed, n) if s == winner else bad[:n])
+              for s, n in (("box", 8), ("twobox", 14))]
+    [record] = infer_paths([path], models)
+    assert record["shape"] == winner and record["confidence"] > 0.9  # shrinking rounds the corners a little
+    loser = "twobox" if winner == "box" else "box"
+    assert record["candidates"][loser] < 0.1
+
+
+def test_a_requested_shape_without_its_model_is_an_error(random_models):
+    with pytest.raises(ValueError, match="no twobox model"):
+        infer_paths(["x.png"], random_models[:1], shape="twobox")
+    with pytest.raises(ValueError, match="same shape"):
+        infer_paths(["x.png"], [random_models[0], random_models[0]])
+
+
+# --- inputs that fail, components ----------------------------------------------
+
+def test_bad_inputs_give_error_records_and_the_others_still_run(tmp_path, random_models):
+    good = write_png(tmp_path / "good.png", hexagon())
+    empty = write_png(tmp_path / "empty.png", np.zeros((40, 40), bool))
+    (tmp_path / "notes.png").write_text("not an image")
+    paths = [str(tmp_path / "missing.png"), empty, good, str(tmp_path / "notes.png")]
+    records = infer_paths(paths, random_models)
+    assert [r["input"] for r in records] == paths
+    for record, words in zip(records, ["cannot read", "empty mask", None, "cannot read"]):
+        assert set(record) == RECORD_KEYS
+        if words is None:
+            check_record(record, good)
+        else:
+            assert record["keypoints"] is None and words in record["error"] and "\n" not in record["error"]
+
+
+def test_all_components_gives_one_record_per_component(tmp_path):
+    big, small = (5, 5, 40, 30), (60, 35, 80, 52)
+    path = write_png(tmp_path / "two.png", rectangles((60, 90), big, small))
+    refiner = Recording()
+    model = stub_model("box", refiner, lambda: rect_keypoints(refiner.last, 8))  # the framed component's corners
+    records = infer_paths([path], [model], all_components=True)
+    assert [r["component"] for r in records] == [0, 1] and [r["input"] for r in records] == [path, path]
+    for record, (x0, y0, x1, y1) in zip(records, (big, small)):
+        assert set(record) == RECORD_KEYS | {"component"}
+        xs, ys = np.array(record["keypoints"]).T
+        assert np.allclose([xs.min(), ys.min(), xs.max(), ys.max()], [x0, y0, x1, y1], atol=0.75)
+    assert len(infer_paths([path], [model])) == 1 and "component" not in infer_paths([path], [model])[0]
+
+
+# --- the command line ----------------------------------------------------------
+
+def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):
+    good, missing = write_png(tmp_path / "good.png", hexagon()), str(tmp_path / "missing.png")
+    out = tmp_path / "out.json"
+    args = ["infer", good, missing, "--checkpoint", str(checkpoints["box"]), "--checkpoint", str(checkpoints["twobox"])]
+    result = runner.invoke(app, args + ["--json", str(out), "--refine-steps", "auto"])
+    assert result.exit_code == 0, result.output
+    records = json.loads(out.read_text())
+    check_record(records[0], good)
+    assert records[1]["error"] and records[1]["keypoints"] is None
+    assert not list(tmp_path.glob(".tmp-*"))
+    result = runner.invoke(app, args + ["--json", "-", "--shape", "twobox"])
+    assert result.exit_code == 0, result.output
+    records = json.loads(result.stdout)
+    check_record(records[0], good, "twobox")
+    assert records[0]["refine_steps"] == 1
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--checkpoint", "{twobox}", "--checkpoint", "{twobox}"], "second 'twobox' model"),
+    (["--checkpoint", "{tmp}/nope.pt"], "no such file"),
+    (["--checkpoint", "{twobox}", "--shape", "box"], "no box model"),
+    (["--checkpoint", "{box}", "--refine-steps", "many"], "--refine-steps 'many'"),
+    (["--checkpoint", "{box}", "--margin", "0.7"], "--margin 0.7"),
+])
+def test_cli_bad_options_are_one_line_errors(tmp_path, checkpoints, extra, message):
+    good = write_png(tmp_path / "good.png", hexagon())
+    names = {"twobox": checkpoints["twobox"], "box": checkpoints["box"], "tmp": tmp_path}
+    result = runner.invoke(app, ["infer", good] + [a.format(**names) for a in extra])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and message in lines[0], result.output
