@@ -16,13 +16,14 @@ The spool folder is the only link between the generator and the trainer. Its rul
   spool never holds more than `limit + writers * evict_every` samples, however
   many writers on however many hosts share it.
 * `limit == 0` retains the spool: nothing is ever evicted.
-* On a local filesystem a writer recycles the file it evicted instead of creating
-  a new one: creating files is what publishing costs most, and on ext4 without a
+* On a local filesystem a writer recycles the files it evicts instead of creating
+  new ones: creating files is what publishing costs most, and on ext4 without a
   journal it grows with the recently deleted files the spool itself leaves (the
-  allocator skips each of them). Evicting then hard-links the sample to a hidden
-  spare `.tmp-0-<host>-<pid>-<token>-spare.cub` and deletes its sample name
-  (readers see an ordinary deletion); the next publish rewrites the spare and
-  renames it to the new sample name. It rewrites only while it holds a write
+  allocator skips each of them). Before a publish that will evict, the writer
+  hard-links the sample to be evicted to a hidden spare
+  `.tmp-0-<host>-<pid>-<token>-spare<k>.cub`; eviction deletes its sample name
+  as ever (readers see an ordinary deletion); the next publish rewrites that
+  spare and renames it to its new sample name. It rewrites only while it holds a write
   lease (`F_SETLEASE`), which the kernel grants only when no other process has
   the file open, and only while the spare is the file's one name: a reader that
   opened the sample before it was evicted keeps its bytes, and the spare is
@@ -193,8 +194,11 @@ class SpoolWriter:
         self._prefix = f"{host_tag()}-{os.getpid()}-{secrets.token_hex(3)}"
         self._dir = os.fspath(self.spool)
         self._recycle = recycle
-        self._spare_path = os.path.join(self._dir, f"{TMP_PREFIX}0-{self._prefix}-spare{SUFFIX}")
-        self._spare = False  # whether _spare_path holds an evicted file to rewrite
+        # Two spare slots: the file to rewrite now, and the one this publish will evict.
+        self._spare_paths = [
+            os.path.join(self._dir, f"{TMP_PREFIX}0-{self._prefix}-spare{k}{SUFFIX}") for k in (0, 1)
+        ]
+        self._spare: str | None = None  # the slot holding an evicted sample's file to rewrite
         self._seq = 0
         self._known: deque[str] = deque()  # names believed present, oldest first
         self._believed = 0  # samples believed present
@@ -214,16 +218,27 @@ class SpoolWriter:
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._spare:
-            self._spare = False
-            _unlink_quietly(self._spare_path)
+        if self._spare is not None:
+            _unlink_quietly(self._spare)
+            self._spare = None
 
     def publish(self, data: bytes) -> str:
         """Atomically add one sample; returns its file name. Raises SpoolFull on a full disk."""
         self._seq += 1
         name = f"{time.time_ns():019d}-{self._prefix}-{self._seq:09d}{SUFFIX}"
-        if not (self._spare and self._rewrite_spare(name, data)):
-            self._write_atomically(name, data)
+        spare, self._spare = self._spare, None
+        # The sample this publish is about to evict, kept under the other slot's name for
+        # the next publish. Linked before publishing, deleted after as ever, so the spool
+        # peaks by one for a moment (a kill -9 leaves one too many, never one too few).
+        incoming = self._keep_as_spare(spare) if self._recycle and self._believed >= self.limit > 0 else None
+        try:
+            if not (spare is not None and self._rewrite_spare(spare, name, data)):
+                self._write_atomically(name, data)
+        except BaseException:
+            if incoming is not None:
+                _unlink_quietly(incoming)
+            raise
+        self._spare = incoming
         self.counts.published += 1
         self.counts.published_bytes += len(data)
         if self.limit:
@@ -253,11 +268,26 @@ class SpoolWriter:
                 raise SpoolFull(exc.errno, f"no space left under {self.spool}") from None
             raise
 
-    def _rewrite_spare(self, name: str, data: bytes) -> bool:
-        """Publish `data` as `name` by rewriting the spare (an evicted sample's file);
+    def _keep_as_spare(self, busy: str | None) -> str | None:
+        """Hard-link the oldest known sample (the next to be evicted) to a free spare
+        slot; returns the slot's path, or None."""
+        slot = self._spare_paths[1] if busy == self._spare_paths[0] else self._spare_paths[0]
+        try:
+            os.link(os.path.join(self._dir, self._known[0]), slot)
+            return slot
+        except (FileNotFoundError, IndexError):  # another writer evicted it first; nothing known
+            return None
+        except FileExistsError:  # left over from an interrupted publish: it goes, this one is skipped
+            _unlink_quietly(slot)
+            return None
+        except OSError as exc:  # no hard links here
+            log.info("spool %s: not recycling evicted files (%s)", self.spool, exc.strerror)
+            self._recycle = False
+            return None
+
+    def _rewrite_spare(self, spare: str, name: str, data: bytes) -> bool:
+        """Publish `data` as `name` by rewriting a spare (an evicted sample's file);
         False, with the spare gone, when it cannot be rewritten safely."""
-        self._spare = False
-        spare = self._spare_path
         try:
             fd = os.open(spare, _REWRITE)
         except OSError:  # swept by a starting writer, or replaced by something we must not touch
@@ -269,7 +299,7 @@ class SpoolWriter:
             fcntl.fcntl(fd, fcntl.F_SETSIG, signal.SIGURG)
             fcntl.fcntl(fd, fcntl.F_SETLEASE, fcntl.F_WRLCK)  # refused while anyone else has it open
             status = os.fstat(fd)
-            if status.st_nlink != 1:  # another writer linked it too (both evicted it), or a copy did
+            if status.st_nlink != 1:  # still a sample, or another writer's spare too, or hard-linked by a copy
                 raise BlockingIOError(errno.EAGAIN, "spare has another name")
             _write_all(fd, data)
             if status.st_size > len(data):
@@ -308,28 +338,12 @@ class SpoolWriter:
         of our publishes at the limit is matched by exactly one deletion.
         """
         while self._believed > self.limit and self._known:
-            path = os.path.join(self._dir, self._known.popleft())
-            if self._recycle and not self._spare:
-                self._keep_as_spare(path)
             try:
-                os.unlink(path)
+                os.unlink(os.path.join(self._dir, self._known.popleft()))
             except FileNotFoundError:
                 continue
             self._believed -= 1
             self.counts.evicted += 1
-
-    def _keep_as_spare(self, path: str) -> None:
-        """Hard-link a sample about to be evicted to the spare name, to rewrite it later."""
-        try:
-            os.link(path, self._spare_path)
-            self._spare = True
-        except FileNotFoundError:  # another writer evicted it first
-            pass
-        except FileExistsError:  # a spare left over (we were interrupted): it goes, this one stays
-            _unlink_quietly(self._spare_path)
-        except OSError as exc:  # no hard links here
-            log.info("spool %s: not recycling evicted files (%s)", self.spool, exc.strerror)
-            self._recycle = False
 
 
 def _write_all(fd: int, data: bytes) -> None:
