@@ -25,12 +25,14 @@ if sys.byteorder != "little":  # roughen reads a point's int32 (x, y) pair as on
 
 def roughen(mask: np.ndarray, amount: float, wavelength: float, rng: np.random.Generator) -> np.ndarray:
     """`mask` with its boundaries displaced by about `amount` px (std); 0 returns a copy."""
-    if amount <= 0 or not mask.any():
+    if amount <= 0:
         return mask.copy()
+    # RETR_LIST: every outer boundary and hole, without the hierarchy (unused; 30% dearer).
     # Tracing only the silhouette's bounding box was measured no faster: the cost is in
     # following the contours, not in scanning the image.
-    # RETR_LIST: every outer boundary and hole, without the hierarchy (unused; 30% dearer).
     contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    if not contours:  # an empty mask
+        return mask.copy()
     lengths = [len(c) for c in contours]
     # (N, 2) int32 points, x then y; viewed as one int64 per point (x + y * 2**32 on a
     # little-endian machine, x >= 0) so differences of points are one flat subtraction.

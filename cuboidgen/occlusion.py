@@ -61,18 +61,20 @@ def draw_placement(library, box: Box, scene: SceneConfig, rng) -> dict:
     x0, y0, x1, y1 = box
     height = y1 - y0 + 1
     index = int(rng.integers(len(library)))
+    # One call for the six draws: the same numbers as one `rng.random()` each, in this order.
+    size, ground, foot, angle, flip, across = rng.random(6).tolist()
     (h_lo, h_hi), (a_lo, a_hi) = scene.occluder_height, scene.occluder_rotation_deg
-    target = height * (h_lo + (h_hi - h_lo) * rng.random())
-    grounded = bool(rng.random() < scene.grounded_probability)
+    target = height * (h_lo + (h_hi - h_lo) * size)
+    grounded = ground < scene.grounded_probability
     # A grounded occluder's foot lands near the building's ground line; others anywhere over it.
-    foot_y = y1 + height * 0.05 * (rng.random() - 0.3) if grounded else y0 + (y1 - y0 + target) * rng.random()
+    foot_y = y1 + height * 0.05 * (foot - 0.3) if grounded else y0 + (y1 - y0 + target) * foot
     return {
         "index": index,
         "kind": library.names[index],
         "height_px": float(target),
-        "angle_deg": float(a_lo + (a_hi - a_lo) * rng.random()),
-        "flip": bool(rng.random() < 0.5),
-        "x": float(x0 + (x1 - x0) * rng.random()),
+        "angle_deg": float(a_lo + (a_hi - a_lo) * angle),
+        "flip": flip < 0.5,
+        "x": float(x0 + (x1 - x0) * across),
         "foot_y": float(foot_y),
         "grounded": grounded,
     }

@@ -54,19 +54,31 @@ def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Genera
     return View(keypoints=keypoints, points3d=camera, ratios=shape.ratios(camera), params=params)
 
 
+_EXTENTS = ("width", "height", "depth")
+_POSE = ("pitch_deg", "yaw_deg", "roll_deg", "offset_x", "offset_y", "distance", "camera_pitch_deg")
+
+
 def draw_params(shape: Shape, scene: SceneConfig, rng: np.random.Generator) -> dict:
-    p = {k: uniform(rng, getattr(scene, k)) for k in ("width", "height", "depth")}
-    if len(shape.parts) == 2:
-        p["split"] = uniform(rng, scene.split)
-        p["height_ratio"] = uniform(rng, scene.height_ratio)
-        p["left_taller"] = bool(rng.random() < 0.5)
-    for k in ("pitch_deg", "yaw_deg", "roll_deg", "offset_x", "offset_y", "distance", "camera_pitch_deg"):
-        p[k] = uniform(rng, getattr(scene, k))
+    two = len(shape.parts) == 2
+    # One call for every draw: the same numbers as one `rng.random()` each, in this order.
+    draws = iter(rng.random(len(_EXTENTS) + 3 * two + len(_POSE) + (scene.eye_height is not None) + 1).tolist())
+
+    def uniform_draw(bounds) -> float:
+        lo, hi = bounds
+        return lo + (hi - lo) * next(draws)
+
+    p = {k: uniform_draw(getattr(scene, k)) for k in _EXTENTS}
+    if two:
+        p["split"] = uniform_draw(scene.split)
+        p["height_ratio"] = uniform_draw(scene.height_ratio)
+        p["left_taller"] = next(draws) < 0.5
+    for k in _POSE:
+        p[k] = uniform_draw(getattr(scene, k))
     if scene.eye_height is not None:
         # Standing on the ground: the centre sits half the height above it.
-        p["eye_height"] = uniform(rng, scene.eye_height)
+        p["eye_height"] = uniform_draw(scene.eye_height)
         p["offset_y"] = p["eye_height"] - p["height"] / 2
-    p["flip"] = bool(rng.random() < scene.flip_probability)
+    p["flip"] = next(draws) < scene.flip_probability
     return p
 
 
@@ -165,13 +177,14 @@ def _naming_tables(shape: Shape) -> tuple[list[int], ...]:
 def frame(image: np.ndarray, size: int, scene: SceneConfig, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
     """Scale and shift projected points so the silhouette's longer side spans the image
     less two margins, centred with a small random shift (kept inside the image)."""
-    margin = uniform(rng, scene.margin)
+    draw, *shifts = rng.random(3).tolist()  # as three rng.random() calls
+    margin = scene.margin[0] + (scene.margin[1] - scene.margin[0]) * draw
     xs, ys = image[:, 0].tolist(), image[:, 1].tolist()
     lo = (min(xs), min(ys))
     spans = (max(xs) - lo[0], max(ys) - lo[1])
     scale = size * (1 - 2 * margin) / max(spans)
     origin = []
-    for low, span, draw in zip(lo, spans, rng.random(2).tolist()):
+    for low, span, draw in zip(lo, spans, shifts):
         slack = max(size - 1 - span * scale, 0.0)  # free room on this axis, in px
         jitter = (draw - 0.5) * scene.centre_jitter * min(slack, size * margin)
         origin.append(slack / 2 + jitter - low * scale)  # pixel centres: the image spans 0 .. size - 1

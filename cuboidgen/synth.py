@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from cuboidgen.config import SceneConfig
@@ -70,12 +71,12 @@ def make_sample(shape: str, scene: SceneConfig, size: int, seed: int, library) -
     amount = uniform(rng, scene.contour_noise) * size / 256
     wavelength = uniform(rng, scene.noise_wavelength) * size / 256
     noisy = roughen(occluded, amount, wavelength, rng)
-    visible = int(np.count_nonzero(occluded))  # occlusion only removes pixels
+    visible = cv2.countNonZero(occluded.view(np.uint8))  # occlusion only removes pixels
     params = {
         "scene": scene.name,
         **view.params,
         "occluders": occluders,
-        "occluded_fraction": 1.0 - visible / max(int(np.count_nonzero(clean)), 1),
+        "occluded_fraction": 1.0 - visible / max(cv2.countNonZero(clean.view(np.uint8)), 1),
         "contour_noise": amount,
         "noise_wavelength": wavelength,
     }
