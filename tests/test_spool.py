@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from shared.sample import decode, encode
@@ -240,3 +241,28 @@ def test_writer_creates_a_missing_spool(tmp_path):
 def test_negative_limit_is_refused(tmp_path):
     with pytest.raises(ValueError, match="limit -1"):
         SpoolWriter(tmp_path, -1)
+
+
+def test_read_survives_short_reads(tmp_path, monkeypatch, library):
+    data = encode(build_sample(0, library=library))
+    with SpoolWriter(tmp_path, limit=0) as writer:
+        name = writer.publish(data)
+    real_read = os.read
+    monkeypatch.setattr(os, "read", lambda fd, n: real_read(fd, min(n, 1000)))
+    assert read_sample_bytes(tmp_path, name) == data
+    assert read_sample_bytes(tmp_path, "gone.cub") is None
+
+
+@pytest.mark.parametrize("size", [48, 14])  # 14 x 14 bits do not fill whole bytes
+def test_collated_masks_are_the_decoded_ones(tmp_path, size, library):
+    from shared.sample import collate, decode_record
+
+    with SpoolWriter(tmp_path, limit=0) as writer:
+        for seed in range(5):
+            writer.publish(encode(build_sample(seed, size=size, library=library)))
+    data = [read_sample_bytes(tmp_path, n) for n in enumerate_spool(tmp_path)]
+    batch = collate([decode_record(d) for d in data], unpack=True)
+    for key in ("noisy", "clean"):
+        expected = np.stack([getattr(decode(d), key) for d in data]).astype(np.uint8)
+        assert batch[key].dtype == np.uint8 and batch[key].shape == (5, size, size)
+        assert (batch[key] == expected).all()
