@@ -85,6 +85,9 @@ class Estimator(nn.Module):
     def __init__(self, num_keypoints: int):
         super().__init__()
         self.net = UNetResNet18(1, num_keypoints)
+        # Start the maps near 0, not 0.5 (CenterNet's prior, sigmoid(-2.19) = 0.1): a heat
+        # map is almost all background, and from 0.5 the first thousand steps only learn that.
+        nn.init.constant_(self.net.head.bias, -2.19)
 
     def forward(self, mask: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.net(mask))
