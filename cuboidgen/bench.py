@@ -68,6 +68,47 @@ def bench_generate(size: int, samples: int, repeats: int, library, where: str = 
     }
 
 
+def bench_stages(size: int, samples: int, library, where: str = ".") -> dict:
+    """Where a sample's time goes, one core: per-sample medians (us) of each stage of
+    `make_sample` (box, paper scene), of encoding, and of publishing into a spool at
+    its cap, over `2 * samples` samples."""
+    from cuboidgen.noise import roughen
+    from cuboidgen.occlusion import occlude
+    from cuboidgen.raster import rasterize
+    from cuboidgen.scene import draw_view, uniform
+    from cuboidgen.synth import seeded, silhouette_box
+    from shared.shapes import get_shape
+
+    cv2.setNumThreads(1)
+    geometry, clock = get_shape("box"), time.perf_counter
+    stages = ("view", "raster", "occlusion", "contour_noise", "make_sample", "encode", "publish")
+    times: dict[str, list[float]] = {k: [] for k in stages}
+    with tempfile.TemporaryDirectory(dir=where, prefix=".bench-") as spool, SpoolWriter(Path(spool), limit=samples) as writer:
+        for seed in range(samples):  # fill the spool to its cap: time publishing in its steady state
+            writer.publish(encode(make_sample("box", PAPER, size, seed, library)))
+        for seed in range(samples, 3 * samples):
+            t0 = clock()
+            rng = seeded(seed)
+            view = draw_view(geometry, PAPER, size, rng)
+            t1 = clock()
+            clean = rasterize(geometry, view.keypoints, size)
+            t2 = clock()
+            occluded, _ = occlude(clean, library, PAPER, rng, box=silhouette_box(view.keypoints, size))
+            t3 = clock()
+            amount = uniform(rng, PAPER.contour_noise) * size / 256
+            roughen(occluded, amount, uniform(rng, PAPER.noise_wavelength) * size / 256, rng)
+            t4 = clock()
+            sample = make_sample("box", PAPER, size, seed, library)
+            t5 = clock()
+            data = encode(sample)
+            t6 = clock()
+            writer.publish(data)
+            t7 = clock()
+            for stage, seconds in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
+                times[stage].append(seconds)
+    return {"size": size, "samples": 2 * samples, **{f"{k}_us": statistics.median(v) * 1e6 for k, v in times.items()}}
+
+
 def bench_daemon(size: int, samples: int, workers: int, where: str = ".") -> dict:
     """The real daemon on all cores, process start-up included."""
     from cuboidgen.daemon import run
