@@ -6,10 +6,11 @@ The spool folder is the only link between the generator and the trainer. Its rul
   by age and never collides: pid and a random token tell apart writers on one
   host, the host name tells apart hosts, and the sequence number orders one
   writer's samples.
-* Publishing writes `.tmp-<name>` and renames it in the same folder, so readers
-  see a whole file or none. Nothing is fsynced unless asked: a killed process
-  leaves at most a temporary file, which is swept when a writer next starts;
-  only a power cut could lose data that was not synced.
+* Publishing writes `.tmp-<name>` (or rewrites a spare, below) and renames it in
+  the same folder, so readers see a whole file or none. Nothing is fsynced unless
+  asked: a killed process leaves at most three temporary files (one being written,
+  two spares), which are swept when a writer next starts; only a power cut could
+  lose data that was not synced.
 * Every writer evicts. After each publish, a writer that believes the spool is
   at its limit deletes one file, the oldest it knows of; every `evict_every`
   publishes it lists the folder again and deletes down to the limit. So the
@@ -17,19 +18,22 @@ The spool folder is the only link between the generator and the trainer. Its rul
   many writers on however many hosts share it.
 * `limit == 0` retains the spool: nothing is ever evicted.
 * On a local filesystem a writer recycles the files it evicts instead of creating
-  new ones: creating files is what publishing costs most, and on ext4 without a
-  journal it grows with the recently deleted files the spool itself leaves (the
-  allocator skips each of them). Before a publish that will evict, the writer
-  hard-links the sample to be evicted to a hidden spare
-  `.tmp-0-<host>-<pid>-<token>-spare<k>.cub`; eviction deletes its sample name
-  as ever (readers see an ordinary deletion); the next publish rewrites that
-  spare and renames it to its new sample name. It rewrites only while it holds a write
-  lease (`F_SETLEASE`), which the kernel grants only when no other process has
-  the file open, and only while the spare is the file's one name: a reader that
-  opened the sample before it was evicted keeps its bytes, and the spare is
-  deleted and a new file written instead. Without `fsync`, a power cut may then
-  leave a just-published sample holding parts of the one it replaced (with
-  `fsync` nothing changes). `SpoolWriter(recycle=False)` turns recycling off.
+  new ones: creating a file is what publishing costs most, and on ext4 without a
+  journal it grows with the files the spool itself has just deleted (the inode
+  allocator passes over recently freed inodes one by one). Before a publish that
+  will evict, the writer hard-links the sample to be evicted to a hidden spare
+  `.tmp-0-<host>-<pid>-<token>-spare<k>.cub` (k = 0, 1, alternately); eviction
+  deletes its sample name as ever (readers and watchers see an ordinary
+  deletion); the next publish rewrites that spare and renames it to its new
+  sample name. It rewrites only while it holds a write lease (`F_SETLEASE`),
+  which the kernel grants only while no other process has the file open, and
+  only while the spare is the file's one name (not still a sample, not another
+  writer's spare, not hard-linked by a copy): a reader that opened a sample
+  before it was evicted keeps its bytes, and the spare is deleted and a new file
+  written instead. Without `fsync`, a power cut may leave a just-published
+  sample holding parts of the one its file held before (with `fsync` nothing
+  changes). `SpoolWriter(recycle=False)` turns recycling off; network and FUSE
+  filesystems, where a lease cannot see readers on other hosts, never recycle.
 """
 from __future__ import annotations
 
