@@ -95,6 +95,11 @@ def train_step(model: CuboidNet, optimizer: torch.optim.Optimizer, x: dict, conf
     return {"D_R": losses["D_R"].item(), "D_S": losses["D_S"].item(), "D_T": losses["D_T"].item(), "total": total.item()}
 
 
+def stale(batch: dict, batch_size: int) -> bool:
+    """More than half of the batch vanished: the epoch's listing no longer matches the spool."""
+    return 2 * batch["skipped"]["vanished"] > batch_size
+
+
 def learning_rate(config: TrainConfig, step: int) -> float:
     """The rate for the step after `step`: constant, or cosine from lr down to lr/100 at --steps."""
     if config.lr_schedule == "constant":
@@ -149,7 +154,13 @@ def _train(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: fl
                 # 1. fetch: the time spent waiting for this batch is the data wait
                 waited = progress.fetched()
                 sampler.state.position += 1
-                if len(batch["names"]) < 2:  # BatchNorm needs two; the rest of this batch vanished
+                if stale(batch, config.batch_size):
+                    # The generator evicted most of this listing (it outruns the trainer):
+                    # end the epoch and list the spool afresh rather than skip through it.
+                    progress.skip(batch["skipped"])
+                    sampler.state.position = len(sampler)
+                    break
+                if len(batch["names"]) < 2:  # BatchNorm needs two
                     progress.skip(batch["skipped"])
                     continue
                 # 2. targets rendered on the device; forward, backward, step

@@ -119,6 +119,30 @@ def test_resume_refuses_another_phase_and_init_another_shape(spool, tmp_path):
         run(config(spool, tmp_path / "b", shape="twobox", phase="2", init=str(tmp_path / "last.pt")))
 
 
+def test_a_listing_gone_stale_ends_the_epoch_and_lists_afresh(tmp_path, monkeypatch):
+    # A generator that outruns the trainer evicts most of an epoch's listing; the trainer
+    # must re-list then, not skip through the dead names one batch at a time.
+    spool = tmp_path / "spool"
+    with SpoolWriter(spool, limit=0) as writer:
+        for seed in range(40):
+            writer.publish(encode(build_sample(seed, "box", size=SIZE)))
+    import cuboidtrain.train as train_module
+
+    real_prepare, calls = train_module.prepare_batch, []
+
+    def evict_after_first_step(batch, *args):
+        if not calls:  # keep 8 samples, as if the generator replaced the rest
+            for name in enumerate_spool(spool)[8:]:
+                (spool / name).unlink()
+        calls.append(1)
+        return real_prepare(batch, *args)
+
+    monkeypatch.setattr(train_module, "prepare_batch", evict_after_first_step)
+    status = run(config(spool, tmp_path / "run", steps=3))
+    assert status["step"] == 3
+    assert 0 < status["skipped"]["vanished"] <= 8  # one stale batch, not the 32 dead names
+
+
 def test_epochs_mode_trains_whole_passes(spool, tmp_path):
     status = run(config(spool, tmp_path, steps=None, epochs=2))
     assert status["step"] == 6  # 2 epochs x 3 batches of 4 from 12 samples
