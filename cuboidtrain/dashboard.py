@@ -12,7 +12,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -22,6 +21,8 @@ from rich.panel import Panel
 from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
+
+from cuboidtrain.files import write_json_atomically
 
 log = logging.getLogger(__name__)
 
@@ -262,14 +263,7 @@ def write_status(out: Path, status: dict) -> None:
     """Replace OUT/status.json atomically, so a reader sees the old file or the new, never half."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".status.", suffix=".tmp", dir=out)  # same folder: os.replace stays atomic
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(status, f)  # NaN stays NaN: a diverged loss must show, not crash the writer
-        os.replace(tmp, out / STATUS_FILE)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_json_atomically(out / STATUS_FILE, status)
 
 
 def read_status(out: Path) -> dict:

@@ -9,9 +9,7 @@ refined mask wins; that IoU is the record's `confidence`.
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
 from pathlib import Path
 
 import cv2
@@ -21,6 +19,7 @@ import torch
 from cuboidgen.raster import rasterize
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.device import resolve_device
+from cuboidtrain.files import write_json_atomically
 from cuboidtrain.masks import components, frame, load_mask
 from cuboidtrain.networks import CuboidNet
 from shared.shapes import Shape, get_shape
@@ -199,10 +198,5 @@ def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "
 
 
 def write_records(path: Path, records: list[dict]) -> None:
-    """The JSON list, through a temporary file and os.replace: a reader never sees half of it."""
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    try:
-        tmp.write_text(json.dumps(records, indent=2) + "\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    """The JSON list, replaced atomically: a reader never sees half of it."""
+    write_json_atomically(path, records, indent=2)
