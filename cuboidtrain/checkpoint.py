@@ -90,7 +90,7 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
 def load_model(path: str | Path, shape: str | None = None, size: int | None = None) -> tuple[CuboidNet, dict]:
     """A model rebuilt from its checkpoint (on the CPU, in eval mode) and the checkpoint dict."""
     ckpt = load_checkpoint(path, shape, size)
-    model = CuboidNet(ckpt["shape"], ckpt["size"])
+    model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"])
     model.load_state_dict(ckpt["model"])
     return model.eval(), ckpt
 

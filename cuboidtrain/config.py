@@ -9,6 +9,11 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from shared.shapes import get_shape
 
+
+def default_sigma(size: int) -> float:
+    """Heat-map std in px when none is given: size/128, at least 1 (2 px at 256)."""
+    return max(1.0, size / 128)
+
 # Phase 1 and 2 are the paper's scheme (3.3.2); the other two are its ablations (4.1.1).
 PHASES = {
     "1": "each network alone on ground-truth inputs (x1->R, x2->S, x3->T)",
@@ -87,7 +92,7 @@ class TrainConfig:
 
     @property
     def heatmap_sigma(self) -> float:
-        return self.sigma if self.sigma is not None else max(1.0, self.size / 128)
+        return self.sigma if self.sigma is not None else default_sigma(self.size)
 
     @property
     def loss_weights(self) -> tuple[float, float, float]:

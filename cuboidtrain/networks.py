@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 from torchvision.models import resnet18
 
+from cuboidtrain.config import default_sigma
 from shared.shapes import get_shape
 
 DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1
@@ -127,10 +128,12 @@ class Tabulator(nn.Module):
 class CuboidNet(nn.Module):
     """R, S and T for one shape class at one size; `forward` chains them (inference, phase 2)."""
 
-    def __init__(self, shape: str, size: int):
+    def __init__(self, shape: str, size: int, sigma: float | None = None):
         super().__init__()
         geometry = get_shape(shape)
         self.shape, self.size = shape, size
+        # The heat maps' Gaussian std in px that S was trained to draw: sub-pixel decoders need it.
+        self.sigma = sigma if sigma is not None else default_sigma(size)
         self.refiner = Refiner()
         self.estimator = Estimator(geometry.num_keypoints)
         self.tabulator = Tabulator(geometry.num_keypoints, len(geometry.ratio_names), size)
@@ -142,8 +145,8 @@ class CuboidNet(nn.Module):
         return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios}
 
 
-def build_model(shape: str, size: int, seed: int = 0) -> CuboidNet:
+def build_model(shape: str, size: int, seed: int = 0, sigma: float | None = None) -> CuboidNet:
     """A freshly initialised model; the same seed gives the same weights."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return CuboidNet(shape, size)
+        return CuboidNet(shape, size, sigma)

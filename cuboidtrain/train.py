@@ -63,7 +63,7 @@ def _leave_signals_to_main(_worker_id: int) -> None:
 def build_state(config: TrainConfig, device: torch.device) -> tuple[CuboidNet, torch.optim.Optimizer, int, dict | None]:
     """Model, optimizer, first step and a checkpoint to resume from (None for a fresh run)."""
     torch.manual_seed(config.seed)
-    model = build_model(config.shape, config.size, config.seed)
+    model = build_model(config.shape, config.size, config.seed, config.heatmap_sigma)
     resume = None
     if config.resume:
         resume = load_checkpoint(Path(config.out) / LAST, config.shape, config.size)
