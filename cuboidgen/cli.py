@@ -28,18 +28,23 @@ class ShapeChoice(str, Enum):
 
 @app.command()
 def run(
-    spool: Path = typer.Option(Path("data_spool"), help="Spool folder (created if missing)."),
-    limit: int = typer.Option(10_000, help="Samples kept; the oldest are evicted. 0 retains the spool (no eviction)."),
-    max_samples: Optional[int] = typer.Option(None, help="Stop after publishing this many samples."),
-    workers: int = typer.Option(os.cpu_count() or 1, help="Worker processes (default: all cores)."),
-    size: int = typer.Option(256, help="Mask size in px (square)."),
-    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Shape class; mix picks one per sample."),
-    seed: Optional[int] = typer.Option(None, help="Run seed: the same seed and options give the same samples."),
-    scene: str = typer.Option("paper", help="Scene preset (paper, street) or a .json/.toml scene file."),
-    occluders: Optional[Path] = typer.Option(None, help="Folder of RGBA or binary PNG occluders (default: built-in)."),
-    dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", help="Live dashboard (else log lines)."),
-    fsync: bool = typer.Option(False, help="Sync every sample to disk before publishing it (survives power loss)."),
-    evict_every: int = typer.Option(64, help="Publishes between spool listings; bounds overshoot per worker."),
+    spool: Path = typer.Option(Path("data_spool"), envvar="CUBOIDGEN_SPOOL", help="Spool folder (created if missing)."),
+    limit: int = typer.Option(10_000, envvar="CUBOIDGEN_LIMIT",
+                              help="Samples kept; the oldest are evicted. 0 retains the spool (no eviction)."),
+    max_samples: Optional[int] = typer.Option(None, envvar="CUBOIDGEN_MAX_SAMPLES", help="Stop after publishing this many samples."),
+    workers: int = typer.Option(os.cpu_count() or 1, envvar="CUBOIDGEN_WORKERS", help="Worker processes (default: all cores)."),
+    size: int = typer.Option(256, envvar="CUBOIDGEN_SIZE", help="Mask size in px (square)."),
+    shape: ShapeChoice = typer.Option(ShapeChoice.box, envvar="CUBOIDGEN_SHAPE", help="Shape class; mix picks one per sample."),
+    seed: Optional[int] = typer.Option(None, envvar="CUBOIDGEN_SEED", help="Run seed: the same seed and options give the same samples."),
+    scene: str = typer.Option("paper", envvar="CUBOIDGEN_SCENE", help="Scene preset (paper, street) or a .json/.toml scene file."),
+    occluders: Optional[Path] = typer.Option(None, envvar="CUBOIDGEN_OCCLUDERS",
+                                             help="Folder of RGBA or binary PNG occluders (default: built-in)."),
+    dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", envvar="CUBOIDGEN_DASHBOARD",
+                                   help="Live dashboard (else log lines)."),
+    fsync: bool = typer.Option(False, envvar="CUBOIDGEN_FSYNC",
+                               help="Sync every sample to disk before publishing it (survives power loss)."),
+    evict_every: int = typer.Option(64, envvar="CUBOIDGEN_EVICT_EVERY",
+                                    help="Publishes between spool listings; bounds overshoot per worker."),
 ) -> None:
     """Generate samples into the spool until Ctrl-C/SIGTERM (or --max-samples)."""
     from cuboidgen.config import GenConfig, load_scene
@@ -97,6 +102,38 @@ def inspect(
     for key, value in report.items():
         table.add_row(key, str(value))
     Console().print(table)
+
+
+@app.command()
+def health(
+    spool: Path = typer.Argument(..., help="Spool folder."),
+    max_age: float = typer.Option(60.0, help="Healthy while the newest sample is at most this many seconds old."),
+    mine: bool = typer.Option(False, "--mine", help="Only samples published from this host (a container's own)."),
+) -> None:
+    """Exit 0 when the spool's newest sample is fresh and decodes, else 1 (a container healthcheck)."""
+    from shared.inspect import freshness
+    from shared.spool import host_tag
+
+    try:
+        if max_age <= 0:
+            raise ValueError(f"--max-age {max_age}: expected a positive number of seconds")
+        report = freshness(spool, host_tag() if mine else None)
+    except ValueError as exc:
+        unhealthy(str(exc))
+    whose = f" from host {report['host']}" if report["host"] else ""
+    if report["newest"] is None:
+        unhealthy(f"spool {spool}: no samples{whose}")
+    if report["corrupt"]:
+        unhealthy(f"spool {spool}: newest sample{whose} {report['newest']} is corrupt ({report['corrupt']})")
+    if report["age_s"] > max_age:
+        unhealthy(f"spool {spool}: newest sample{whose} is {report['age_s']:.0f} s old, expected at most {max_age:g} s")
+    typer.echo(f"healthy: newest sample{whose} {report['age_s']:.1f} s old, {report['samples']} samples")
+
+
+def unhealthy(message: str) -> None:
+    # Exit 1, not fail()'s 2: Docker reads a healthcheck's 1 as unhealthy and reserves 2.
+    console.print(f"[red]unhealthy:[/red] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(1)
 
 
 @app.command()

@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import os
+import time
 from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
 
 from shared.sample import decode_record
-from shared.spool import META_NAME, TMP_PREFIX, check_spool, is_sample_name, name_time, read_sample_bytes
+from shared.spool import (
+    META_NAME, TMP_PREFIX, check_spool, enumerate_spool, is_sample_name, name_time, read_sample_bytes,
+)
 
 
 def inspect_spool(spool: Path) -> dict:
@@ -57,3 +60,25 @@ def inspect_spool(spool: Path) -> dict:
 
 def _iso(t: float) -> str:
     return datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")
+
+
+def freshness(spool: Path, host: str | None = None) -> dict:
+    """The newest sample (of those published from `host`, a `host_tag()`, when given):
+    its name, age in seconds and whether it decodes. Lists the folder and reads one
+    file, so it is cheap enough for a container healthcheck on a full spool."""
+    spool = check_spool(spool)
+    names = enumerate_spool(spool)
+    if host is not None:
+        names = [n for n in names if n.split("-")[1:2] == [host]]
+    for name in reversed(names):  # newest first; one evicted meanwhile gives way to the next
+        data = read_sample_bytes(spool, name)
+        if data is None:
+            continue
+        try:
+            decode_record(data)
+            problem = None
+        except ValueError as exc:
+            problem = str(exc)
+        return {"spool": str(spool), "host": host, "samples": len(names), "newest": name,
+                "age_s": time.time() - name_time(name), "corrupt": problem}
+    return {"spool": str(spool), "host": host, "samples": 0, "newest": None, "age_s": None, "corrupt": None}
