@@ -174,6 +174,77 @@ def infer(
 
 
 @app.command()
+def localize(
+    mask_args: Optional[list[str]] = typer.Argument(None, metavar="MASK", help="With --street: masks of consecutive buildings, in street order."),
+    street: Optional[Path] = typer.Option(None, metavar="STREET.json", help="A street's known buildings (README: Localization); locate MASKs in it."),
+    masks: Optional[list[str]] = typer.Option(None, "--masks", metavar="MASK", help="Masks in street order: --masks A B C, or one per --masks."),
+    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help="A trained box model (street buildings are single boxes)."),
+    buildings: int = typer.Option(100, help="Experiment: N, buildings per random street."),
+    max_m: int = typer.Option(30, help="Experiment: M, the longest sub-sequence (at most N)."),
+    top_l: int = typer.Option(5, help="Experiment: L, the widest top-l."),
+    seed: int = typer.Option(0, help="Experiment: seed of the streets, views, occluders and noise."),
+    streets: int = typer.Option(1, help="Experiment: independent streets; acc is their mean."),
+    scene: str = typer.Option("paper", help="Experiment: the generator's scene (extent ranges, views, occlusion, noise)."),
+    mask_size: Optional[int] = typer.Option(None, metavar="PX", help="Experiment: size of the drawn masks (default the model's)."),
+    oracle: bool = typer.Option(False, "--oracle", help="Experiment: true ratios with --oracle-noise instead of the networks."),
+    oracle_noise: float = typer.Option(0.0, metavar="SIGMA", help="The oracle's relative Gaussian noise (0: exact ratios)."),
+    example_m: int = typer.Option(4, help="Experiment: Figure 12's sub-sequence length."),
+    example_start: Optional[int] = typer.Option(None, help="Experiment: Figure 12's true start, 1-based (default the middle)."),
+    temperature: float = typer.Option(1.0, help="Probabilities are softmax(-distance / temperature)."),
+    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, as infer."),
+    margin: float = typer.Option(0.1, help="Framing margin, as infer."),
+    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
+    csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="Experiment: acc(m, l), one row per m."),
+    heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Experiment: Figures 10-11's heat map of acc(m, l)."),
+    bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
+    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
+) -> None:
+    """Localization (paper section 5): the acc(m, l) experiment, or with --street, where the MASKs were taken."""
+    import torch
+    from rich.console import Console
+
+    from cuboidtrain import localize as loc
+    from cuboidtrain import localize_report as report
+    from cuboidtrain.infer import load_models
+
+    setup_logging()
+    out = console if json_out == "-" else Console()
+    try:
+        if threads is not None:
+            torch.set_num_threads(max(threads, 1))
+        steps, paths = parse_refine_steps(refine_steps), loc.mask_sequence(masks, mask_args)
+        if street is not None:
+            if oracle or not paths or not checkpoint:
+                raise ValueError("--street: expected masks (--masks A B C) and --checkpoint, and no --oracle")
+            result = loc.localize_masks(loc.read_street(street), paths, load_models(checkpoint), refine_steps=steps,
+                                        margin=margin, device=device, temperature=temperature)
+            out.print(report.ranking_table(result))
+        else:
+            if paths:
+                raise ValueError(f"masks {paths}: expected --street STREET.json to locate them in")
+            if not oracle and not checkpoint:
+                raise ValueError("--checkpoint: expected a box model for the experiment (or --oracle)")
+            config = loc.ExperimentConfig(
+                buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
+                mask_size=mask_size, refine_steps=steps, margin=margin, oracle=oracle, oracle_noise=oracle_noise,
+                example_m=example_m, example_start=example_start, temperature=temperature).validate()
+            models = [] if oracle else load_models(checkpoint)
+            result = loc.run_experiment(config, models=models, checkpoints=[str(c) for c in checkpoint or []],
+                                        device=device)
+            out.print(report.accuracy_table(result))
+            if csv_out:
+                report.write_csv(csv_out, result)
+            if heatmap:
+                report.plot_accuracy(heatmap, result)
+        if bars:
+            (report.plot_ranking if street is not None else report.plot_example)(bars, result)
+        report.write_json(json_out, result)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+
+
+@app.command()
 def version() -> None:
     """Print the package version."""
     from importlib.metadata import version as pkg_version

@@ -33,8 +33,8 @@ from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.scene import uniform
 from cuboidgen.synth import make_sample, sample_seed
 from cuboidtrain.device import resolve_device
-from cuboidtrain.infer import fit_component, infer_paths
-from cuboidtrain.masks import components
+from cuboidtrain.infer import fit, infer_paths
+from cuboidtrain.masks import components, frame
 from cuboidtrain.networks import CuboidNet
 from shared.sample import Sample
 from shared.shapes import RATIO_KEYS
@@ -219,7 +219,7 @@ def box_model(models: list[CuboidNet]) -> CuboidNet:
 def predict_ratios(masks: list[np.ndarray], model: CuboidNet, refine_steps: int | None, margin: float,
                    device: str | torch.device = "cpu") -> np.ndarray:
     """(N, 2) ratios predicted for bool masks as `infer` would: the largest component,
-    framed for the model, R (iterated), S, T."""
+    framed for the model, R (iterated), S, T (T's ratios whatever reads the keypoints)."""
     device = resolve_device(device)
     model.to(device).eval()
     predicted = []
@@ -227,7 +227,8 @@ def predict_ratios(masks: list[np.ndarray], model: CuboidNet, refine_steps: int 
         parts = components(mask)
         if not parts or not parts[0].any():
             raise ValueError(f"building {k + 1}: its silhouette is empty (occluded away)")
-        fitted = fit_component(parts[0], [model], refine_steps=refine_steps, margin=margin, device=device)
+        framed, _ = frame(parts[0], model.size, margin)  # as infer frames a component
+        fitted = fit(model, framed, refine_steps=refine_steps, device=device)
         predicted.append([fitted["ratios"][key] for key in RATIO_KEYS])
     return np.array(predicted).reshape(len(masks), len(RATIO_KEYS))
 
@@ -371,3 +372,14 @@ def run_experiment(config: ExperimentConfig, models: list[CuboidNet] | None = No
         "streets": streets,
     }
 
+
+
+def mask_sequence(option_values: list[str], arguments: list[str]) -> list[str]:
+    """The masks in street order from `--masks A B C` (click takes A as the option's value
+    and B C as arguments) or `--masks A --masks B` or plain arguments; mixing repeated
+    --masks with extra arguments has no clear order and is refused."""
+    option_values, arguments = list(option_values or []), list(arguments or [])
+    if len(option_values) > 1 and arguments:
+        raise ValueError(f"masks {option_values + arguments}: give them as --masks A B C (in street order) "
+                         f"or each after its own --masks, not both")
+    return option_values + arguments
