@@ -1,0 +1,102 @@
+"""Several `cuboidgen run` processes on one spool, as `docker compose up --scale generator=N` runs them.
+
+The spool's stated bound is `limit + writers x evict_every`, where writers counts the
+worker processes of every generator sharing it (shared/spool.py, README). Here three
+daemons with 1, 1 and 2 workers (four writers) fill one spool while this test lists
+it over and over, decoding everything listed.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+from cuboidgen.synth import sample_seed
+from shared.sample import decode
+from shared.spool import TMP_PREFIX, enumerate_spool, read_sample_bytes
+
+LIMIT, EVICT_EVERY, SAMPLES, SEED = 40, 8, 800, 5
+# (workers, --seed): two daemons share a seed, as scaled replicas given one CUBOIDGEN_SEED would.
+DAEMONS = ((1, SEED), (1, SEED), (2, None))
+
+
+def start(spool: Path, workers: int, seed: int | None) -> subprocess.Popen:
+    script = Path(sys.executable).parent / "cuboidgen"
+    assert script.exists(), "pip install -e . first: this test runs the installed cuboidgen"
+    argv = [str(script), "run", "--spool", str(spool), "--limit", str(LIMIT), "--evict-every", str(EVICT_EVERY),
+            "--workers", str(workers), "--size", "32", "--max-samples", str(SAMPLES), "--no-dashboard"]
+    if seed is not None:
+        argv += ["--seed", str(seed)]
+    return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def writer_of(name: str) -> str:
+    """host-pid-token: the one spool writer (a worker process) that published `name`."""
+    return "-".join(name.split("-")[1:4])
+
+
+def test_concurrent_generators_stay_within_the_bound_and_never_show_a_torn_sample(tmp_path):
+    spool = tmp_path / "spool"
+    writers = sum(workers for workers, _ in DAEMONS)
+    bound = LIMIT + writers * EVICT_EVERY
+    daemons = [start(spool, workers, seed) for workers, seed in DAEMONS]
+    counts, decoded, vanished, corrupt, most_writers = [], 0, 0, [], 0
+    seeds: dict[str, set[int]] = defaultdict(set)
+    digests: dict[int, set[str]] = defaultdict(set)  # sample seed -> digests of what was published under it
+    started = time.monotonic()
+    deadline = started + 60
+    try:
+        while any(d.poll() is None for d in daemons) and time.monotonic() < deadline:
+            names = enumerate_spool(spool) if spool.is_dir() else []
+            if not names:  # the daemons are still starting: leave them the CPU
+                time.sleep(0.05)
+                continue
+            counts.append(len(names))
+            most_writers = max(most_writers, len({writer_of(n) for n in names}))
+            for name in names:
+                data = read_sample_bytes(spool, name)
+                if data is None:  # evicted since the listing
+                    vanished += 1
+                    continue
+                try:
+                    sample = decode(data)
+                except ValueError as exc:
+                    corrupt.append(f"{name}: {exc}")
+                    continue
+                decoded += 1
+                seeds[writer_of(name)].add(sample.seed)
+                digests[sample.seed].add(hashlib.sha1(data).hexdigest())
+    finally:
+        for d in daemons:
+            if d.poll() is None:
+                d.kill()
+            d.wait()
+    assert all(d.returncode == 0 for d in daemons), [d.stderr.read().decode()[-500:] for d in daemons]
+    seeded = {sample_seed(SEED, 0, k) for k in range(SAMPLES)}  # what a 1-worker daemon with --seed 5 draws
+    same_seed = [w for w, s in seeds.items() if s <= seeded]
+    twice = set.intersection(*(seeds[w] for w in same_seed)) if same_seed else set()
+    print(f"\n{time.monotonic() - started:.1f} s, {len(DAEMONS)} daemons, {writers} writers: max {max(counts)} "
+          f"samples listed (bound {bound}, limit {LIMIT}) over {len(counts)} listings; {decoded} samples decoded, "
+          f"{vanished} vanished, {len(corrupt)} corrupt; {len(twice)} seeds seen from both same-seed writers")
+
+    # The bound, and a monitor that really watched a full spool with every writer at work.
+    assert not corrupt, corrupt[:3]
+    assert max(counts) <= bound
+    assert max(counts) >= LIMIT and most_writers == writers and len(counts) >= 20
+    final = enumerate_spool(spool)
+    assert LIMIT <= len(final) <= bound
+    assert not [n for n in os.listdir(spool) if n.startswith(TMP_PREFIX)]  # clean exits leave no spares
+
+    # Names never collide: every worker is a writer of its own (host, pid, random token),
+    # even where two daemons were given the same --seed ...
+    assert len(seeds) == writers and len(same_seed) == 2
+    # ... but their contents do: the same seed draws the same samples, bit for bit, which is
+    # why scaled generators are given no seed (docker-compose.yml). An unseeded daemon draws
+    # a run seed of its own, so its samples share no seed with anyone's.
+    assert twice and all(len(digests[s]) == 1 for s in twice)
+    unseeded = set().union(*(s for w, s in seeds.items() if w not in same_seed))
+    assert unseeded and not unseeded & seeded
