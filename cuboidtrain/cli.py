@@ -76,13 +76,14 @@ def run(
             seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
             val_every=val_every, val_samples=val_samples,
         ).validate()
-        if not spool.is_dir():
+        if not spool.exists():  # other spool faults (not a folder, unreadable) are the trainer's one-line errors
             raise ValueError(f"--spool {spool}: no such folder (start `cuboidgen run --spool {spool} --size {size}` first)")
         with Dashboard(live=dashboard and sys.stdout.isatty()) as board:
             status = run_training(config, dashboard=board)
     except ValueError as exc:
         fail(str(exc))
-    console.print(f"{status['state']} at step {status['step']}; checkpoint {status['last_checkpoint']['path']}")
+    if status.get("rank", 0) == 0:  # under torchrun rank 0 speaks for the run
+        console.print(f"{status['state']} at step {status['step']}; checkpoint {status['last_checkpoint']['path']}")
 
 
 @app.command("eval")

@@ -10,6 +10,10 @@ A name may vanish (the generator evicted it) or hold bad bytes between listing
 and reading; such samples are skipped and counted, never a crash. Samples of
 another shape class or size are skipped and counted too: a `mix` spool feeds a
 `box` and a `twobox` trainer at once.
+
+Under torchrun each rank takes its strided share of every global batch (see
+`cuboidtrain.distributed`); the state (epoch, order, position) is the same on
+every rank, so one checkpoint resumes them all.
 """
 from __future__ import annotations
 
@@ -53,7 +57,10 @@ class SpoolBatches(Dataset):
         return batch
 
     def _read(self, name: str) -> tuple[str | None, dict | None]:
-        data = read_sample_bytes(self.spool, name)
+        try:
+            data = read_sample_bytes(self.spool, name)
+        except OSError:  # a folder or an unreadable file under a sample's name: not a sample
+            return "corrupt", None
         if data is None:
             return "vanished", None
         try:
@@ -78,37 +85,56 @@ class LoaderState:
 
     epoch: int = 0
     order: list[str] = field(default_factory=list)
-    position: int = 0  # batches of `order` already trained on
+    position: int = 0  # batches of `order` already trained on (global batches: batch size x world)
+    world: int = 1  # ranks that shared each batch (torchrun); a resume with another world rescales position
+
+
+class WaitInterrupted(Exception):
+    """A stop was asked for while the sampler waited for samples."""
 
 
 class EpochSampler(Sampler):
     """Yields the batches of one epoch per `iter()`: the spool as listed at the epoch's start.
 
     Waits (polling) while the spool holds fewer than one batch, so a trainer can
-    start before its generator.
+    start before its generator. Under torchrun (`world` > 1) it yields this rank's
+    share of each global batch, and `list_spool` must give every rank the same names
+    (rank 0's listing, broadcast); `interrupted` (agreed by all ranks) ends a wait.
     """
 
-    def __init__(self, spool: str | Path, batch_size: int, seed: int, wait: float = 0.5, timeout: float | None = None):
+    def __init__(self, spool: str | Path, batch_size: int, seed: int, wait: float = 0.5, timeout: float | None = None,
+                 rank: int = 0, world: int = 1, list_spool=None, interrupted=None):
         self.spool, self.batch_size, self.seed = Path(spool), batch_size, seed
         self.wait, self.timeout = wait, timeout
-        self.state = LoaderState()
+        self.rank, self.world = rank, world
+        self.list_spool = list_spool or spool_names
+        self.interrupted = interrupted  # () -> bool, polled while waiting for samples
+        self.state = LoaderState(world=world)
         self.on_listing = None  # called with each epoch's listing (the trainer's freshness and spool count)
         self._resume = False  # True: the next iter() continues `state` instead of starting a new epoch
 
     def resume_from(self, state: LoaderState) -> None:
+        if state.world != self.world:  # the same samples consumed, counted in this world's global batches
+            log.warning("resuming a %d-rank run on %d ranks: position %d rescaled", state.world, self.world, state.position)
+            state = LoaderState(state.epoch, state.order, state.position * state.world // self.world, self.world)
         self.state, self._resume = state, True
 
     def __iter__(self):
         if not self._resume:
             epoch = self.state.epoch + 1 if self.state.order else 0
-            self.state = LoaderState(epoch, self._shuffled(epoch), 0)
+            self.state = LoaderState(epoch, self._shuffled(epoch), 0, self.world)
         self._resume = False
         state = self.state
-        for start in range(state.position * self.batch_size, len(state.order) - self.batch_size + 1, self.batch_size):
-            yield state.order[start : start + self.batch_size]
+        if self.world == 1:
+            for start in range(state.position * self.batch_size, len(state.order) - self.batch_size + 1, self.batch_size):
+                yield state.order[start : start + self.batch_size]
+        else:
+            from cuboidtrain.distributed import rank_batches
+
+            yield from rank_batches(state.order, self.batch_size, self.rank, self.world, state.position)
 
     def __len__(self) -> int:
-        return len(self.state.order) // self.batch_size
+        return len(self.state.order) // (self.batch_size * self.world)
 
     def epochs_done(self) -> int:
         """Epochs trained to their end: the current one counts once its last batch is taken."""
@@ -121,24 +147,40 @@ class EpochSampler(Sampler):
         return [names[i] for i in rng.permutation(len(names))]
 
     def _listing(self) -> list[str]:
-        started = time.monotonic()
+        started, said = time.monotonic(), None
+        need = self.batch_size * self.world
         while True:
-            names = enumerate_spool(self.spool)
-            if len(names) >= self.batch_size:
+            names = self.list_spool(self.spool)
+            if len(names) >= need:
                 if self.on_listing is not None:
                     self.on_listing(names)
                 return names
+            if said != len(names):  # once per change, not once per poll
+                log.info("spool %s holds %d samples: waiting for at least %d (one batch)", self.spool, len(names), need)
+                said = len(names)
             if self.timeout is not None and time.monotonic() - started > self.timeout:
                 raise TimeoutError(
-                    f"spool {self.spool}: {len(names)} samples after {self.timeout:.0f} s, need at least one batch ({self.batch_size})"
+                    f"spool {self.spool}: {len(names)} samples after {self.timeout:.0f} s, need at least one batch ({need})"
                 )
+            if self.interrupted is not None and self.interrupted():
+                raise WaitInterrupted(f"stopped while waiting for samples in {self.spool}")
             time.sleep(self.wait)
+
+
+def spool_names(spool: Path) -> list[str]:
+    """The spool's samples; none while the folder is gone (moved, unmounted): the sampler waits."""
+    try:
+        return enumerate_spool(spool)
+    except (FileNotFoundError, NotADirectoryError):
+        log.warning("spool %s: no such folder now; waiting for it to come back", spool)
+        return []
 
 
 def make_loader(spool: str | Path, shape: str, size: int, batch_size: int, seed: int, workers: int,
                 pin_memory: bool = False, timeout: float | None = None,
-                worker_init_fn=None) -> tuple[DataLoader, EpochSampler]:
-    sampler = EpochSampler(spool, batch_size, seed, timeout=timeout)
+                worker_init_fn=None, **sampler_options) -> tuple[DataLoader, EpochSampler]:
+    """`sampler_options`: EpochSampler's rank, world, list_spool and interrupted (torchrun)."""
+    sampler = EpochSampler(spool, batch_size, seed, timeout=timeout, **sampler_options)
     loader = DataLoader(
         SpoolBatches(spool, shape, size),
         sampler=sampler,

@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
+
+ORPHAN_AGE = 600.0  # s: a temporary file this old is no live writer's (a checkpoint takes seconds)
 
 
 def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
@@ -18,3 +21,53 @@ def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def sweep_orphans(folder: Path, max_age: float = ORPHAN_AGE) -> int:
+    """Delete `.tmp-<pid>-*` files that a killed writer left in `folder`; returns how many.
+
+    One is an orphan when its pid is gone, or when it is older than `max_age`.
+    """
+    swept, now = 0, time.time()
+    for entry in os.scandir(folder):
+        if not entry.name.startswith(".tmp-"):
+            continue
+        try:
+            pid = int(entry.name.split("-")[1])
+            orphan = not _alive(pid) or now - entry.stat().st_mtime > max_age
+        except (IndexError, ValueError):
+            orphan = True  # not a name we write: a stray from an older version
+        except FileNotFoundError:
+            continue
+        if orphan:
+            try:
+                os.unlink(entry.path)
+                swept += 1
+            except FileNotFoundError:
+                pass
+    return swept
+
+
+def repair_jsonl(path: Path) -> bool:
+    """Cut a torn last record (a writer killed mid-line) off a JSON-lines file; True if it had one."""
+    try:
+        with open(path, "rb+") as f:
+            data = f.read()
+            if not data or data.endswith(b"\n"):
+                return False
+            f.truncate(data.rfind(b"\n") + 1)
+            return True
+    except FileNotFoundError:
+        return False
+
+
+def _alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -17,6 +17,7 @@ import torch
 
 from cuboidtrain.config import PHASES, TrainConfig
 from cuboidtrain.dashboard import write_status
+from shared.spool import foreign_names
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +26,7 @@ HISTORY = 120  # loss values kept for the dashboard's trend
 EMA = 0.1  # weight of the newest loss in the smoothed value
 STARVING = 0.05  # data wait above this fraction of step time is a problem (DESIGN.md)
 PUBLISH_EVERY = 1.0  # s
+IDLE_LOG_EVERY = 60.0  # s between repeats of the same "no usable samples" warning
 
 
 def tensorboard_writer(out: Path):
@@ -37,9 +39,13 @@ def tensorboard_writer(out: Path):
 
 
 class Progress:
-    def __init__(self, config: TrainConfig, device: torch.device, watcher, dashboard=None):
+    def __init__(self, config: TrainConfig, device: torch.device, watcher, dashboard=None, rank: int = 0, world: int = 1):
+        """`rank`, `world`: torchrun's; ranks other than 0 keep the figures but write nothing."""
         self.config, self.out, self.watcher, self.dashboard = config, Path(config.out), watcher, dashboard
-        self.tensorboard = tensorboard_writer(self.out)
+        self.writes = rank == 0
+        self.tensorboard = tensorboard_writer(self.out) if self.writes else None
+        self.foreign = 0  # files in the spool that are not samples (ignored)
+        self.idle_said = (None, 0.0)  # the last "no usable samples" warning and when
         self.smoothed: dict[str, float] = {}
         self.history = {k: deque(maxlen=HISTORY) for k in ("D_R", "D_S", "D_T", "total")}
         self.recent = deque(maxlen=WINDOW)  # (samples, waited s, step s) per step
@@ -51,7 +57,7 @@ class Progress:
         self._status = {
             "phase": config.phase, "phase_meaning": PHASES[config.phase], "shape": config.shape, "size": config.size,
             "device": str(device), "out": str(self.out), "spool": config.spool, "state": "starting",
-            "pid": os.getpid(), "started": time.time(), "updated": time.time(),
+            "pid": os.getpid(), "rank": rank, "world_size": world, "started": time.time(), "updated": time.time(),
             "step": 0, "steps_total": config.steps, "epoch": 0, "epochs_total": config.epochs,
             "batch_in_epoch": 0, "batches_in_epoch": 0, "loss_weights": list(config.loss_weights),
             "last_checkpoint": None, "val": None, "notes": [],
@@ -76,6 +82,28 @@ class Progress:
 
     def skip(self, skipped: dict) -> None:
         self.skipped.update(skipped)
+
+    def listed(self, spool: str) -> None:
+        """A new epoch's listing: count what else lies in the spool (reported, never read)."""
+        if self.writes:
+            try:
+                self.foreign = len(foreign_names(Path(spool)))
+            except OSError:
+                self.foreign = 0
+
+    def idle(self, reason: str) -> None:
+        """Nothing to train on for a moment: say so on the dashboard, and in the log once a minute."""
+        self.state("waiting for samples")
+        said, when = self.idle_said
+        if reason != said or time.monotonic() - when > IDLE_LOG_EVERY:
+            log.warning("%s (skipped so far: %s); waiting", reason, _counts(self.skipped))
+            self.idle_said = (reason, time.monotonic())
+
+    def replicas(self, ranks: list[dict]) -> None:
+        """Each torchrun rank's final step and weights hash: equal while the replicas agree."""
+        self._status["replicas"] = ranks
+        if self.writes and len({(r["step"], r["weights"]) for r in ranks}) > 1:
+            log.error("torchrun ranks disagree at the end: %s", ranks)
 
     def step(self, step: int, losses: dict, samples: int, waited: float, age: float, reuse: float, skipped: dict) -> None:
         now = time.perf_counter()
@@ -134,6 +162,7 @@ class Progress:
             freshness=dict(self.freshness),
             skipped=dict(self.skipped),
             spool_samples=self.watcher.count,
+            foreign_files=self.foreign,
             eta_s=self._eta(rates["step_time_s"]),
             notes=self._notes(rates),
         )
@@ -157,6 +186,10 @@ class Progress:
             notes.append(f"{self.skipped['other_size']} samples of another size skipped: run cuboidgen with --size {self.config.size}")
         if self.skipped["other_shape"]:
             notes.append(f"{self.skipped['other_shape']} samples of another shape skipped (a mix spool, or the wrong --shape)")
+        if self.skipped["corrupt"]:
+            notes.append(f"{self.skipped['corrupt']} corrupt samples skipped (cuboidgen inspect {self.config.spool} counts them)")
+        if self.foreign:
+            notes.append(f"{self.foreign} foreign files in the spool (not samples): ignored")
         return notes
 
     # ---- outputs
@@ -175,6 +208,8 @@ class Progress:
                                                 record[key], step)
 
     def _write_metrics(self, record: dict) -> None:
+        if not self.writes:
+            return
         with open(self.out / "metrics.jsonl", "a") as f:
             f.write(json.dumps(record) + "\n")
 
@@ -183,6 +218,8 @@ class Progress:
         if not force and now - self.last_publish < PUBLISH_EVERY:
             return
         self.last_publish = now
+        if not self.writes:
+            return
         status = self.status()
         status["spool_arrivals_per_s"] = self.watcher.arrivals_per_s()
         self._status["spool_arrivals_per_s"] = status["spool_arrivals_per_s"]
@@ -196,3 +233,7 @@ class Progress:
     def __exit__(self, *exc) -> None:
         if self.tensorboard is not None:
             self.tensorboard.close()
+
+
+def _counts(counter: Counter) -> str:
+    return ", ".join(f"{k.replace('_', ' ')} {n}" for k, n in counter.items() if n) or "none"

@@ -4,11 +4,14 @@ One loop, in labelled phases: fetch a batch (timed: that is the data wait),
 render its targets on the device, forward/backward/step, account, report,
 checkpoint, stop. SIGTERM and Ctrl-C finish the step in hand, write a
 checkpoint and return.
+
+Under torchrun every rank runs this loop on its share of each batch; the ranks
+agree (cuboidtrain.distributed) on each batch's fate and on when to stop, and
+only rank 0 writes.
 """
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 import signal
@@ -19,13 +22,16 @@ import torch
 
 from cuboidtrain.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
 from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import Freshness, make_loader
+from cuboidtrain.data import Freshness, WaitInterrupted, make_loader, spool_names
 from cuboidtrain.device import resolve_device
+from cuboidtrain.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
+from cuboidtrain.files import repair_jsonl, sweep_orphans, write_json_atomically
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.losses import combine, phase_losses
 from cuboidtrain.networks import CuboidNet, build_model
 from cuboidtrain.progress import Progress
 from cuboidtrain.spoolwatch import SpoolWatcher
+from shared.spool import check_spool
 
 log = logging.getLogger(__name__)
 
@@ -83,11 +89,15 @@ def build_state(config: TrainConfig, device: torch.device) -> tuple[CuboidNet, t
 
 
 def train_step(model: CuboidNet, optimizer: torch.optim.Optimizer, x: dict, config: TrainConfig,
-               device: torch.device) -> dict[str, float]:
+               device: torch.device, losses_of=None) -> dict[str, float]:
+    """`losses_of`: the DDP module computing the phase's losses (torchrun), else None."""
     model.train()
     amp = config.amp and device.type == "cuda"
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-        losses = phase_losses(model, x, config.phase, config.ratio_weight)
+        if losses_of is not None:
+            losses = losses_of(x)
+        else:
+            losses = phase_losses(model, x, config.phase, config.ratio_weight)
     total = combine(losses, config.phase, config.loss_weights)
     optimizer.zero_grad(set_to_none=True)
     total.backward()
@@ -95,9 +105,26 @@ def train_step(model: CuboidNet, optimizer: torch.optim.Optimizer, x: dict, conf
     return {"D_R": losses["D_R"].item(), "D_S": losses["D_S"].item(), "D_T": losses["D_T"].item(), "total": total.item()}
 
 
-def stale(batch: dict, batch_size: int) -> bool:
-    """More than half of the batch vanished: the epoch's listing no longer matches the spool."""
-    return 2 * batch["skipped"]["vanished"] > batch_size
+def stale(skipped: dict, batch_size: int) -> bool:
+    """More than half of the (global) batch vanished: the epoch's listing no longer matches the spool."""
+    return 2 * skipped["vanished"] > batch_size
+
+
+def batch_facts(ranks: Ranks, batch: dict) -> tuple[dict, bool]:
+    """The batch's skip counts summed over ranks, and whether any rank holds too few samples
+    to step (BatchNorm needs two): every rank then skips it, or DDP would hang."""
+    if not ranks.distributed:
+        return batch["skipped"], len(batch["names"]) < 2
+    sums = ranks.sum([*batch["skipped"].values(), float(len(batch["names"]) < 2)])
+    return dict(zip(batch["skipped"], (int(n) for n in sums))), sums[-1] > 0
+
+
+def global_losses(ranks: Ranks, losses: dict[str, float], samples: int) -> tuple[dict[str, float], int]:
+    """The losses averaged over ranks (the global batch's) and the samples all ranks stepped on."""
+    if not ranks.distributed:
+        return losses, samples
+    sums = ranks.sum([*losses.values(), samples])
+    return {k: v / ranks.world for k, v in zip(losses, sums)}, int(sums[-1])
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -129,63 +156,117 @@ def run(config: TrainConfig, dashboard=None, stop: StopRequest | None = None, lo
 
 
 def _train(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None) -> dict:
-    out = Path(config.out)
+    check_spool(config.spool, readable=True)
+    ranks, device = from_environment(resolve_device(config.device))
+    try:
+        return _train_ranks(config, dashboard, stop, loader_timeout, ranks, device)
+    finally:
+        shutdown(ranks)
+
+
+def _prepare_out(out: Path, config: TrainConfig) -> None:
+    """The run folder, cleared of what a killed trainer left: temporary files, a torn last record."""
     out.mkdir(parents=True, exist_ok=True)
-    device = resolve_device(config.device)
+    swept = sweep_orphans(out)
+    if swept:
+        log.info("swept %d temporary files left in %s by a killed trainer", swept, out)
+    repair_jsonl(out / "metrics.jsonl")
+    write_json_atomically(out / "config.json", config.resolved().to_dict(), indent=2)
+
+
+def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None,
+                 ranks: Ranks, device: torch.device) -> dict:
+    out = Path(config.out)
+    if ranks.main:
+        _prepare_out(out, config)
+    else:
+        logging.getLogger().setLevel(logging.WARNING)  # one rank speaks for the run
     if config.threads is not None:
         # On a shared CPU a second intra-op thread that gets descheduled stalls every
         # barrier of the other; fewer threads can be faster than all cores.
         torch.set_num_threads(config.threads)
     model, optimizer, step, resume = build_state(config, device)
-    (out / "config.json").write_text(json.dumps(config.resolved().to_dict(), indent=2))
+    losses_of = wrap(model, config.phase, config.ratio_weight, ranks)
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
                                   config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,
-                                  worker_init_fn=_leave_signals_to_main)
+                                  worker_init_fn=_leave_signals_to_main, **_sampler_options(ranks, stop))
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))
     freshness = Freshness()
     started, sigma = time.monotonic(), config.heatmap_sigma
-    with SpoolWatcher(config.spool) as watcher, Progress(config, device, watcher, dashboard) as progress:
-        sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names))
+    with SpoolWatcher(config.spool) as watcher, Progress(config, device, watcher, dashboard, ranks.rank, ranks.world) as progress:
+        sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names),
+                                            progress.listed(config.spool))
         progress.begin(step, sampler)
-        while not stop and not finished(config, step, sampler.epochs_done(), started):
+        while not ranks.any(bool(stop) or finished(config, step, sampler.epochs_done(), started)):
             progress.state("waiting for samples" if watcher.count < config.batch_size else "training")
-            for batch in loader:  # one epoch: the spool as listed now
-                # 1. fetch: the time spent waiting for this batch is the data wait
-                waited = progress.fetched()
-                sampler.state.position += 1
-                if stale(batch, config.batch_size):
-                    # The generator evicted most of this listing (it outruns the trainer):
-                    # end the epoch and list the spool afresh rather than skip through it.
-                    progress.skip(batch["skipped"])
-                    sampler.state.position = len(sampler)
-                    break
-                if len(batch["names"]) < 2:  # BatchNorm needs two
-                    progress.skip(batch["skipped"])
-                    continue
-                # 2. targets rendered on the device; forward, backward, step
-                x = prepare_batch(batch, device, sigma, config.size)
-                for group in optimizer.param_groups:
-                    group["lr"] = learning_rate(config, step)
-                losses = train_step(model, optimizer, x, config, device)
-                step += 1
-                # 3. account and report
-                age, reuse = freshness.observe(batch["names"])
-                progress.step(step, losses, len(batch["names"]), waited, age, reuse, batch["skipped"])
-                # 4. checkpoint, and validate when asked
-                if step % config.checkpoint_every == 0:
-                    progress.checkpointed(save_checkpoint(out / LAST, model, config, step, optimizer, sampler.state,
-                                                          progress.metrics()), step)
-                if config.val_spool and step % config.val_every == 0:
-                    progress.validated(step, validate(model, config, device))
-                if stop or finished(config, step, sampler.epochs_done(), started):
-                    break
+            stepped = went_stale = False
+            try:
+                for batch in loader:  # one epoch: the spool as listed now (this rank's share of it)
+                    # 1. fetch: the time spent waiting for this batch is the data wait
+                    waited = progress.fetched()
+                    sampler.state.position += 1
+                    skipped, too_small = batch_facts(ranks, batch)
+                    if stale(skipped, config.batch_size * ranks.world):
+                        # The generator evicted most of this listing (it outruns the trainer):
+                        # end the epoch and list the spool afresh rather than skip through it.
+                        progress.skip(skipped)
+                        sampler.state.position = len(sampler)
+                        went_stale = True
+                        break
+                    if too_small:  # BatchNorm needs two
+                        progress.skip(skipped)
+                        continue
+                    # 2. targets rendered on the device; forward, backward, step
+                    x = prepare_batch(batch, device, sigma, config.size)
+                    for group in optimizer.param_groups:
+                        group["lr"] = learning_rate(config, step)
+                    losses = train_step(model, optimizer, x, config, device, losses_of)
+                    step += 1
+                    stepped = True
+                    # 3. account and report
+                    age, reuse = freshness.observe(batch["names"])
+                    losses, samples = global_losses(ranks, losses, len(batch["names"]))
+                    progress.step(step, losses, samples, waited, age, reuse, skipped)
+                    # 4. checkpoint, and validate when asked (rank 0; the others go on to the next collective)
+                    if step % config.checkpoint_every == 0:
+                        progress.checkpointed(_checkpoint(ranks, out, model, config, step, optimizer, sampler,
+                                                          progress), step)
+                    if ranks.main and config.val_spool and step % config.val_every == 0:
+                        progress.validated(step, validate(model, config, device))
+                    if ranks.any(bool(stop) or finished(config, step, sampler.epochs_done(), started)):
+                        break
+            except WaitInterrupted:
+                break
+            if not (stepped or went_stale):
+                # Every sample of the listing was unusable (corrupt, another shape or size):
+                # wait before listing again rather than spin through the same files.
+                progress.idle(f"spool {config.spool}: no usable samples in the last listing")
+                time.sleep(sampler.wait)
         # 5. the last checkpoint, also on SIGTERM / Ctrl-C
         progress.state("checkpointing")
-        path = save_checkpoint(out / LAST, model, config, step, optimizer, sampler.state, progress.metrics())
-        progress.checkpointed(path, step)
-        progress.state("stopped" if stop else "done")
+        progress.checkpointed(_checkpoint(ranks, out, model, config, step, optimizer, sampler, progress), step)
+        if ranks.distributed:
+            progress.replicas(ranks.gather({"rank": ranks.rank, "step": step, "weights": weights_digest(model)}))
+        progress.state("stopped" if ranks.any(bool(stop)) else "done")
         return progress.status()
+
+
+def _sampler_options(ranks: Ranks, stop: StopRequest) -> dict:
+    """Under torchrun: this rank's share, rank 0's listing, and a stop any rank asks for."""
+    if not ranks.distributed:
+        return {"interrupted": lambda: bool(stop)}
+    return {"rank": ranks.rank, "world": ranks.world, "interrupted": lambda: ranks.any(bool(stop)),
+            "list_spool": lambda spool: ranks.broadcast(spool_names(spool) if ranks.main else None)}
+
+
+def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, step: int, optimizer, sampler,
+                progress: Progress) -> Path:
+    """Rank 0 writes OUT/last.pt (the unwrapped model: no `module.` prefix); every rank gets its path."""
+    path = out / LAST
+    if ranks.main:
+        save_checkpoint(path, model, config, step, optimizer, sampler.state, progress.metrics())
+    return path
 
 
 def validate(model: CuboidNet, config: TrainConfig, device: torch.device) -> dict:

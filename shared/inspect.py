@@ -9,7 +9,7 @@ from pathlib import Path
 
 from shared.sample import decode_record
 from shared.spool import (
-    META_NAME, TMP_PREFIX, check_spool, enumerate_spool, is_sample_name, name_time, read_sample_bytes,
+    TMP_PREFIX, check_spool, enumerate_spool, foreign_names, is_sample_name, name_time, read_sample_bytes,
 )
 
 
@@ -21,7 +21,12 @@ def inspect_spool(spool: Path) -> dict:
     shapes, sizes, scenes, problems = Counter(), Counter(), Counter(), Counter()
     total_bytes = corrupt = vanished = 0
     for name in names:
-        data = read_sample_bytes(spool, name)
+        try:
+            data = read_sample_bytes(spool, name)
+        except OSError as exc:  # unreadable (permissions, I/O error): as good as corrupt
+            corrupt += 1
+            problems[f"unreadable ({exc.strerror})"] += 1
+            continue
         if data is None:
             vanished += 1
             continue
@@ -47,9 +52,9 @@ def inspect_spool(spool: Path) -> dict:
         "corrupt_reasons": dict(problems),
         "vanished": vanished,
         "temporary": sum(1 for e in entries if e.name.startswith(TMP_PREFIX)),
-        # Hidden files (.gitkeep) and the spool's own metadata are not foreign.
-        "foreign": sum(1 for e in entries if e.is_file() and not is_sample_name(e.name)
-                       and not e.name.startswith(".") and e.name != META_NAME),
+        # Hidden files (.gitkeep), the spool's own metadata, and folders named like samples
+        # (which are not files, so not samples) are foreign or not as foreign_names says.
+        "foreign": len(foreign_names(spool)) + sum(1 for e in entries if not e.is_file() and is_sample_name(e.name)),
         "shapes": dict(shapes),
         "size": next(iter(sizes)) if len(sizes) == 1 else sorted(sizes) or None,
         "scenes": dict(scenes),

@@ -79,7 +79,7 @@ def host_tag() -> str:
     return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:24] or "host"
 
 
-def check_spool(spool: Path, writable: bool = False, create: bool = False) -> Path:
+def check_spool(spool: Path, writable: bool = False, create: bool = False, readable: bool = False) -> Path:
     """The spool as a Path, or a one-line SpoolError saying what is wrong with it."""
     spool = Path(spool)
     if create and not spool.exists():
@@ -93,11 +93,19 @@ def check_spool(spool: Path, writable: bool = False, create: bool = False) -> Pa
         raise SpoolError(f"spool {spool}: not a folder")
     if writable and not os.access(spool, os.W_OK | os.X_OK):
         raise SpoolError(f"spool {spool}: not writable")
+    if readable and not os.access(spool, os.R_OK | os.X_OK):
+        raise SpoolError(f"spool {spool}: not readable")
     return spool
 
 
 def is_sample_name(name: str) -> bool:
     return name.endswith(SUFFIX) and not name.startswith(".")
+
+
+def foreign_names(spool: Path) -> list[str]:
+    """Entries that are neither samples, nor hidden (temporary files, .gitkeep), nor SPOOL.json:
+    files dropped in by someone else. Readers ignore them; censuses report them."""
+    return sorted(n for n in os.listdir(spool) if not n.startswith(".") and not is_sample_name(n) and n != META_NAME)
 
 
 def enumerate_spool(spool: Path) -> list[str]:
