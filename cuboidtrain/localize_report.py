@@ -7,6 +7,7 @@ sub-sequence, the true start highlighted. Positions are shown 1-based.
 from __future__ import annotations
 
 import csv
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -74,7 +75,7 @@ def plot_accuracy(path: str | Path, result: dict, title: str | None = None) -> N
     ax.set_yticks(range(acc.shape[0]), [f"top-{l}" for l in result["l"]], fontsize=8)
     ax.set_xlabel("m: buildings photographed in a row (sub-sequence length)")
     ax.set_ylabel("l: candidates kept")
-    ax.set_title(title, fontsize=10)
+    ax.set_title(wrapped(title, width), fontsize=10)
     fig.colorbar(image, ax=ax, fraction=0.03, pad=0.01).set_label("acc (cell labels in %)", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -86,28 +87,36 @@ def plot_start_probabilities(path: str | Path, probabilities, true_start: int | 
     """Figure 12: one bar per start position (its first building's name), the true start in red."""
     probabilities = np.asarray(probabilities)
     colours = [TRUE_COLOUR if j == true_start else OTHER_COLOUR for j in range(len(probabilities))]
-    fig, ax = plt.subplots(figsize=(min(max(0.35 * len(probabilities) + 2.0, 5.0), 15.0), 3.2))
+    width = min(max(0.35 * len(probabilities) + 2.0, 6.0), 15.0)
+    fig, ax = plt.subplots(figsize=(width, 3.4))
     ax.bar(range(len(probabilities)), probabilities, color=colours)
-    ax.set_xticks(range(len(probabilities)), names[: len(probabilities)], fontsize=8,
-                  rotation=90 if len(probabilities) > 20 else 0)
+    step = 1 if len(probabilities) <= 30 else 5  # every label of a long street would be unreadable
+    ticks = [j for j in range(len(probabilities)) if j % step == 0 or j == true_start]
+    ax.set_xticks(ticks, [names[j] for j in ticks], fontsize=8)
     ax.set_xlabel("start position: first building of the sub-sequence")
     ax.set_ylabel("softmax(-distance)")
     ax.set_ylim(0, max(1e-9, probabilities.max()) * 1.15)
     if true_start is not None:
         ax.annotate(f"true start\n{100 * probabilities[true_start]:.0f}%", (true_start, probabilities[true_start]),
                     xytext=(0, 4), textcoords="offset points", ha="center", fontsize=8, color=TRUE_COLOUR)
-    ax.set_title(title, fontsize=10)
+    ax.set_title(wrapped(title, width), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def wrapped(title: str, width_inches: float) -> str:
+    """The title in lines that fit the figure (about 11 characters an inch at 10 pt)."""
+    return textwrap.fill(title, width=int(width_inches * 11))
 
 
 def plot_example(path: str | Path, result: dict) -> None:
     """Figure 12 from the experiment's first street."""
     example, settings = result["example"], result["settings"]
     start, m = example["true_start"], example["m"]
-    title = (f"Matching buildings {start + 1}-{start + m} (m = {m}) in a street of {settings['buildings']}: "
-             f"probability of each start")
+    source = f"oracle, noise {settings['oracle_noise']:g}" if settings["oracle"] else "predicted ratios"
+    title = (f"Where do buildings {start + 1}-{start + m} (m = {m}, {source}) start in a street of "
+             f"{settings['buildings']}? softmax(-distance) per start")
     names = [str(j + 1) for j in range(len(example["probabilities"]))]
     plot_start_probabilities(path, example["probabilities"], start, names, title)
 
