@@ -1,0 +1,195 @@
+"""Inference latency per mask, batch 1, CPU: torch eager against onnxruntime on the exported graph.
+
+For each size it times R (one pass), S and T on one +-1 mask: torch eager
+(model.eval(), torch.inference_mode) and onnxruntime (the `cuboidtrain export`
+graph, graph optimisation `all`, --threads intra-op threads), in one process,
+interleaved call by call so that both see the same load. The ratio is
+onnxruntime's median over eager's. For context it also times the whole
+`infer_paths` on a PNG file (read, components, framing, R+S+T, confidence, the
+record), torch eager. Random weights unless --checkpoint (the same arithmetic).
+`--variants` adds speed-ups that keep the outputs: channels_last eager, frozen
+TorchScript (BN folded), onnxruntime with basic optimisation only, and without
+spinning worker threads.
+
+    .venv/bin/python benchmarks/bench_infer.py --sizes 64 128 256 --threads 2 --repeats 30
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import statistics
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from rich.console import Console
+from rich.table import Table
+
+from cuboidgen.config import PAPER
+from cuboidgen.occluders import OccluderLibrary
+from cuboidgen.synth import make_sample
+from cuboidtrain.checkpoint import load_model
+from cuboidtrain.config import default_sigma
+from cuboidtrain.export import OnnxPipeline, Pipeline, export_model
+from cuboidtrain.infer import infer_paths
+from cuboidtrain.networks import build_model
+from shared.sample import signed
+
+TARGET_MS = 150.0  # DESIGN.md: R+S+T at 256x256, batch 1, 2-core CPU
+
+
+def median_ms(call, repeats: int, warmup: int) -> float:
+    for _ in range(warmup):
+        call()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+def interleaved_ms(calls: dict, repeats: int, warmup: int) -> dict[str, float]:
+    """Median ms per call of each runner, timed in turn (a, b, a, b, ...) so load spikes hit both."""
+    for call in calls.values():
+        for _ in range(warmup):
+            call()
+    times = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call()
+            times[name].append(time.perf_counter() - start)
+    return {name: 1000 * statistics.median(t) for name, t in times.items()}
+
+
+def sample_mask(shape: str, size: int, seed: int = 0) -> np.ndarray:
+    """A generated noisy, occluded silhouette: bool (size, size)."""
+    return make_sample(shape, PAPER, size, seed, OccluderLibrary.builtin(variants_per_kind=2, seed=0)).noisy
+
+
+def runners(model, onnx_path: Path, mask: np.ndarray, threads: int) -> dict:
+    """The two contenders: torch eager and onnxruntime (OnnxPipeline: graph optimisation all)."""
+    x = torch.from_numpy(signed(mask)[None, None])
+    session, feed = OnnxPipeline(onnx_path, threads=threads), x.numpy()
+
+    def eager():
+        with torch.inference_mode():
+            return model(x)
+
+    return {"eager": eager, "onnxruntime": lambda: session.run(feed)}
+
+
+def variant_runners(model, onnx_path: Path, mask: np.ndarray, threads: int) -> dict:
+    """Speed-ups that keep the outputs (to float rounding), tried against the two above."""
+    import onnxruntime as ort
+
+    x = torch.from_numpy(signed(mask)[None, None])
+    feed = {"mask": x.numpy()}
+    channels_last = copy.deepcopy(model).to(memory_format=torch.channels_last)
+    x_cl = x.contiguous(memory_format=torch.channels_last)
+    with torch.inference_mode(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's notes
+        traced = torch.jit.trace(Pipeline(model, 1).eval(), x)
+        frozen = torch.jit.optimize_for_inference(torch.jit.freeze(traced))  # BN folded, MKLDNN where it pays
+
+    def session(level, spinning: bool):
+        options = ort.SessionOptions()
+        options.graph_optimization_level, options.intra_op_num_threads, options.inter_op_num_threads = level, threads, 1
+        # Spinning threads burn a core waiting for work: on a machine shared with other jobs that core is not free.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+        return ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+
+    basic = session(ort.GraphOptimizationLevel.ORT_ENABLE_BASIC, True)
+    no_spin = session(ort.GraphOptimizationLevel.ORT_ENABLE_ALL, False)
+
+    def inference(call):
+        def run():
+            with torch.inference_mode():
+                return call()
+        return run
+
+    return {"eager_channels_last": inference(lambda: channels_last(x_cl)),
+            "torchscript_frozen": inference(lambda: frozen(x)),
+            "onnxruntime_basic_opt": lambda: basic.run(None, feed),
+            "onnxruntime_no_spinning": lambda: no_spin.run(None, feed)}
+
+
+def bench_size(model, size: int, threads: int, repeats: int, warmup: int, folder: Path, variants: bool) -> dict:
+    """R+S+T eager vs onnxruntime (and the variants), and infer_paths on a PNG, at one size."""
+    onnx_path = export_model(model, folder / f"{model.shape}-{size}.onnx", default_sigma(size), refine_steps=1)
+    mask = sample_mask(model.shape, size)
+    calls = runners(model, onnx_path, mask, threads)
+    if variants:
+        calls |= variant_runners(model, onnx_path, mask, threads)
+    ms = interleaved_ms(calls, repeats, warmup)
+    # A "photo-sized" mask for infer_paths: 1.5x the model size, so framing really resizes.
+    png = folder / f"mask-{size}.png"
+    big = cv2.resize(mask.astype(np.uint8) * 255, (size * 3 // 2, size * 3 // 2), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(png), big)
+    end_to_end = median_ms(lambda: infer_paths([png], [model], shape=model.shape, refine_steps=1),
+                           max(3, repeats // 3), 1)
+    return {"shape": model.shape, "size": size, "eager_ms": ms["eager"], "onnxruntime_ms": ms["onnxruntime"],
+            "onnxruntime_vs_eager": ms["onnxruntime"] / ms["eager"], "infer_paths_eager_ms": end_to_end,
+            "onnx_mb": onnx_path.stat().st_size / 2**20,
+            "variants_ms": {name: value for name, value in ms.items() if name not in ("eager", "onnxruntime")}}
+
+
+SHORT = {"eager_channels_last": "eager CL", "torchscript_frozen": "TS frozen",
+         "onnxruntime_basic_opt": "ort basic", "onnxruntime_no_spinning": "ort no-spin"}
+
+
+def table(rows: list[dict], threads: int) -> Table:
+    t = Table(title=f"ms per mask (medians), batch 1, {threads} thread(s); ort = onnxruntime, opt all")
+    variants = list(rows[0]["variants_ms"]) if rows else []
+    for col in ("shape", "size", "eager", "ort", "ort/eager", *[SHORT[v] for v in variants], "infer_paths",
+                "<=150 at 256"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        best = min(r["eager_ms"], r["onnxruntime_ms"], *r["variants_ms"].values())
+        verdict = ("yes" if best <= TARGET_MS else "no") if r["size"] == 256 else ""
+        t.add_row(r["shape"], str(r["size"]), f"{r['eager_ms']:.1f}", f"{r['onnxruntime_ms']:.1f}",
+                  f"{r['onnxruntime_vs_eager']:.2f}", *[f"{r['variants_ms'][v]:.1f}" for v in variants],
+                  f"{r['infer_paths_eager_ms']:.1f}", verdict)
+    return t
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--shape", default="box", help="box or twobox (random weights).")
+    parser.add_argument("--checkpoint", type=Path, default=None, help="A trained model instead (its size only).")
+    parser.add_argument("--threads", type=int, default=2, help="torch and onnxruntime intra-op threads.")
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--variants", action="store_true",
+                        help="Also time channels_last eager, frozen TorchScript, onnxruntime basic opt / no spinning.")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()
+    if args.checkpoint:
+        model, _ = load_model(args.checkpoint)
+        models = [model]
+    else:
+        models = [build_model(args.shape, size).eval() for size in args.sizes]
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = [bench_size(m, m.size, args.threads, args.repeats, args.warmup, Path(tmp), args.variants)
+                for m in models]
+    result = {"threads": args.threads, "repeats": args.repeats, "torch": torch.__version__,
+              "onnxruntime": __import__("onnxruntime").__version__, "cpus": os.cpu_count(),
+              "loadavg_before": load_before, "loadavg_after": os.getloadavg(), "rows": rows}
+    Console(width=150).print(table(rows, args.threads))  # the whole table, also into a pipe
+    print(json.dumps(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
