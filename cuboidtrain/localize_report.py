@@ -83,8 +83,9 @@ def plot_accuracy(path: str | Path, result: dict, title: str | None = None) -> N
 
 
 def plot_start_probabilities(path: str | Path, probabilities, true_start: int | None, names: list[str],
-                             title: str) -> None:
-    """Figure 12: one bar per start position (its first building's name), the true start in red."""
+                             title: str, label: str = "true start") -> None:
+    """Figure 12: one bar per start position (its first building's name), `true_start` in red
+    with `label` over it."""
     probabilities = np.asarray(probabilities)
     colours = [TRUE_COLOUR if j == true_start else OTHER_COLOUR for j in range(len(probabilities))]
     width = min(max(0.35 * len(probabilities) + 2.0, 6.0), 15.0)
@@ -97,7 +98,7 @@ def plot_start_probabilities(path: str | Path, probabilities, true_start: int | 
     ax.set_ylabel("softmax(-distance)")
     ax.set_ylim(0, max(1e-9, probabilities.max()) * 1.15)
     if true_start is not None:
-        ax.annotate(f"true start\n{100 * probabilities[true_start]:.0f}%", (true_start, probabilities[true_start]),
+        ax.annotate(f"{label}\n{100 * probabilities[true_start]:.0f}%", (true_start, probabilities[true_start]),
                     xytext=(0, 4), textcoords="offset points", ha="center", fontsize=8, color=TRUE_COLOUR)
     ax.set_title(wrapped(title, width), fontsize=10)
     fig.tight_layout()
@@ -122,11 +123,12 @@ def plot_example(path: str | Path, result: dict) -> None:
 
 
 def plot_ranking(path: str | Path, result: dict) -> None:
-    """Figure 12 for the practical command: no true start is known."""
+    """Figure 12 for the practical command: no true start is known, the most probable is marked."""
     by_start = sorted(result["ranking"], key=lambda r: r["start"])
     names = [r["buildings"][0] for r in by_start]
     title = f"{len(result['masks'])} photographed building(s): probability of each start position"
-    plot_start_probabilities(path, [r["probability"] for r in by_start], None, names, title)
+    best = result["ranking"][0]["start"]
+    plot_start_probabilities(path, [r["probability"] for r in by_start], best, names, title, label="most probable")
 
 
 def write_json(out: str | None, result: dict) -> None:
