@@ -1,0 +1,166 @@
+"""Many trainers: the ranks' shares of an epoch, and `torchrun --nproc_per_node 2` on the CPU (gloo).
+
+Two torchrun launches (a run, then a resume stopped by SIGTERM) share one spool and
+run folder; each takes 20-40 s here, most of it starting two torch processes.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from cuboidgen.daemon import run as generate
+from cuboidtrain.checkpoint import load_checkpoint, load_model
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.data import EpochSampler, LoaderState
+from cuboidtrain.distributed import rank_batches
+from cuboidtrain.networks import build_model
+from cuboidtrain.train import run
+from shared.spool import enumerate_spool
+from tests.conftest import tiny_config
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+SIZE, BATCH, STEPS = 32, 4, 3  # per-rank batch; the global batch is 2 x 4
+
+
+# ---- shares of an epoch (no processes) ------------------------------------------------
+
+
+@pytest.mark.parametrize("world, count", [(2, 40), (3, 50), (4, 7)])
+def test_rank_shares_are_disjoint_equal_and_cover_the_global_batches(world, count):
+    order = [f"{i:03d}.cub" for i in range(count)]
+    shares = [rank_batches(order, BATCH, r, world) for r in range(world)]
+    batches = count // (BATCH * world)
+    assert all(len(s) == batches for s in shares)  # every rank steps as often
+    assert all(len(b) == BATCH for s in shares for b in s)
+    for k in range(batches):  # global batch k is exactly the single-process batch of size B x world
+        union = sorted(n for s in shares for n in s[k])
+        assert union == order[k * BATCH * world : (k + 1) * BATCH * world]
+    flat = [n for s in shares for b in s for n in b]
+    assert len(flat) == len(set(flat)) == batches * BATCH * world
+
+
+def test_a_world_of_one_is_the_plain_batches_and_position_skips_global_batches():
+    order = [f"{i:03d}.cub" for i in range(13)]
+    assert rank_batches(order, 4, 0, 1) == [order[0:4], order[4:8], order[8:12]]
+    assert rank_batches(order, 2, 1, 2, position=2) == [order[9:12:2]]
+
+
+def test_rank_samplers_split_one_listing_and_resume_at_the_same_place(tmp_path):
+    names = [f"{1_700_000_000_000_000_000 + i}-h-1-t-{i:09d}.cub" for i in range(20)]
+    samplers = [EpochSampler(tmp_path, 2, seed=5, rank=r, world=2, list_spool=lambda _s: names) for r in (0, 1)]
+    epochs = [list(s) for s in samplers]
+    assert len(epochs[0]) == len(epochs[1]) == 5 == len(samplers[0])
+    assert samplers[0].state == samplers[1].state  # one state: one checkpoint resumes every rank
+    assert sorted(n for e in epochs for b in e for n in b) == sorted(names)
+    saved = LoaderState(samplers[0].state.epoch, samplers[0].state.order, 2, world=2)
+    for r, epoch in enumerate(epochs):
+        resumed = EpochSampler(tmp_path, 2, seed=5, rank=r, world=2, list_spool=lambda _s: names)
+        resumed.resume_from(saved)
+        assert list(resumed) == epoch[2:]
+    single = EpochSampler(tmp_path, 2, seed=5, list_spool=lambda _s: names)
+    single.resume_from(saved)  # 2 global batches of 4 = 4 batches of 2 on one rank
+    assert single.state.position == 4 and list(single) == [saved.order[i : i + 2] for i in range(8, 20, 2)]
+
+
+# ---- torchrun ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def spool(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("ddp") / "spool"
+    assert generate(tiny_config(path, limit=0, max_samples=40, size=SIZE, seed=3)) == 40
+    return path
+
+
+def torchrun(spool: Path, out: Path, *options: str, **popen) -> subprocess.Popen:
+    command = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "--no-python", str(BIN / "cuboidtrain"),
+               "run", "--spool", str(spool), "--size", str(SIZE), "--batch-size", str(BATCH), "--out", str(out),
+               "--threads", "1", "--loader-workers", "0", "--log-every", "1", "--no-dashboard", *options]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            **popen)
+
+
+@pytest.fixture(scope="module")
+def ddp_run(spool, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ddp-run")
+    proc = torchrun(spool, out, "--steps", str(STEPS))
+    output = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 0, output
+    assert output.count(f"done at step {STEPS}") == 1, output  # rank 0 speaks for the run
+    return out
+
+
+def records(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_torchrun_ranks_train_the_same_steps_and_rank_0_alone_writes(ddp_run):
+    status = json.loads((ddp_run / "status.json").read_text())
+    assert status["state"] == "done" and status["world_size"] == 2
+    replicas = status["replicas"]
+    assert [r["rank"] for r in replicas] == [0, 1]
+    assert {r["step"] for r in replicas} == {STEPS}
+    assert replicas[0]["weights"] == replicas[1]["weights"]  # DDP kept the replicas equal
+    assert [r["step"] for r in records(ddp_run)] == list(range(1, STEPS + 1))  # one writer: no step twice
+    written = {p.name for p in ddp_run.iterdir()} - {"tensorboard"}
+    assert written == {"config.json", "last.pt", "metrics.jsonl", "status.json"}
+
+
+def test_a_ddp_checkpoint_loads_in_one_process_without_module_prefix(ddp_run):
+    ckpt = load_checkpoint(ddp_run / "last.pt")
+    assert ckpt["step"] == STEPS and ckpt["loader"]["world"] == 2 and ckpt["loader"]["position"] == STEPS
+    assert not [k for k in ckpt["model"] if k.startswith("module.") or k.startswith("model.")]
+    model, _ = load_model(ddp_run / "last.pt")
+    init = build_model("box", SIZE, seed=0).state_dict()
+    changed = [k for k, v in model.state_dict().items() if v.is_floating_point() and not torch.equal(v, init[k])]
+    assert len(changed) > 0.9 * sum(v.is_floating_point() for v in init.values())
+
+
+def test_ddp_matches_one_process_with_the_same_global_batch(ddp_run, spool, tmp_path):
+    # The same samples per step (2 ranks x 4 = one batch of 8) and averaged gradients; only
+    # BatchNorm differs (statistics per rank's 4 samples, not over all 8), hence a tolerance.
+    config = TrainConfig(spool=str(spool), out=str(tmp_path), shape="box", size=SIZE, steps=STEPS,
+                         batch_size=2 * BATCH, loader_workers=0, dashboard=False, log_every=1)
+    run(config.validate())
+    single, ddp = records(tmp_path), records(ddp_run)
+    pairs = {k: [(d[k], s[k]) for d, s in zip(ddp, single)] for k in ("D_R", "D_S", "D_T")}
+    for key, values in pairs.items():  # step 1: the same weights and samples; later: the same updates, nearly
+        assert values[0][0] == pytest.approx(values[0][1], rel=0.02), pairs
+        assert all(d == pytest.approx(s, rel=0.1) for d, s in values), pairs
+
+
+def test_torchrun_resumes_and_sigterm_stops_every_rank_at_one_step(ddp_run, spool):
+    proc = torchrun(spool, ddp_run, "--resume", start_new_session=True)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and _step(ddp_run) < STEPS + 2:
+        assert proc.poll() is None, proc.communicate()[0]
+        time.sleep(0.3)
+    proc.send_signal(signal.SIGTERM)  # to torchrun, which forwards it to every rank
+    output = proc.communicate(timeout=120)[0]
+    status = json.loads((ddp_run / "status.json").read_text())
+    assert status["state"] == "stopped", output
+    steps = {r["step"] for r in status["replicas"]}
+    ckpt = load_checkpoint(ddp_run / "last.pt")
+    assert steps == {ckpt["step"]} and ckpt["step"] >= STEPS + 2
+    assert status["replicas"][0]["weights"] == status["replicas"][1]["weights"]
+    logged = [r["step"] for r in records(ddp_run)]
+    assert logged == list(range(1, ckpt["step"] + 1))  # resumed at step 4, where the first run ended
+    assert not [p for p in os.listdir(ddp_run) if p.startswith(".tmp-")]
+
+
+def _step(out: Path) -> int:
+    try:
+        return json.loads((out / "status.json").read_text())["step"]
+    except (OSError, ValueError, KeyError):
+        return 0
