@@ -142,6 +142,8 @@ def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> boo
     while not shared.stopping():
         try:
             writer.publish(data)
+            if shared.get(index, "state") == BACKING_OFF:
+                log.warning("worker %d: space again under %s, publishing", index, writer.spool)
             shared.set(index, "state", RUNNING)
             return True
         except SpoolFull:

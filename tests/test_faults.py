@@ -1,0 +1,289 @@
+"""Faults: a full disk, bad spool paths, corrupt and foreign files, an almost empty spool,
+and what a killed trainer leaves behind. The kill -9 soak is benchmarks/soak_faults.py."""
+from __future__ import annotations
+
+import errno
+import io
+import json
+import logging
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+from typer.testing import CliRunner
+
+import cuboidgen.daemon as daemon
+import cuboidtrain.data as data
+from cuboidgen.cli import app as gen_app
+from cuboidtrain.checkpoint import load_checkpoint
+from cuboidtrain.cli import app as train_app
+from cuboidtrain.config import TrainConfig
+from cuboidtrain.dashboard import render
+from cuboidtrain.train import StopRequest, run
+from shared.inspect import inspect_spool
+from shared.sample import encode
+from shared.spool import SpoolWriter, enumerate_spool
+from tests.conftest import build_sample, tiny_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE = 32
+runner = CliRunner()
+
+
+def fill(spool: Path, count: int) -> list[str]:
+    with SpoolWriter(spool, limit=0) as writer:
+        return [writer.publish(encode(build_sample(seed, size=SIZE))) for seed in range(count)]
+
+
+def config(spool: Path, out: Path, **changes) -> TrainConfig:
+    base = TrainConfig(spool=str(spool), out=str(out), size=SIZE, steps=3, batch_size=2, loader_workers=0,
+                       dashboard=False, log_every=1, checkpoint_every=1000)
+    return replace(base, **changes).validate()
+
+
+def stop_at_listing(monkeypatch, count: int) -> tuple[StopRequest, list[float]]:
+    """A stop asked for at the trainer's `count`-th listing of the spool; the listings' times."""
+    stop, times = StopRequest(), []
+    real = data.enumerate_spool
+
+    def listing(spool):
+        times.append(time.monotonic())
+        if len(times) == count:
+            stop.signal = signal.SIGTERM
+        return real(spool)
+
+    monkeypatch.setattr(data, "enumerate_spool", listing)
+    return stop, times
+
+
+def shown(status: dict) -> str:
+    console = Console(width=200, record=True, file=io.StringIO())
+    console.print(render(status))
+    return console.export_text()
+
+
+# ---- a full disk ------------------------------------------------------------------------
+
+
+def workers_shared(workers: int = 1) -> daemon.Shared:
+    return daemon.Shared(counters=mp.Array("q", workers * len(daemon.FIELDS), lock=False), stop=mp.RawValue("b", 0),
+                         tickets=None)
+
+
+def test_a_full_disk_backs_off_says_so_and_resumes_publishing(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(daemon, "BACKOFF", (0.01, 0.02))
+    real_pwrite, full_for = os.pwrite, [3]  # the disk is full for three tries
+
+    def pwrite(fd, payload, offset):
+        if full_for[0]:
+            full_for[0] -= 1
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_pwrite(fd, payload, offset)
+
+    shared, states = workers_shared(), []
+    real_pause = daemon.pause
+    monkeypatch.setattr(daemon, "pause", lambda s, sh: (states.append(daemon.STATE_NAMES[sh.get(0, "state")]),
+                                                        real_pause(s, sh)))
+    monkeypatch.setattr(os, "pwrite", pwrite)
+    caplog.set_level(logging.INFO, "cuboidgen.daemon")
+    with SpoolWriter(tmp_path, limit=10) as writer:
+        assert daemon.publish(writer, encode(build_sample(0, size=SIZE)), 0, shared)
+    assert states == ["disk full, backing off"] * 3  # said so while it waited
+    assert shared.get(0, "state") == daemon.RUNNING
+    assert "disk full" in caplog.text and "space again" in caplog.text
+    assert os.listdir(tmp_path) == enumerate_spool(tmp_path) and len(os.listdir(tmp_path)) == 1  # no partial file
+    assert inspect_spool(tmp_path)["corrupt"] == 0
+    shared.set(0, "state", daemon.BACKING_OFF)  # the dashboard's view of a backing-off worker
+    view = daemon.snapshot(tiny_config(tmp_path, size=SIZE), shared, [0.0], 1.0)
+    assert view.workers[0].state == "disk full, backing off" and "disk full" in view.notes[0]
+
+
+def _mount_tmpfs(where: Path, size: str) -> bool:
+    where.mkdir()
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+                          capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root")
+def test_a_really_full_tmpfs_backs_off_and_publishing_resumes_when_space_returns(tmp_path):
+    disk = tmp_path / "disk"
+    if not _mount_tmpfs(disk, "96k"):
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(disk), "--limit", "0",
+                                 "--max-samples", "100000", "--workers", "1", "--size", str(SIZE), "--no-dashboard"],
+                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+        full = _settled(lambda: len(enumerate_spool(disk)), within=60)
+        assert 0 < full < 100, full  # a 96 KB disk holds a few dozen 4 KB pages
+        for name in enumerate_spool(disk)[: full // 2]:  # space returns
+            os.unlink(disk / name)
+        deadline = time.monotonic() + 30
+        while len(enumerate_spool(disk)) < full and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(enumerate_spool(disk)) >= full  # publishing resumed
+        proc.send_signal(signal.SIGTERM)
+        output = proc.communicate(timeout=30)[0]
+        assert "disk full" in output and "space again" in output, output
+        report = inspect_spool(disk)
+        assert report["corrupt"] == 0 and report["temporary"] == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        subprocess.run(["umount", str(disk)])
+
+
+def _settled(read, within: float, quiet: float = 1.5) -> int:
+    """read()'s value once it has not changed for `quiet` seconds."""
+    deadline, value, since = time.monotonic() + within, None, time.monotonic()
+    while time.monotonic() < deadline:
+        now = read()
+        if now != value or not now:
+            value, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"still changing after {within} s: {value}")
+
+
+# ---- bad spool paths: one line, for both daemons ---------------------------------------
+
+
+def one_line_error(result) -> str:
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:"), result.output
+    return lines[0]
+
+
+@pytest.mark.parametrize("fault, generator, trainer", [
+    ("missing", None, "no such folder"),  # the generator creates a missing spool
+    ("file", "not a folder", "not a folder"),
+    ("under a file", "cannot create it", "no such folder"),
+    ("no permission", "not writable", "not readable"),
+])
+def test_a_bad_spool_path_is_a_one_line_error_for_both_daemons(tmp_path, monkeypatch, fault, generator, trainer):
+    (tmp_path / "file").write_text("not a folder")
+    spool = {"missing": tmp_path / "missing", "file": tmp_path / "file", "under a file": tmp_path / "file" / "spool",
+             "no permission": tmp_path}[fault]
+    if fault == "no permission":
+        # Root ignores permissions, so fake them for the daemons' checks (which ask for X_OK
+        # too), not for the command line's own readability check of an existing path.
+        real_access = os.access
+        monkeypatch.setattr(os, "access", lambda path, mode, **k: False if mode & os.X_OK else real_access(path, mode))
+    if generator:
+        result = runner.invoke(gen_app, ["run", "--spool", str(spool), "--limit", "5", "--max-samples", "1",
+                                         "--workers", "1", "--size", str(SIZE), "--no-dashboard"])
+        assert generator in one_line_error(result) and str(spool) in result.output
+    result = runner.invoke(train_app, ["run", "--spool", str(spool), "--size", str(SIZE), "--steps", "1",
+                                       "--out", str(tmp_path / "run"), "--no-dashboard", "--loader-workers", "0"])
+    assert trainer in one_line_error(result) and str(spool) in result.output
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting needs root")
+def test_a_read_only_spool_is_a_one_line_error_for_the_generator(tmp_path):
+    disk = tmp_path / "ro"
+    if not _mount_tmpfs(disk, "64k"):
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+        result = runner.invoke(gen_app, ["run", "--spool", str(disk), "--limit", "5", "--max-samples", "1",
+                                         "--workers", "1", "--size", str(SIZE), "--no-dashboard"])
+        assert "not writable" in one_line_error(result)
+    finally:
+        subprocess.run(["umount", str(disk)])
+
+
+# ---- corrupt and foreign files ------------------------------------------------------------
+
+
+@pytest.fixture
+def polluted(tmp_path) -> Path:
+    """Six good samples, three corrupt ones (garbage, empty, truncated), three foreign entries."""
+    spool = tmp_path / "spool"
+    names = fill(spool, 6)
+    stamp = names[-1].split("-")[0]
+    (spool / f"{stamp}-x-1-aa-000000001.cub").write_bytes(b"\x00garbage")
+    (spool / f"{stamp}-x-1-aa-000000002.cub").write_bytes(b"")
+    (spool / f"{stamp}-x-1-aa-000000003.cub").write_bytes((spool / names[0]).read_bytes()[:100])
+    (spool / "notes.txt").write_text("someone's notes")
+    (spool / "junk").mkdir()
+    (spool / f"{stamp}-x-1-aa-000000004.cub").mkdir()  # a folder named like a sample
+    return spool
+
+
+def test_the_trainer_skips_counts_and_reports_corrupt_and_foreign_files(polluted, tmp_path):
+    status = run(config(polluted, tmp_path / "run", steps=6))
+    assert status["state"] == "done" and status["step"] == 6
+    assert status["skipped"]["corrupt"] >= 4  # 4 unreadable names in each of >= 2 epochs of 10 names
+    assert status["foreign_files"] == 2  # notes.txt, junk/ (the sample-named folder counts as corrupt)
+    text = " ".join(status["notes"])
+    assert "corrupt samples skipped" in text and "2 foreign files" in text
+    assert "corrupt" in shown(status) and "foreign files" in shown(status)  # on the dashboard
+
+
+def test_inspect_reports_corrupt_and_foreign_files(polluted):
+    result = runner.invoke(gen_app, ["inspect", str(polluted), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["samples"] == 6 and report["corrupt"] == 3 and report["foreign"] == 3
+
+
+# ---- a trainer far faster than its generator ------------------------------------------
+
+
+def test_an_empty_spool_waits_saying_so_without_spinning_and_stops_when_asked(tmp_path, monkeypatch, caplog):
+    (tmp_path / "spool").mkdir()
+    stop, listings = stop_at_listing(monkeypatch, 3)
+    caplog.set_level(logging.INFO, "cuboidtrain")
+    status = run(config(tmp_path / "spool", tmp_path / "run", steps=None), stop=stop)
+    assert status["state"] == "stopped" and status["step"] == 0
+    assert "holds 0 samples: waiting for at least 2" in caplog.text
+    assert len(listings) == 3 and listings[2] - listings[0] >= 0.9  # polled every 0.5 s, not in a busy loop
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 0
+
+
+def test_a_spool_of_three_samples_is_reused_and_says_how_often(tmp_path):
+    fill(tmp_path / "spool", 3)
+    status = run(config(tmp_path / "spool", tmp_path / "run", steps=8))
+    assert status["step"] == 8 and status["epoch"] == 7  # one batch of 2 per listing of 3
+    assert status["freshness"]["mean_reuse"] >= 3  # 16 uses of 3 samples
+    assert f"mean reuse {status['freshness']['mean_reuse']:.1f}" in shown(status)
+
+
+def test_a_spool_of_only_corrupt_files_waits_rather_than_spins(tmp_path, monkeypatch, caplog):
+    spool = tmp_path / "spool"
+    spool.mkdir()
+    for i in range(3):
+        (spool / f"17000000000000000{i:02d}-x-1-aa-00000000{i}.cub").write_bytes(b"not a sample")
+    stop, listings = stop_at_listing(monkeypatch, 3)
+    caplog.set_level(logging.INFO, "cuboidtrain")
+    status = run(config(spool, tmp_path / "run", steps=None), stop=stop)
+    assert status["state"] == "stopped" and status["step"] == 0
+    assert len(listings) == 3 and listings[2] - listings[0] >= 0.9  # a pause between listings: no spinning
+    assert status["skipped"]["corrupt"] == 3 * 2  # one batch of 2 per listing of 3
+    assert "no usable samples" in caplog.text
+
+
+# ---- what a killed trainer leaves behind ----------------------------------------------
+
+
+def test_a_restart_sweeps_a_killed_trainers_temporary_files_and_torn_metrics_line(tmp_path):
+    fill(tmp_path / "spool", 4)
+    out = tmp_path / "run"
+    run(config(tmp_path / "spool", out, steps=1))
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (out / f".tmp-{int(dead.stdout)}-last.pt").write_bytes(b"half a checkpoint")  # killed mid-save
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write('{"step": 2, "D_R": 0.')  # killed mid-record
+    run(config(tmp_path / "spool", out, steps=2, resume=True))
+    assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
+    steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [1, 2]
