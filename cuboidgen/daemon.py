@@ -8,6 +8,7 @@ publishing is a rename, even a SIGKILL never leaves a torn sample.
 """
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import multiprocessing as mp
@@ -22,14 +23,14 @@ from pathlib import Path
 from cuboidgen.config import GenConfig
 from cuboidgen.dashboard import Dashboard, GenSnapshot, WorkerView
 from shared.sample import encode
-from shared.spool import META_NAME, SpoolFull, SpoolWriter, check_spool, enumerate_spool, name_time
+from shared.spool import META_NAME, SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, name_time
 
 log = logging.getLogger(__name__)
 
 # Per-worker counters in shared memory, one row of these fields per worker.
-FIELDS = ("published", "evicted", "errors", "state", "bytes")
-RUNNING, BACKING_OFF, DONE = 0, 1, 2
-STATE_NAMES = {RUNNING: "running", BACKING_OFF: "disk full, backing off", DONE: "done"}
+FIELDS = ("published", "evicted", "errors", "state", "bytes", "errno")
+RUNNING, BACKING_OFF, DONE, FAILED = 0, 1, 2, 3
+STATE_NAMES = {RUNNING: "running", BACKING_OFF: "disk full, backing off", DONE: "done", FAILED: "failed: cannot write"}
 BACKOFF = (0.5, 10.0)  # s: first and longest wait while the disk is full
 JOIN_TIMEOUT = 15.0  # s a worker gets to finish its sample before it is killed
 
@@ -96,6 +97,9 @@ def run(config: GenConfig) -> int:
         _restore_handlers(previous)
     published = sum(shared.get(i, "published") for i in range(config.workers))
     log.info("stopped: %d samples published", published)
+    reason = failure(shared, config.workers)
+    if reason:
+        raise SpoolError(f"spool {config.spool}: cannot write to it ({reason})")
     return published
 
 
@@ -133,7 +137,8 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared, parent: i
             shared.set(index, "published", writer.counts.published)
             shared.set(index, "evicted", writer.counts.evicted)
             shared.set(index, "bytes", writer.counts.published_bytes)
-    shared.set(index, "state", DONE)
+    if shared.get(index, "state") != FAILED:
+        shared.set(index, "state", DONE)
 
 
 def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> bool:
@@ -152,7 +157,21 @@ def publish(writer: SpoolWriter, data: bytes, index: int, shared: Shared) -> boo
             shared.set(index, "state", BACKING_OFF)
             pause(wait, shared)
             wait = min(wait * 2, BACKOFF[1])
+        except OSError as exc:  # read-only, permissions gone, folder removed: waiting will not help
+            log.error("worker %d: cannot write to %s (%s); stopping", index, writer.spool, exc.strerror)
+            shared.set(index, "errno", exc.errno or errno.EIO)
+            shared.set(index, "state", FAILED)
+            shared.request_stop()  # every worker: the spool is unusable for all of them
+            return False
     return False
+
+
+def failure(shared: Shared, workers: int) -> str | None:
+    """Why a worker could not write to the spool (its error's text), or None."""
+    for i in range(workers):
+        if shared.get(i, "state") == FAILED:
+            return os.strerror(shared.get(i, "errno"))
+    return None
 
 
 def pause(seconds: float, shared: Shared) -> None:

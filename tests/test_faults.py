@@ -287,3 +287,41 @@ def test_a_restart_sweeps_a_killed_trainers_temporary_files_and_torn_metrics_lin
     assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
     steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert steps == [1, 2]
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting needs root")
+def test_a_spool_turned_read_only_mid_run_stops_the_generator_with_a_one_line_error(tmp_path):
+    disk = tmp_path / "disk"
+    if not _mount_tmpfs(disk, "1m"):
+        pytest.skip("cannot mount a tmpfs here")
+    proc = None
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(disk), "--limit", "20",
+                                 "--workers", "1", "--size", str(SIZE), "--no-dashboard"],
+                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+        deadline = time.monotonic() + 60
+        while len(enumerate_spool(disk)) < 20 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+        output = proc.communicate(timeout=60)[0]
+        assert proc.returncode == 2, output
+        assert f"error: spool {disk}: cannot write to it (Read-only file system)" in output
+        assert "Traceback" not in output
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        subprocess.run(["umount", str(disk)])
+
+
+def test_a_worker_that_cannot_write_stops_every_worker_and_says_why(tmp_path, monkeypatch):
+    def read_only(fd, payload, offset):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    shared = workers_shared()
+    with SpoolWriter(tmp_path, limit=10) as writer:
+        monkeypatch.setattr(os, "pwrite", read_only)
+        assert not daemon.publish(writer, encode(build_sample(0, size=SIZE)), 0, shared)
+    assert shared.stopping() and shared.get(0, "state") == daemon.FAILED
+    assert daemon.failure(shared, 1) == "Read-only file system"
+    assert os.listdir(tmp_path) == []
