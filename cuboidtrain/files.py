@@ -61,6 +61,31 @@ def repair_jsonl(path: Path) -> bool:
         return False
 
 
+def drop_records_after(path: Path, step: int) -> int:
+    """Remove the records of steps after `step` (a resumed run trains them again, so they
+    would appear twice); returns how many. The file is replaced atomically."""
+    try:
+        lines = Path(path).read_text().splitlines(keepends=True)
+    except FileNotFoundError:
+        return 0
+    kept = [line for line in lines if _step_of(line) <= step]
+    if len(kept) < len(lines):
+        tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+        try:
+            tmp.write_text("".join(kept))
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+    return len(lines) - len(kept)
+
+
+def _step_of(line: str) -> float:
+    try:
+        return json.loads(line).get("step", 0)
+    except (ValueError, AttributeError):
+        return 0
+
+
 def _alive(pid: int) -> bool:
     if pid <= 0:
         return False

@@ -25,7 +25,7 @@ from cuboidtrain.config import TrainConfig
 from cuboidtrain.data import Freshness, WaitInterrupted, make_loader, spool_names
 from cuboidtrain.device import resolve_device
 from cuboidtrain.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
-from cuboidtrain.files import repair_jsonl, sweep_orphans, write_json_atomically
+from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans, write_json_atomically
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.losses import combine, phase_losses
 from cuboidtrain.networks import CuboidNet, build_model
@@ -186,6 +186,8 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         # barrier of the other; fewer threads can be faster than all cores.
         torch.set_num_threads(config.threads)
     model, optimizer, step, resume = build_state(config, device)
+    if resume is not None and ranks.main:  # steps after the checkpoint are trained again: record them once
+        drop_records_after(out / "metrics.jsonl", step)
     losses_of = wrap(model, config.phase, config.ratio_weight, ranks)
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
                                   config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,

@@ -281,12 +281,13 @@ def test_a_restart_sweeps_a_killed_trainers_temporary_files_and_torn_metrics_lin
     run(config(tmp_path / "spool", out, steps=1))
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     (out / f".tmp-{int(dead.stdout)}-last.pt").write_bytes(b"half a checkpoint")  # killed mid-save
-    with open(out / "metrics.jsonl", "a") as f:
-        f.write('{"step": 2, "D_R": 0.')  # killed mid-record
+    with open(out / "metrics.jsonl", "a") as f:  # steps 2 and 3 ran after the checkpoint at 1, then a kill
+        f.write('{"step": 2, "D_R": 0.5}\n{"step": 3, "D_R": 0.4}\n{"step": 4, "D_R": 0.')  # mid-record
     run(config(tmp_path / "spool", out, steps=2, resume=True))
     assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
-    steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
-    assert steps == [1, 2]
+    logged = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in logged] == [1, 2]  # no torn line, and each step once
+    assert logged[1]["D_R"] != 0.5  # step 2 is the resumed run's record, not the killed run's
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting needs root")
