@@ -86,6 +86,19 @@ def run(
         console.print(f"{status['state']} at step {status['step']}; checkpoint {status['last_checkpoint']['path']}")
 
 
+class ExtractorChoice(str, Enum):
+    tabulator = "tabulator"
+    argmax = "argmax"
+    centre_of_mass = "centre-of-mass"
+    dark = "dark"
+    pdm = "pdm"
+
+
+EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the paper's T), argmax, centre-of-mass, "
+                  "dark (sub-pixel Taylor step), pdm (argmax made valid by a PCA shape model). Ratios are always T's.")
+PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape variance to keep (e.g. 0.999)."
+
+
 @app.command("eval")
 def evaluate(
     checkpoint: Path = typer.Option(..., help="Checkpoint to evaluate."),
@@ -93,6 +106,8 @@ def evaluate(
     batch_size: int = typer.Option(32, help="Samples per forward pass."),
     max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    extractor: ExtractorChoice = typer.Option(ExtractorChoice.tabulator, help=EXTRACTOR_HELP),
+    pdm_components: str = typer.Option("0.999", metavar="N|FRACTION", help=PDM_HELP),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
     """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
@@ -100,7 +115,8 @@ def evaluate(
 
     setup_logging()
     try:
-        result = evaluate_checkpoint(checkpoint, spool, device=device, batch_size=batch_size, max_samples=max_samples)
+        result = evaluate_checkpoint(checkpoint, spool, device=device, batch_size=batch_size, max_samples=max_samples,
+                                     extractor=extractor.value, pdm_components=pdm_components)
     except ValueError as exc:
         fail(str(exc))
     typer.echo(json.dumps(result, indent=2) if as_json else format_report(result))
@@ -153,25 +169,51 @@ def infer(
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else the largest only."),
     label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
     margin: float = typer.Option(0.1, help="Empty border around the framed object, as a fraction of the model size per side."),
+    extractor: ExtractorChoice = typer.Option(ExtractorChoice.tabulator, help=EXTRACTOR_HELP),
+    pdm_components: str = typer.Option("0.999", metavar="N|FRACTION", help=PDM_HELP),
+    explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
+    overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
 ) -> None:
-    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON)."""
+    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
+
+    Exits 1 when any input failed (its record says why); the others are still written.
+    """
     from cuboidtrain.infer import infer_paths, load_models, write_records
 
     setup_logging()
     try:
         steps = parse_refine_steps(refine_steps)
+        explainer = make_explainer(explain, overlay, len(paths))
         records = infer_paths(paths, load_models(checkpoint), shape=shape.value, refine_steps=steps,
-                              all_components=all_components, label_id=label_id, margin=margin, device=device)
+                              all_components=all_components, label_id=label_id, margin=margin, device=device,
+                              extractor=extractor.value, pdm_components=pdm_components, explain=explainer)
         if json_out == "-":
             typer.echo(json.dumps(records, indent=2))
         else:
             write_records(Path(json_out), records)
     except (ValueError, OSError) as exc:
         fail(str(exc))
+    if explainer is not None:
+        console.print(f"{len(explainer.written)} pictures in {explain}", highlight=False)
     failed = sum(r["error"] is not None for r in records)
     if failed:
         console.print(f"{failed} of {len(records)} records have an error (see their \"error\" field)", highlight=False)
+        raise typer.Exit(1)
+
+
+def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
+    """The explanation writer for --explain/--overlay, or None; bad combinations are ValueErrors."""
+    if photos and folder is None:
+        raise ValueError("--overlay needs --explain DIR: the folder its pictures go to")
+    if photos and len(photos) != inputs:
+        raise ValueError(f"--overlay given {len(photos)} times for {inputs} inputs: expected one photo per input, "
+                         f"in the same order")
+    if folder is None:
+        return None
+    from cuboidtrain.explain import Explainer  # matplotlib: only when pictures are wanted
+
+    return Explainer(folder, photos)
 
 
 @app.command()
@@ -243,25 +285,6 @@ def localize(
         report.write_json(json_out, result)
     except (ValueError, OSError) as exc:
         fail(str(exc))
-
-
-@app.command()
-def export(
-    checkpoint: Path = typer.Option(..., metavar="CKPT", help="A trained model (cuboidtrain run's last.pt)."),
-    onnx: Path = typer.Option(..., metavar="OUT.onnx", help="Where the ONNX model goes (replaced atomically)."),
-    refine_steps: int = typer.Option(1, metavar="K", help="Refiner passes in the graph, each on the last one's binary output."),
-    opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
-) -> None:
-    """Export R (K passes), S and T as one ONNX graph: +-1 mask in; refined, heatmaps, keypoints, ratios out."""
-    from cuboidtrain.export import export_checkpoint
-
-    setup_logging()
-    try:
-        meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
-    console.print(f"{onnx}: {meta['shape']} model, {meta['size']} px, {meta['refine_steps']} Refiner pass(es), "
-                  f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False)
 
 
 @app.command()

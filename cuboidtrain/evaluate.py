@@ -19,6 +19,7 @@ import torch
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.data import SKIP_REASONS, SpoolBatches
 from cuboidtrain.device import resolve_device
+from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import decode_record
@@ -86,25 +87,32 @@ def _nothing_to_evaluate(spool: Path, shape: str, size: int, names: list[str]) -
 
 
 @torch.inference_mode()
-def _measure_batch(model: CuboidNet, batch: dict, sigma: float, device: torch.device) -> dict[str, torch.Tensor]:
-    """Per-sample errors of one batch, on the CPU."""
+def _measure_batch(model: CuboidNet, batch: dict, sigma: float, device: torch.device,
+                   extractor=None) -> dict[str, torch.Tensor]:
+    """Per-sample errors of one batch, on the CPU. `extractor` (cuboidtrain.extractors) reads the
+    keypoints off S's heat maps instead of T."""
     x = prepare_batch(batch, device, sigma, model.size)
     out = model(x["x1"])  # T(S(R(x1))), the inference chain of paper 3.4
     t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
+    keypoints, decoded_alone = out["keypoints"], t_alone
+    if extractor is not None:
+        keypoints, decoded_alone = extractor(out["heatmaps"], out["keypoints"]), extractor(x["x3"], t_alone)
     return {
-        "keypoint": keypoint_errors(out["keypoints"], x["x4"]).cpu(),  # (B, N)
+        "keypoint": keypoint_errors(keypoints, x["x4"]).cpu(),  # (B, N)
         "ratio": (out["ratios"].float() - x["ratios"]).abs().cpu(),  # (B, R)
         "iou": mask_iou(out["refined"], x["x2"]).cpu(),  # (B,)
         "tabulator": keypoint_errors(t_alone, x["x4"]).cpu(),  # (B, N)
+        "extractor": keypoint_errors(decoded_alone, x["x4"]).cpu(),  # (B, N): the decoder on perfect maps
     }
 
 
-def _measure(model: CuboidNet, batches: list[dict], sigma: float, device: torch.device) -> dict[str, torch.Tensor]:
+def _measure(model: CuboidNet, batches: list[dict], sigma: float, device: torch.device,
+             extractor=None) -> dict[str, torch.Tensor]:
     """Per-sample errors over all batches; the model's train/eval mode is restored afterwards."""
     was_training = model.training
     model.to(device).eval()  # BatchNorm on running statistics, as at inference
     try:
-        parts = [_measure_batch(model, batch, sigma, device) for batch in batches]
+        parts = [_measure_batch(model, batch, sigma, device, extractor) for batch in batches]
     finally:
         model.train(was_training)  # a trainer that validates mid-run keeps training in train mode
     return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
@@ -122,11 +130,13 @@ def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict:
         "per_ratio_error": dict(zip(geometry.ratio_names, errors["ratio"].double().mean(0).tolist())),
         "refiner_iou": errors["iou"].double().mean().item(),
         "tabulator_px_error_on_true_heatmaps": errors["tabulator"].double().mean().item(),
+        "extractor_px_error_on_true_heatmaps": errors["extractor"].double().mean().item(),
     }
 
 
 def evaluate(model: CuboidNet, spool: Path, sigma: float, device: torch.device, batch_size: int = 32,
-             max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS) -> dict:
+             max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS, extractor: str = "tabulator",
+             pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> dict:
     """Metrics of `model` on the first `max_samples` samples of its shape and size in `spool`.
 
     Samples of another shape or size, corrupt or vanished ones are skipped and
@@ -135,14 +145,16 @@ def evaluate(model: CuboidNet, spool: Path, sigma: float, device: torch.device, 
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
-    return _report(model, batches, skipped, sigma, resolve_device(device), pck_thresholds)
+    return _report(model, batches, skipped, sigma, resolve_device(device), pck_thresholds,
+                   extractor, pdm_components)
 
 
 def _report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, device: torch.device,
-            thresholds) -> dict:
-    errors = _measure(model, batches, sigma, device)
+            thresholds, extractor: str = "tabulator", pdm_components=DEFAULT_PDM_COMPONENTS) -> dict:
+    decoder = None if extractor == "tabulator" else make_extractor(extractor, model, pdm_components)
+    errors = _measure(model, batches, sigma, device, decoder)
     result = {"shape": model.shape, "size": model.size, "sigma": sigma, "samples": len(errors["iou"]),
-              "skipped": skipped}
+              "extractor": extractor, "skipped": skipped}
     result.update(_summarise(errors, model.shape, thresholds))
     return result
 
@@ -155,15 +167,17 @@ def _check_counts(batch_size: int, max_samples: int | None) -> None:
 
 
 def evaluate_checkpoint(checkpoint: Path, spool: Path, device: str | torch.device = "auto", batch_size: int = 32,
-                        max_samples: int | None = None, random_init_seed: int = 0) -> dict:
+                        max_samples: int | None = None, random_init_seed: int = 0, extractor: str = "tabulator",
+                        pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> dict:
     """`evaluate` for a saved model, plus Table 3's reference row: random weights on the same samples."""
     model, ckpt = load_model(checkpoint)
     spool, device = check_spool(spool), resolve_device(device)
     _check_counts(batch_size, max_samples)
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
-    result = _report(model, batches, skipped, ckpt["sigma"], device, PCK_THRESHOLDS)
-    random_model = build_model(model.shape, model.size, seed=random_init_seed)
-    baseline = _report(random_model, batches, skipped, ckpt["sigma"], device, PCK_THRESHOLDS)
+    options = (PCK_THRESHOLDS, extractor, pdm_components)
+    result = _report(model, batches, skipped, ckpt["sigma"], device, *options)
+    random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"])
+    baseline = _report(random_model, batches, skipped, ckpt["sigma"], device, *options)
     result.update({
         "random_init_mean_px_error": baseline["mean_px_error"],
         "random_init_median_px_error": baseline["median_px_error"],
@@ -190,6 +204,9 @@ def format_report(result: dict) -> str:
                      f"median {result['random_init_median_px_error']:.3f} px")
     lines.append("PCK          " + "   ".join(f"@{t} px {v:.3f}" for t, v in result["pck"].items()))
     lines.append(f"T alone      {result['tabulator_px_error_on_true_heatmaps']:.3f} px on true heat maps")
+    if result.get("extractor", "tabulator") != "tabulator":
+        lines.append(f"extractor    {result['extractor']}: {result['extractor_px_error_on_true_heatmaps']:.3f} px "
+                     f"on true heat maps")
     lines.append(f"R IoU        {result['refiner_iou']:.4f}")
     lines.append(f"ratios       mean abs error {result['mean_ratio_error']:.4f}")
     lines += [f"  {name:<22} {err:.4f}" for name, err in result["per_ratio_error"].items()]

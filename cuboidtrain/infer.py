@@ -19,6 +19,7 @@ import torch
 from cuboidgen.raster import rasterize
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.device import resolve_device
+from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.files import write_json_atomically
 from cuboidtrain.masks import components, frame, load_mask
 from cuboidtrain.networks import CuboidNet
@@ -83,12 +84,13 @@ def confidence(shape: str | Shape, keypoints: np.ndarray, refined) -> float:
 
 @torch.inference_mode()
 def fit(model: CuboidNet, framed_mask: np.ndarray, refine_steps: int | None,
-        device: str | torch.device = "cpu") -> dict:
+        device: str | torch.device = "cpu", extractor=None) -> dict:
     """One framed bool (S, S) mask through R (iterated), S and T, at model resolution.
 
     Returns keypoints (N, 2) model px, ratios (DESIGN.md's record), confidence,
     refine_steps run, and the intermediates for explanations: refined (S, S) tanh
-    output and heatmaps (N, S, S).
+    output and heatmaps (N, S, S). `extractor` (cuboidtrain.extractors) reads the
+    keypoints off the heat maps instead of T; the ratios are T's either way.
     """
     if framed_mask.shape != (model.size, model.size):
         raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
@@ -97,6 +99,8 @@ def fit(model: CuboidNet, framed_mask: np.ndarray, refine_steps: int | None,
     refined, steps_run = refine(model, mask, refine_steps)
     heatmaps = model.estimator(refined)  # S sees R's tanh output, as in CuboidNet.forward and training
     keypoints, ratios = model.tabulator(heatmaps)
+    if extractor is not None:
+        keypoints = extractor(heatmaps, keypoints)
     keypoints = keypoints[0].double().cpu().numpy()
     geometry = get_shape(model.shape)
     refined_np = refined[0, 0].float().cpu().numpy()
@@ -138,62 +142,92 @@ def load_models(paths: list[Path]) -> list[CuboidNet]:
     return models
 
 
-def fit_component(mask: np.ndarray, models: list[CuboidNet], refine_steps: int | None,
-                  margin: float, device: torch.device) -> dict:
-    """Frame one component for every candidate and keep the best-explained fit,
-    its keypoints mapped back to the input image's pixels."""
+def border_warnings(mask: np.ndarray) -> list[str]:
+    """A silhouette cut by the image's edge is a truncated building: its hidden corners are guessed."""
+    sides = {"top": mask[0].any(), "bottom": mask[-1].any(), "left": mask[:, 0].any(), "right": mask[:, -1].any()}
+    touched = [side for side, hit in sides.items() if hit]
+    if not touched:
+        return []
+    return [f"silhouette touches the image's {' and '.join(touched)} border: the building may be truncated "
+            f"there, and keypoints beyond the border are extrapolated"]
+
+
+def fit_component(mask: np.ndarray, models: list[CuboidNet], extractors: dict, refine_steps: int | None,
+                  margin: float, device: torch.device) -> tuple[dict, dict]:
+    """Frame one component for every candidate and keep the best-explained fit.
+
+    Returns the record's fields (keypoints mapped back to the input image's pixels)
+    and what an explanation draws: the winning fit, its framed input and Framing.
+    """
     fits = []
     for model in models:
         framed, framing = frame(mask, model.size, margin)  # each model at its own size
-        result = fit(model, framed, refine_steps, device)
-        fits.append((result, framing))
-    best, framing = max(fits, key=lambda f: f[0]["confidence"])  # ties: the first model given
-    return {
+        result = fit(model, framed, refine_steps, device, extractors[model.shape])
+        fits.append((result, framed, framing))
+    best, framed, framing = max(fits, key=lambda f: f[0]["confidence"])  # ties: the first model given
+    record = {
         "shape": best["shape"],
         "confidence": best["confidence"],
         "keypoints": framing.to_input(best["keypoints"]).tolist(),
         "ratios": best["ratios"],
         "refine_steps": best["refine_steps"],
         "error": None,
-        "candidates": {r["shape"]: r["confidence"] for r, _ in fits},
+        "warnings": border_warnings(mask),
+        "candidates": {r["shape"]: r["confidence"] for r, _, _ in fits},
     }
+    return record, {"fit": best, "framed": framed, "framing": framing, "mask": mask}
 
 
 def error_record(path: str, reason: str, all_components: bool) -> dict:
     record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
-              "refine_steps": None, "error": reason, "candidates": {}}
+              "refine_steps": None, "error": reason, "warnings": [], "candidates": {}}
     return record | ({"component": None} if all_components else {})
 
 
-def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "auto",
-                refine_steps: int | None = 1, all_components: bool = False, label_id: int | None = None,
-                margin: float = 0.1, device: str | torch.device = "cpu") -> list[dict]:
-    """DESIGN.md's records, one per input (per component with `all_components`), in input order.
-
-    An input that cannot be processed gets a record with `error` and no keypoints;
-    bad options (shape, steps, margin) raise ValueError before any input is read.
-    """
-    chosen, device = candidate_models(models, shape), resolve_device(device)
+def check_options(shape: str, refine_steps: int | None, margin: float, models: list[CuboidNet]) -> list[CuboidNet]:
+    """The candidate models; ValueError for a bad option, before any input is read."""
+    chosen = candidate_models(models, shape)
     if refine_steps is not None and refine_steps < 0:
         raise ValueError(f"--refine-steps {refine_steps}: expected 0 or more, or auto")
     if not 0 <= margin < 0.5:
         raise ValueError(f"--margin {margin}: expected a fraction in [0, 0.5)")
+    return chosen
+
+
+def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "auto",
+                refine_steps: int | None = 1, all_components: bool = False, label_id: int | None = None,
+                margin: float = 0.1, device: str | torch.device = "cpu", extractor: str = "tabulator",
+                pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS, explain=None) -> list[dict]:
+    """DESIGN.md's records, one per input (per component with `all_components`), in input order.
+
+    An input that cannot be processed gets a record with `error` and no keypoints;
+    bad options (shape, steps, margin, extractor) raise ValueError before any input
+    is read. `explain(index, path, record, explanation)` is called for each fitted
+    component (cuboidtrain.explain draws the pictures).
+    """
+    chosen, device = check_options(shape, refine_steps, margin, models), resolve_device(device)
+    extractors = {m.shape: make_extractor(extractor, m, pdm_components) for m in chosen}
     for model in chosen:
         model.to(device).eval()
     records = []
-    for path in paths:
+    for index, path in enumerate(paths):
         try:
             parts = components(load_mask(Path(path), label_id), all_components)
             if not parts:
                 raise ValueError(f"{path}: no component of at least 16 px")
-            fits = [fit_component(part, chosen, refine_steps, margin, device) for part in parts]
+            fits = [fit_component(part, chosen, extractors, refine_steps, margin, device) for part in parts]
         except (ValueError, OSError, cv2.error) as exc:  # bad data: this input only
             reason = " ".join(str(exc).split())  # one line, whatever cv2 put in it
             log.warning("%s", reason)
             records.append(error_record(str(path), reason, all_components))
             continue
-        for k, result in enumerate(fits):
-            records.append({"input": str(path), **result} | ({"component": k} if all_components else {}))
+        for k, (result, explanation) in enumerate(fits):
+            record = {"input": str(path), **result} | ({"component": k} if all_components else {})
+            for warning in record["warnings"]:
+                log.warning("%s: %s", path, warning)
+            if explain is not None:
+                explain(index, str(path), record, explanation)
+            records.append(record)
     return records
 
 

@@ -49,18 +49,44 @@ def load_mask(path: Path, label_id: int | None = None) -> np.ndarray:
     return mask
 
 
+MAX_PIXELS = 100_000_000  # 10,000 x 10,000: a decoded mask plus its labels then take about 0.6 GB
+
+
 def _read(path: Path) -> np.ndarray:
     # imdecode from bytes: cv2.imread fails silently on some non-ASCII paths.
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as error:
         raise ValueError(f"{path}: cannot read image ({error.strerror or error})") from None
+    _check_pixels(path, declared_size(data.tobytes()[:65536]))  # before decoding allocates it
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise ValueError(f"{path}: cannot read image (not a PNG or JPG OpenCV can decode)")
+    _check_pixels(path, (image.shape[1], image.shape[0]))  # formats whose header we do not read
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[..., 0]
     return image
+
+
+def _check_pixels(path: Path, size: tuple[int, int] | None) -> None:
+    if size is not None and size[0] * size[1] > MAX_PIXELS:
+        raise ValueError(f"{path}: image of {size[0]} x {size[1]} px is too large: at most {MAX_PIXELS:,} px "
+                         f"(downscale the mask first; the model sees it at 64-256 px anyway)")
+
+
+def declared_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame marker; None if neither."""
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] != b"\xff\xd8":
+        return None
+    position = 2
+    while position + 9 <= len(head) and head[position] == 0xFF:
+        marker, length = head[position + 1], int.from_bytes(head[position + 2 : position + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn, not DHT/JPG/DAC
+            return int.from_bytes(head[position + 7 : position + 9], "big"), int.from_bytes(head[position + 5 : position + 7], "big")
+        position += 2 + length
+    return None
 
 
 def components(mask: np.ndarray, all_components: bool = False, min_pixels: int = 16) -> list[np.ndarray]:

@@ -12,6 +12,7 @@ from torch import nn
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.config import TrainConfig
 from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
+from cuboidtrain.heatmaps import render_heatmaps
 from cuboidtrain.networks import build_model
 from shared.sample import encode, signed
 from shared.shapes import get_shape
@@ -119,7 +120,7 @@ class Oracle(nn.Module):
 
     def __init__(self, samples, shape: str, size: int):
         super().__init__()
-        self.shape, self.size = shape, size
+        self.shape, self.size, self.sigma = shape, size, 1.0
         self.truth = {s.noisy.tobytes(): s for s in samples}
         self.tabulator = CentroidTabulator()
 
@@ -128,7 +129,7 @@ class Oracle(nn.Module):
         geometry = get_shape(self.shape)
         return {
             "refined": torch.from_numpy(np.stack([signed(s.clean) for s in found]))[:, None],
-            "heatmaps": torch.zeros(len(found), geometry.num_keypoints, self.size, self.size),
+            "heatmaps": render_heatmaps(torch.tensor(np.stack([s.keypoints for s in found])), self.size, self.sigma),
             "keypoints": torch.tensor(np.stack([s.keypoints for s in found]), dtype=torch.float32),
             "ratios": torch.tensor(np.stack([geometry.ratio_vector(s.ratios) for s in found]), dtype=torch.float32),
         }
@@ -144,6 +145,16 @@ def test_an_oracle_scores_perfectly(box_spool, box_samples):
     assert result["refiner_iou"] == 1.0
     # x3 is rendered at x4 in the pixel-centre convention: its centroid lands on it (a 0.5 px slip would show)
     assert result["tabulator_px_error_on_true_heatmaps"] < 0.05
+
+
+@pytest.mark.parametrize("extractor, bound", [("dark", 0.01), ("centre-of-mass", 0.2), ("argmax", 0.71), ("pdm", 0.5)])
+def test_an_oracles_heat_maps_decode_to_the_truth_with_every_extractor(box_spool, box_samples, extractor, bound):
+    # The Oracle's S draws the true maps: each extractor then shows its own decoding error, and
+    # argmax its half-pixel grid (at most sqrt(2)/2 px).
+    result = evaluate(Oracle(box_samples, "box", SIZE), box_spool, sigma=1.0, device=CPU, extractor=extractor)
+    assert result["extractor"] == extractor
+    assert result["mean_px_error"] < bound
+    assert result["extractor_px_error_on_true_heatmaps"] == pytest.approx(result["mean_px_error"], abs=1e-5)
 
 
 def test_evaluate_skips_and_counts_other_samples(tmp_path):

@@ -25,7 +25,7 @@ from shared.shapes import get_shape
 from tests.conftest import build_sample
 
 SIZE = 32
-RECORD_KEYS = {"input", "shape", "confidence", "keypoints", "ratios", "refine_steps", "error", "candidates"}
+RECORD_KEYS = {"input", "shape", "confidence", "keypoints", "ratios", "refine_steps", "error", "warnings", "candidates"}
 runner = CliRunner()
 
 
@@ -264,12 +264,13 @@ def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):
     out = tmp_path / "out.json"
     args = ["infer", good, missing, "--checkpoint", str(checkpoints["box"]), "--checkpoint", str(checkpoints["twobox"])]
     result = runner.invoke(app, args + ["--json", str(out), "--refine-steps", "auto"])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output  # one input failed: the others are written, the status says so
+    assert "1 of 2 records have an error" in result.output
     records = json.loads(out.read_text())
     check_record(records[0], good)
     assert records[1]["error"] and records[1]["keypoints"] is None
     assert not list(tmp_path.glob(".tmp-*"))
-    result = runner.invoke(app, args + ["--json", "-", "--shape", "twobox"])
+    result = runner.invoke(app, args[:2] + args[3:] + ["--json", "-", "--shape", "twobox"])
     assert result.exit_code == 0, result.output
     records = json.loads(result.stdout)
     check_record(records[0], good, "twobox")
@@ -282,6 +283,10 @@ def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):
     (["--checkpoint", "{twobox}", "--shape", "box"], "no box model"),
     (["--checkpoint", "{box}", "--refine-steps", "many"], "--refine-steps 'many'"),
     (["--checkpoint", "{box}", "--margin", "0.7"], "--margin 0.7"),
+    (["--checkpoint", "{box}", "--extractor", "pdm", "--pdm-components", "1.5"], "PDM components '1.5'"),
+    (["--checkpoint", "{box}", "--overlay", "{tmp}/p.jpg"], "--overlay needs --explain DIR"),
+    (["--checkpoint", "{box}", "--explain", "{tmp}/x", "--overlay", "{tmp}/p.jpg", "--overlay", "{tmp}/p.jpg"],
+     "--overlay given 2 times for 1 inputs"),
 ])
 def test_cli_bad_options_are_one_line_errors(tmp_path, checkpoints, extra, message):
     good = write_png(tmp_path / "good.png", hexagon())
@@ -290,3 +295,65 @@ def test_cli_bad_options_are_one_line_errors(tmp_path, checkpoints, extra, messa
     assert result.exit_code == 2
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and message in lines[0], result.output
+
+
+# --- more bad inputs, warnings, extractors ----------------------------------------
+
+def huge_png(path: Path, width: int, height: int) -> str:
+    """A PNG whose header claims width x height (its pixel data is a tiny image's: never decoded)."""
+    ok, data = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
+    data = bytearray(data.tobytes())
+    data[16:24] = width.to_bytes(4, "big") + height.to_bytes(4, "big")
+    path.write_bytes(bytes(data))
+    return str(path)
+
+
+def test_a_huge_image_is_refused_before_decoding_and_the_others_still_run(tmp_path, random_models):
+    huge = huge_png(tmp_path / "huge.png", 40_000, 30_000)
+    good = write_png(tmp_path / "good.png", hexagon())
+    full = write_png(tmp_path / "full.png", np.ones((40, 50), bool))
+    records = infer_paths([huge, good, full], random_models)
+    assert "40000 x 30000 px is too large" in records[0]["error"] and records[0]["keypoints"] is None
+    check_record(records[1], good)
+    # An all-foreground mask is a silhouette cut on every side: it is fitted, with a warning.
+    assert records[2]["error"] is None and "top and bottom and left and right border" in records[2]["warnings"][0]
+
+
+def test_a_silhouette_cut_by_the_border_gets_a_warning_naming_the_sides(tmp_path, random_models):
+    cut = write_png(tmp_path / "cut.png", rectangles((60, 90), (0, 20, 30, 59)))
+    inside = write_png(tmp_path / "inside.png", hexagon())
+    records = infer_paths([cut, inside], random_models)
+    assert len(records[0]["warnings"]) == 1 and "bottom and left border" in records[0]["warnings"][0]
+    assert "truncated" in records[0]["warnings"][0] and records[0]["keypoints"] is not None
+    assert records[1]["warnings"] == []
+
+
+@pytest.mark.parametrize("extractor", ["argmax", "centre-of-mass", "dark", "pdm"])
+def test_an_extractor_replaces_t_s_keypoints_but_not_its_ratios(tmp_path, extractor):
+    path = write_png(tmp_path / "rect.png", rectangles((60, 90), (10, 10, 70, 50)))
+    refiner = Recording()
+    tabulated = lambda: rect_keypoints(refiner.last, 8)  # noqa: E731
+    model = stub_model("box", refiner, tabulated)
+    model.estimator = TrueHeatmaps(lambda: rect_keypoints(refiner.last, 8) + 0.3)  # S's peaks 0.3 px off T's
+    by_t = infer_paths([path], [model])[0]
+    decoded = infer_paths([path], [model], extractor=extractor)[0]
+    assert decoded["ratios"] == by_t["ratios"]
+    shift = np.array(decoded["keypoints"]) - np.array(by_t["keypoints"])
+    framing = frame(load_mask(Path(path)), SIZE)[1]
+    if extractor in ("dark", "centre-of-mass"):  # sub-pixel: the 0.3 model px shift, in input px
+        assert np.allclose(shift, 0.3 / framing.scale, atol=0.25 / framing.scale)
+    else:
+        assert np.abs(shift).max() <= 0.75 / framing.scale + 1e-9
+
+
+class TrueHeatmaps(nn.Module):
+    """An Estimator that draws Gaussians at given model-px points (a function of nothing)."""
+
+    def __init__(self, points):
+        super().__init__()
+        self.points = points
+
+    def forward(self, mask):
+        from cuboidtrain.heatmaps import render_heatmaps
+
+        return render_heatmaps(torch.as_tensor(self.points(), dtype=torch.float32)[None], mask.shape[-1], 1.0)

@@ -1,0 +1,143 @@
+"""Keypoint extractors: heat maps (B, N, H, W) -> keypoints (B, N, 2) px, under one API.
+
+The paper's Tabulator is one way to read coordinates off the Estimator's heat
+maps; this module holds it beside the classic alternatives so `infer`, `eval`
+and the report can swap them with `--extractor NAME`:
+
+- `tabulator`: T's own output (the paper's method), passed through;
+- `argmax`: each map's brightest pixel (whole pixels only);
+- `centre-of-mass`: the mass of each map above half its maximum, whose centre
+  is sub-pixel and ignores the faint background that would drag a plain mean
+  towards the image centre;
+- `dark`: DARK (Zhang et al., "Distribution-Aware Coordinate Representation for
+  Human Pose Estimation", CVPR 2020): a Newton step on the log of the smoothed map
+  at its argmax, exact for a Gaussian blob;
+- `pdm`: the paper's section 4.1 alternative: argmax locations projected onto a
+  Point Distribution Model (a PCA shape model, `cuboidtrain.pdm`), which makes
+  the octet globally valid.
+
+Every extractor takes `(heatmaps, tabulated)`, where `tabulated` is T's keypoints
+for the same maps (T always runs: the ratios come from it alone, since a heat map
+holds no 3D extent), and returns (B, N, 2) px in the pixel-centre convention.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from cuboidtrain.pdm import PointDistributionModel, parse_components
+
+EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")
+
+
+def tabulator(heatmaps: torch.Tensor, tabulated: torch.Tensor) -> torch.Tensor:
+    return tabulated
+
+
+def argmax(heatmaps: torch.Tensor, tabulated: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, N, H, W) -> (B, N, 2) px: the first brightest pixel's centre (x = column, y = row)."""
+    width = heatmaps.shape[-1]
+    index = heatmaps.flatten(2).argmax(-1)  # (B, N)
+    return torch.stack([index % width, torch.div(index, width, rounding_mode="floor")], -1).float()
+
+
+def centre_of_mass(heatmaps: torch.Tensor, tabulated: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, N, H, W) -> (B, N, 2) px: the centre of each map's mass above half its maximum.
+
+    Subtracting the half-maximum (rather than cutting at it) keeps the weights
+    continuous, so the estimate moves smoothly with the blob.
+    """
+    h, w = heatmaps.shape[-2:]
+    maps = heatmaps.float()
+    weights = (maps - 0.5 * maps.amax(dim=(-2, -1), keepdim=True)).clamp(min=0)
+    total = weights.sum(dim=(-2, -1)).clamp(min=1e-12)  # a constant map has no mass: falls back to 0
+    xs = torch.arange(w, dtype=maps.dtype, device=maps.device)
+    ys = torch.arange(h, dtype=maps.dtype, device=maps.device)
+    x = (weights.sum(-2) * xs).sum(-1) / total
+    y = (weights.sum(-1) * ys).sum(-1) / total
+    return torch.stack([x, y], -1)
+
+
+def gaussian_blur(maps: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Each (H, W) map of (B, N, H, W) convolved with a normalised Gaussian (zero padding)."""
+    radius = max(1, math.ceil(3 * sigma))
+    taps = torch.arange(-radius, radius + 1, dtype=maps.dtype, device=maps.device)
+    kernel = torch.exp(-(taps**2) / (2 * sigma**2))
+    kernel = kernel / kernel.sum()
+    b, n, h, w = maps.shape
+    flat = maps.reshape(b * n, 1, h, w)
+    flat = F.conv2d(flat, kernel.view(1, 1, 1, -1), padding=(0, radius))
+    flat = F.conv2d(flat, kernel.view(1, 1, -1, 1), padding=(radius, 0))
+    return flat.view(b, n, h, w)
+
+
+def dark(heatmaps: torch.Tensor, tabulated: torch.Tensor | None = None, sigma: float = 1.0) -> torch.Tensor:
+    """(B, N, H, W) -> (B, N, 2) px by DARK's Taylor expansion of the log heat map at its argmax.
+
+    The map is smoothed with the training Gaussian (a network's maps are ragged;
+    a Gaussian stays a Gaussian) and rescaled to its old maximum, then
+    offset = -H^-1 g from the log map's gradient g and Hessian H, with DARK's own
+    finite differences (steps of 1 for g and the mixed term, 2 for the pure second
+    derivatives). Where H is not negative definite there is no peak to step to and
+    the argmax stands; steps are capped at 1 px, which a true peak never needs.
+    """
+    maps = heatmaps.float()
+    smooth = gaussian_blur(maps, sigma)
+    smooth = smooth * (maps.amax(dim=(-2, -1), keepdim=True) / smooth.amax(dim=(-2, -1), keepdim=True).clamp(min=1e-12))
+    logmap = smooth.clamp(min=1e-10).log()
+    peak = argmax(smooth)  # (B, N, 2), the smoothed map's own peak
+    b, n, h, w = logmap.shape
+    padded = F.pad(logmap.reshape(b * n, 1, h, w), (2, 2, 2, 2), mode="replicate").view(b, n, h + 4, w + 4)
+    px, py = peak[..., 0].long() + 2, peak[..., 1].long() + 2
+
+    def at(dx: int, dy: int) -> torch.Tensor:  # log value at peak + (dx, dy), (B, N)
+        flat_index = ((py + dy) * (w + 4) + (px + dx)).unsqueeze(-1)
+        return padded.flatten(2).gather(-1, flat_index).squeeze(-1)
+
+    centre = at(0, 0)
+    gx, gy = 0.5 * (at(1, 0) - at(-1, 0)), 0.5 * (at(0, 1) - at(0, -1))
+    hxx = 0.25 * (at(2, 0) - 2 * centre + at(-2, 0))
+    hyy = 0.25 * (at(0, 2) - 2 * centre + at(0, -2))
+    hxy = 0.25 * (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1))
+    det = hxx * hyy - hxy**2
+    peaked = (hxx < 0) & (det > 1e-12)
+    safe_det = torch.where(peaked, det, torch.ones_like(det))
+    ox = -(hyy * gx - hxy * gy) / safe_det  # -H^-1 g, H = [[hxx, hxy], [hxy, hyy]]
+    oy = -(hxx * gy - hxy * gx) / safe_det
+    offset = torch.stack([ox, oy], -1).clamp(-1.0, 1.0)
+    return peak + torch.where(peaked.unsqueeze(-1), offset, torch.zeros_like(offset))
+
+
+class PdmExtractor:
+    """Argmax locations made globally valid by a Point Distribution Model (paper, Figure 5)."""
+
+    def __init__(self, pdm: PointDistributionModel, components: int | float):
+        self.pdm, self.components = pdm, components
+        self.active = pdm.active_components(components)  # checks the value early, with a clear error
+
+    def __call__(self, heatmaps: torch.Tensor, tabulated: torch.Tensor | None = None) -> torch.Tensor:
+        projected = self.pdm.project(argmax(heatmaps).cpu().double().numpy(), self.components)
+        return torch.from_numpy(projected).to(device=heatmaps.device, dtype=torch.float32)
+
+
+DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px
+
+
+def make_extractor(name: str, model, pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS,
+                   pdm_samples: int = 2000, seed: int = 0):
+    """The extractor `name` for `model` (its shape class, size and heat-map sigma).
+
+    `pdm_components` is a count of active components (an integer >= 1) or the
+    fraction of shape variance to keep (in (0, 1)); the PDM is fitted on
+    `pdm_samples` keypoint sets drawn by the generator (the paper uses 1,000).
+    """
+    if name not in EXTRACTORS:
+        raise ValueError(f"--extractor {name!r}: expected one of {', '.join(EXTRACTORS)}")
+    if name == "dark":
+        return lambda heatmaps, tabulated=None: dark(heatmaps, tabulated, model.sigma)
+    if name == "pdm":
+        pdm = PointDistributionModel.from_generator(model.shape, model.size, pdm_samples, seed)
+        return PdmExtractor(pdm, parse_components(pdm_components))
+    return {"tabulator": tabulator, "argmax": argmax, "centre-of-mass": centre_of_mass}[name]
