@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.config import TrainConfig
-from cuboidtrain.infer import confidence, fit, infer_paths, refine, silhouette
+from cuboidtrain.infer import RICHER_SHAPE_MARGIN, choose, confidence, fit, infer_paths, refine, silhouette
 from cuboidtrain.masks import components, frame, load_mask
 from cuboidtrain.networks import build_model
 from shared.sample import signed
@@ -217,6 +217,14 @@ def test_auto_picks_the_model_with_the_higher_confidence(tmp_path, winner):
     assert record["shape"] == winner and record["confidence"] > 0.9  # shrinking rounds the corners a little
     loser = "twobox" if winner == "box" else "box"
     assert record["candidates"][loser] < 0.1
+
+
+@pytest.mark.parametrize("box, twobox, chosen", [
+    (0.90, 0.91, "box"), (0.90, 0.90 + RICHER_SHAPE_MARGIN, "box"), (0.90, 0.93, "twobox"), (0.95, 0.50, "box"),
+])
+def test_the_twobox_must_explain_clearly_more_than_the_box(box, twobox, chosen):
+    fits = [({"shape": "twobox", "confidence": twobox}, None, None), ({"shape": "box", "confidence": box}, None, None)]
+    assert choose(fits)[0]["shape"] == chosen  # in any order of the models given
 
 
 def test_a_requested_shape_without_its_model_is_an_error(random_models):
