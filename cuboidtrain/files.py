@@ -6,6 +6,8 @@ import os
 import time
 from pathlib import Path
 
+from shared.spool import process_alive
+
 ORPHAN_AGE = 600.0  # s: a temporary file this old is no live writer's (a checkpoint takes seconds)
 
 
@@ -34,7 +36,7 @@ def sweep_orphans(folder: Path, max_age: float = ORPHAN_AGE) -> int:
             continue
         try:
             pid = int(entry.name.split("-")[1])
-            orphan = not _alive(pid) or now - entry.stat().st_mtime > max_age
+            orphan = not process_alive(pid) or now - entry.stat().st_mtime > max_age
         except (IndexError, ValueError):
             orphan = True  # not a name we write: a stray from an older version
         except FileNotFoundError:
@@ -84,15 +86,3 @@ def _step_of(line: str) -> float:
         return json.loads(line).get("step", 0)
     except (ValueError, AttributeError):
         return 0
-
-
-def _alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

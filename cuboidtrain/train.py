@@ -186,7 +186,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         # barrier of the other; fewer threads can be faster than all cores.
         torch.set_num_threads(config.threads)
     model, optimizer, step, resume = build_state(config, device)
-    if resume is not None and ranks.main:  # steps after the checkpoint are trained again: record them once
+    if ranks.main:  # steps after the start (a checkpoint, or 0) are trained again: record them once
         drop_records_after(out / "metrics.jsonl", step)
     losses_of = wrap(model, config.phase, config.ratio_weight, ranks)
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
@@ -267,7 +267,11 @@ def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, 
     """Rank 0 writes OUT/last.pt (the unwrapped model: no `module.` prefix); every rank gets its path."""
     path = out / LAST
     if ranks.main:
-        save_checkpoint(path, model, config, step, optimizer, sampler.state, progress.metrics())
+        try:
+            save_checkpoint(path, model, config, step, optimizer, sampler.state, progress.metrics())
+        except OSError as exc:  # a full disk, say: the last checkpoint is still whole (atomic replace)
+            raise ValueError(f"checkpoint {path}: cannot write step {step} ({exc.strerror or exc}); "
+                             f"the previous one is intact, --resume continues it") from None
     return path
 
 

@@ -149,7 +149,7 @@ def sweep_orphans(spool: Path, max_age: float = ORPHAN_AGE) -> int:
             continue
         parts = entry.name[len(TMP_PREFIX) :].split("-")
         try:
-            dead = parts[1] == here and not _pid_alive(int(parts[2]))
+            dead = parts[1] == here and not process_alive(int(parts[2]))
             old = now - entry.stat().st_mtime > max_age
         except (IndexError, ValueError, FileNotFoundError):
             dead, old = False, True
@@ -178,14 +178,22 @@ def filesystem_type(path: Path) -> str | None:
     return None
 
 
-def _pid_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether `pid` runs on this host. A zombie is dead: a killed daemon's workers stay
+    zombies for as long as an init without reaping (a container's PID 1) leaves them."""
+    if pid <= 0:
+        return False
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 @dataclass

@@ -326,3 +326,47 @@ def test_a_worker_that_cannot_write_stops_every_worker_and_says_why(tmp_path, mo
     assert shared.stopping() and shared.get(0, "state") == daemon.FAILED
     assert daemon.failure(shared, 1) == "Read-only file system"
     assert os.listdir(tmp_path) == []
+
+
+def test_a_checkpoint_that_cannot_be_written_is_a_one_line_error_and_the_last_one_survives(tmp_path, monkeypatch):
+    import cuboidtrain.checkpoint as checkpoint
+
+    fill(tmp_path / "spool", 4)
+    real_save, saves = checkpoint.torch.save, []
+
+    def full_after_one(payload, path):
+        saves.append(path)
+        if len(saves) > 1:
+            Path(path).write_bytes(b"half")  # what a full disk leaves: a partial temporary file
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_save(payload, path)
+
+    monkeypatch.setattr(checkpoint.torch, "save", full_after_one)
+    with pytest.raises(ValueError, match=r"cannot write step 2 \(No space left on device\); the previous one is intact"):
+        run(config(tmp_path / "spool", tmp_path / "run", steps=2, checkpoint_every=1))
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 1
+    assert not [p for p in os.listdir(tmp_path / "run") if p.startswith(".tmp-")]
+
+
+def test_a_zombie_writer_is_dead_so_its_temporary_files_are_swept(tmp_path):
+    # A killed daemon's workers can stay zombies (an init that does not reap them): their
+    # spares and temporary files must go at the next start, not 60 s later.
+    from shared.spool import process_alive, sweep_orphans
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    deadline = time.monotonic() + 10
+    while open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":  # exited, not reaped
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    try:
+        assert not process_alive(child.pid) and process_alive(os.getpid())
+        from shared.spool import host_tag
+
+        (tmp_path / f".tmp-0-{host_tag()}-{child.pid}-abcdef-spare1.cub").write_bytes(b"x")
+        (tmp_path / f".tmp-{child.pid}-last.pt").write_bytes(b"x")
+        assert sweep_orphans(tmp_path) == 1
+        from cuboidtrain.files import sweep_orphans as sweep_run_folder
+
+        assert sweep_run_folder(tmp_path) == 1 and os.listdir(tmp_path) == []
+    finally:
+        child.wait()
