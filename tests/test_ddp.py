@@ -72,6 +72,37 @@ def test_rank_samplers_split_one_listing_and_resume_at_the_same_place(tmp_path):
     assert single.state.position == 4 and list(single) == [saved.order[i : i + 2] for i in range(8, 20, 2)]
 
 
+def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
+    from dataclasses import dataclass
+
+    from cuboidtrain.data import SKIP_REASONS
+    from cuboidtrain.distributed import Ranks
+    from cuboidtrain.train import batch_facts, stale
+
+    @dataclass(frozen=True)
+    class Pair(Ranks):  # two ranks in one process: sum() adds the other rank's values
+        peer: tuple = ()
+
+        def sum(self, values):
+            return [a + b for a, b in zip(values, self.peer)]
+
+    def batch(kept: int, vanished: int) -> dict:
+        return {"names": [f"{i}.cub" for i in range(kept)], "skipped": {**dict.fromkeys(SKIP_REASONS, 0),
+                                                                        "vanished": vanished}}
+
+    def facts(mine: dict, theirs: dict, rank: int):
+        peer = (*theirs["skipped"].values(), float(len(theirs["names"]) < 2))
+        return batch_facts(Pair(rank=rank, world=2, peer=peer), mine)
+
+    full, short = batch(4, 0), batch(1, 3)  # three of rank 1's four samples were evicted
+    for rank, (mine, theirs) in enumerate([(full, short), (short, full)]):
+        skipped, too_small = facts(mine, theirs, rank)
+        assert too_small and skipped["vanished"] == 3  # both ranks skip this step
+        assert not stale(skipped, 2 * 4)  # 3 of 8 vanished: the listing still holds
+    skipped, too_small = facts(batch(2, 2), batch(0, 4), 0)
+    assert stale(skipped, 2 * 4)  # 6 of 8 vanished: every rank lists the spool afresh
+
+
 # ---- torchrun ---------------------------------------------------------------------------
 
 
