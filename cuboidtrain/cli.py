@@ -108,6 +108,7 @@ def evaluate(
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
     extractor: ExtractorChoice = typer.Option(ExtractorChoice.tabulator, help=EXTRACTOR_HELP),
     pdm_components: str = typer.Option("0.999", metavar="N|FRACTION", help=PDM_HELP),
+    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes before S (as in infer)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
     """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
@@ -116,7 +117,8 @@ def evaluate(
     setup_logging()
     try:
         result = evaluate_checkpoint(checkpoint, spool, device=device, batch_size=batch_size, max_samples=max_samples,
-                                     extractor=extractor.value, pdm_components=pdm_components)
+                                     extractor=extractor.value, pdm_components=pdm_components,
+                                     refine_steps=parse_refine_steps(refine_steps))
     except ValueError as exc:
         fail(str(exc))
     typer.echo(json.dumps(result, indent=2) if as_json else format_report(result))
@@ -285,6 +287,46 @@ def localize(
         report.write_json(json_out, result)
     except (ValueError, OSError) as exc:
         fail(str(exc))
+
+
+@app.command()
+def report(
+    checkpoint: list[Path] = typer.Option(..., metavar="CKPT", help="The trained model of a shape class (phase 1 + 2); repeat per class."),
+    clean_spool: list[Path] = typer.Option(..., metavar="DIR", help="Clean validation spool(s) (--scene paper-clean): Table 3, extractors."),
+    noisy_spool: list[Path] = typer.Option([], metavar="DIR", help="Noisy, occluded validation spool(s) (--scene paper): extractors, refinement."),
+    finetune: list[Path] = typer.Option([], metavar="CKPT", help="Table 3: the phase 1 model trained on with the final loss only (--phase finetune)."),
+    e2e: list[Path] = typer.Option([], metavar="CKPT", help="Table 3: trained from random weights with the final loss only (--phase e2e)."),
+    out: Path = typer.Option(Path("reports"), help="Folder for REPORT.md, report.json and the plots."),
+    samples: int = typer.Option(500, help="Validation samples per spool and model."),
+    sweep_samples: int = typer.Option(200, help="Generated samples per noise level, per shape for shape selection (twice this for occlusion)."),
+    seed: int = typer.Option(0, help="Seed of the generated sweeps."),
+    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
+    device: str = typer.Option("cpu", help="cpu, cuda or cuda:N."),
+) -> None:
+    """Measure Table 3, Figure 14, occlusion, refinement, extractors and shape selection; write REPORT.md."""
+    import shlex
+
+    import torch
+
+    from cuboidtrain.report import ReportConfig, run_report
+    from cuboidtrain.report_figures import write_report
+
+    setup_logging()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        config = ReportConfig(
+            checkpoints=tuple(map(str, checkpoint)), clean_spools=tuple(map(str, clean_spool)),
+            noisy_spools=tuple(map(str, noisy_spool)), finetune=tuple(map(str, finetune)), e2e=tuple(map(str, e2e)),
+            out=str(out), samples=samples, sweep_samples=sweep_samples, seed=seed, device=device,
+        )
+        results = run_report(config)
+        localization = out / "localization.md"
+        command = "cuboidtrain report " + shlex.join(sys.argv[2:])
+        written = write_report(results, out, command, localization if localization.is_file() else None)
+    except ValueError as exc:
+        fail(str(exc))
+    console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False)
 
 
 @app.command()

@@ -21,6 +21,7 @@ from cuboidtrain.data import SKIP_REASONS, SpoolBatches
 from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.heatmaps import prepare_batch
+from cuboidtrain.infer import refine
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import decode_record
 from shared.shapes import get_shape
@@ -86,13 +87,23 @@ def _nothing_to_evaluate(spool: Path, shape: str, size: int, names: list[str]) -
     return f"spool {spool}: 0 {shape} {size} px samples among {len(names)} ({held})"
 
 
+def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> dict[str, torch.Tensor]:
+    """T(S(R^K(x1))), the inference chain of paper 3.4, with K Refiner passes (None: until settled)."""
+    if refine_steps == 1:
+        return model(x1)
+    refined, _ = refine(model, x1, refine_steps)
+    heatmaps = model.estimator(refined)
+    keypoints, ratios = model.tabulator(heatmaps)
+    return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios}
+
+
 @torch.inference_mode()
 def _measure_batch(model: CuboidNet, batch: dict, sigma: float, device: torch.device,
-                   extractor=None) -> dict[str, torch.Tensor]:
+                   extractor=None, refine_steps: int | None = 1) -> dict[str, torch.Tensor]:
     """Per-sample errors of one batch, on the CPU. `extractor` (cuboidtrain.extractors) reads the
     keypoints off S's heat maps instead of T."""
     x = prepare_batch(batch, device, sigma, model.size)
-    out = model(x["x1"])  # T(S(R(x1))), the inference chain of paper 3.4
+    out = chain(model, x["x1"], refine_steps)
     t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
     keypoints, decoded_alone = out["keypoints"], t_alone
     if extractor is not None:
@@ -106,13 +117,14 @@ def _measure_batch(model: CuboidNet, batch: dict, sigma: float, device: torch.de
     }
 
 
-def _measure(model: CuboidNet, batches: list[dict], sigma: float, device: torch.device,
-             extractor=None) -> dict[str, torch.Tensor]:
-    """Per-sample errors over all batches; the model's train/eval mode is restored afterwards."""
+def measure(model: CuboidNet, batches: list[dict], sigma: float, device: torch.device,
+            extractor=None, refine_steps: int | None = 1) -> dict[str, torch.Tensor]:
+    """Per-sample errors over all batches (keypoint (S, N) px, ratio (S, R), iou (S,), ...), in
+    the batches' order; the model's train/eval mode is restored afterwards."""
     was_training = model.training
     model.to(device).eval()  # BatchNorm on running statistics, as at inference
     try:
-        parts = [_measure_batch(model, batch, sigma, device, extractor) for batch in batches]
+        parts = [_measure_batch(model, batch, sigma, device, extractor, refine_steps) for batch in batches]
     finally:
         model.train(was_training)  # a trainer that validates mid-run keeps training in train mode
     return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
@@ -136,7 +148,7 @@ def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict:
 
 def evaluate(model: CuboidNet, spool: Path, sigma: float, device: torch.device, batch_size: int = 32,
              max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS, extractor: str = "tabulator",
-             pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> dict:
+             pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS, refine_steps: int | None = 1) -> dict:
     """Metrics of `model` on the first `max_samples` samples of its shape and size in `spool`.
 
     Samples of another shape or size, corrupt or vanished ones are skipped and
@@ -145,16 +157,18 @@ def evaluate(model: CuboidNet, spool: Path, sigma: float, device: torch.device, 
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
-    return _report(model, batches, skipped, sigma, resolve_device(device), pck_thresholds,
-                   extractor, pdm_components)
+    return report(model, batches, skipped, sigma, resolve_device(device), pck_thresholds,
+                  extractor, pdm_components, refine_steps)
 
 
-def _report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, device: torch.device,
-            thresholds, extractor: str = "tabulator", pdm_components=DEFAULT_PDM_COMPONENTS) -> dict:
+def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, device: torch.device,
+           thresholds=PCK_THRESHOLDS, extractor: str = "tabulator", pdm_components=DEFAULT_PDM_COMPONENTS,
+           refine_steps: int | None = 1) -> dict:
+    """The metrics of `model` on batches already read (`load_batches`)."""
     decoder = None if extractor == "tabulator" else make_extractor(extractor, model, pdm_components)
-    errors = _measure(model, batches, sigma, device, decoder)
+    errors = measure(model, batches, sigma, device, decoder, refine_steps)
     result = {"shape": model.shape, "size": model.size, "sigma": sigma, "samples": len(errors["iou"]),
-              "extractor": extractor, "skipped": skipped}
+              "extractor": extractor, "refine_steps": refine_steps, "skipped": skipped}
     result.update(_summarise(errors, model.shape, thresholds))
     return result
 
@@ -168,16 +182,17 @@ def _check_counts(batch_size: int, max_samples: int | None) -> None:
 
 def evaluate_checkpoint(checkpoint: Path, spool: Path, device: str | torch.device = "auto", batch_size: int = 32,
                         max_samples: int | None = None, random_init_seed: int = 0, extractor: str = "tabulator",
-                        pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> dict:
+                        pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS,
+                        refine_steps: int | None = 1) -> dict:
     """`evaluate` for a saved model, plus Table 3's reference row: random weights on the same samples."""
     model, ckpt = load_model(checkpoint)
     spool, device = check_spool(spool), resolve_device(device)
     _check_counts(batch_size, max_samples)
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
-    options = (PCK_THRESHOLDS, extractor, pdm_components)
-    result = _report(model, batches, skipped, ckpt["sigma"], device, *options)
+    options = (PCK_THRESHOLDS, extractor, pdm_components, refine_steps)
+    result = report(model, batches, skipped, ckpt["sigma"], device, *options)
     random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"])
-    baseline = _report(random_model, batches, skipped, ckpt["sigma"], device, *options)
+    baseline = report(random_model, batches, skipped, ckpt["sigma"], device, *options)
     result.update({
         "random_init_mean_px_error": baseline["mean_px_error"],
         "random_init_median_px_error": baseline["median_px_error"],
