@@ -75,7 +75,7 @@ def _show(ax, image, title: str, **kwargs) -> None:
 
 def _input_tile(ax, mask: np.ndarray, geometry: Shape, keypoints: np.ndarray) -> None:
     """The whole input mask with the fit in input pixels, zoomed to the object and the fit."""
-    _show(ax, mask, "input mask (own pixels)", cmap="gray", vmin=0, vmax=1)
+    _show(ax, mask, f"input mask, {mask.shape[1]} x {mask.shape[0]} px (zoomed)", cmap="gray", vmin=0, vmax=1)
     draw_fit(ax, geometry, keypoints, indices=False, arrow=False)
     ys, xs = np.nonzero(mask)
     lo = np.minimum([xs.min(), ys.min()], keypoints.min(axis=0))
