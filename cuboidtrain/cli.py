@@ -219,6 +219,25 @@ def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
 
 
 @app.command()
+def export(
+    checkpoint: Path = typer.Option(..., metavar="CKPT", help="A trained model (cuboidtrain run's last.pt)."),
+    onnx: Path = typer.Option(..., metavar="OUT.onnx", help="Where the ONNX model goes (replaced atomically)."),
+    refine_steps: int = typer.Option(1, metavar="K", help="Refiner passes in the graph, each on the last one's binary output."),
+    opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
+) -> None:
+    """Export R (K passes), S and T as one ONNX graph: +-1 mask in; refined, heatmaps, keypoints, ratios out."""
+    from cuboidtrain.export import export_checkpoint
+
+    setup_logging()
+    try:
+        meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    console.print(f"{onnx}: {meta['shape']} model, {meta['size']} px, {meta['refine_steps']} Refiner pass(es), "
+                  f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False)
+
+
+@app.command()
 def localize(
     mask_args: Optional[list[str]] = typer.Argument(None, metavar="MASK", help="With --street: masks of consecutive buildings, in street order."),
     street: Optional[Path] = typer.Option(None, metavar="STREET.json", help="A street's known buildings (README: Localization); locate MASKs in it."),
