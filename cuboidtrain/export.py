@@ -159,12 +159,15 @@ class OnnxPipeline:
     """An exported file run with onnxruntime on the CPU: `run(mask)` -> OUTPUTS as numpy arrays.
 
     `threads` sets intra-op threads (None: onnxruntime's default, all cores);
-    graph optimisation is `all` (fusions and constant folding at load time).
-    `shape`/`size`, when given, must match the file's metadata.
+    graph optimisation is `all` (fusions, constant folding, blocked layouts at
+    load time). Worker threads do not spin between operators unless `spinning`:
+    on a CPU shared with other jobs a spinning thread holds a core the others
+    need: in bench_infer.py spinning was 1.2-2.9x slower with 2 threads and no
+    faster with 1 (BENCHMARKS.md). `shape`/`size`, when given, must match the metadata.
     """
 
     def __init__(self, path: str | Path, threads: int | None = None, shape: str | None = None,
-                 size: int | None = None):
+                 size: int | None = None, spinning: bool = False):
         import onnxruntime as ort
 
         self.path = Path(path)
@@ -177,6 +180,7 @@ class OnnxPipeline:
         options.intra_op_num_threads = threads or 0  # 0: onnxruntime picks (all cores)
         options.inter_op_num_threads = 1  # one chain, run in order: nothing to overlap
         options.log_severity_level = 3  # errors only: no warnings about unused initialisers
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         try:
             self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # InvalidProtobuf, Fail, ... for a foreign or truncated file
