@@ -163,8 +163,8 @@ class OnnxPipeline:
     load time). Worker threads do not spin between operators unless `spinning`:
     on a CPU shared with other jobs a spinning thread holds a core the others
     need. In bench_infer.py with 2 threads, spinning was 1.2-2.9x slower under
-    load (load average 2.5-7) and 3-25% faster on a quiet machine; with 1 thread
-    it made no difference (BENCHMARKS.md). Pass spinning=True on a dedicated CPU. `shape`/`size`, when given, must match the metadata.
+    load (load average 2.5-7) and 2-25% faster on a quiet machine; with 1 thread
+    it was within 2% (BENCHMARKS.md). Pass spinning=True on a dedicated CPU. `shape`/`size`, when given, must match the metadata.
     """
 
     def __init__(self, path: str | Path, threads: int | None = None, shape: str | None = None,
