@@ -86,12 +86,10 @@ def run(
         console.print(f"{status['state']} at step {status['step']}; checkpoint {status['last_checkpoint']['path']}")
 
 
-class ExtractorChoice(str, Enum):
-    tabulator = "tabulator"
-    argmax = "argmax"
-    centre_of_mass = "centre-of-mass"
-    dark = "dark"
-    pdm = "pdm"
+# cuboidtrain.extractors' names, spelled out so that --help does not import torch (a test keeps them equal).
+EXTRACTOR_NAMES = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")
+DEFAULT_PDM_COMPONENTS = "0.999"
+ExtractorChoice = Enum("ExtractorChoice", {name: name for name in EXTRACTOR_NAMES}, type=str)
 
 
 EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the paper's T), argmax, centre-of-mass, "
@@ -106,8 +104,8 @@ def evaluate(
     batch_size: int = typer.Option(32, help="Samples per forward pass."),
     max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
-    extractor: ExtractorChoice = typer.Option(ExtractorChoice.tabulator, help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option("0.999", metavar="N|FRACTION", help=PDM_HELP),
+    extractor: ExtractorChoice = typer.Option(ExtractorChoice["tabulator"], help=EXTRACTOR_HELP),
+    pdm_components: str = typer.Option(DEFAULT_PDM_COMPONENTS, metavar="N|FRACTION", help=PDM_HELP),
     refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes before S (as in infer)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
@@ -171,8 +169,8 @@ def infer(
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else the largest only."),
     label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
     margin: float = typer.Option(0.1, help="Empty border around the framed object, as a fraction of the model size per side."),
-    extractor: ExtractorChoice = typer.Option(ExtractorChoice.tabulator, help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option("0.999", metavar="N|FRACTION", help=PDM_HELP),
+    extractor: ExtractorChoice = typer.Option(ExtractorChoice["tabulator"], help=EXTRACTOR_HELP),
+    pdm_components: str = typer.Option(DEFAULT_PDM_COMPONENTS, metavar="N|FRACTION", help=PDM_HELP),
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
@@ -343,7 +341,7 @@ def report(
         localization = out / "localization.md"
         command = "cuboidtrain report " + shlex.join(sys.argv[2:])
         written = write_report(results, out, command, localization if localization.is_file() else None)
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
         fail(str(exc))
     console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False)
 

@@ -22,6 +22,7 @@ from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.infer import refine
+from cuboidtrain.pdm import parse_components
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import decode_record
 from shared.shapes import get_shape
@@ -188,6 +189,7 @@ def evaluate_checkpoint(checkpoint: Path, spool: Path, device: str | torch.devic
     model, ckpt = load_model(checkpoint)
     spool, device = check_spool(spool), resolve_device(device)
     _check_counts(batch_size, max_samples)
+    parse_components(pdm_components)  # before the spool is read, and even when the PDM is not used
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
     options = (PCK_THRESHOLDS, extractor, pdm_components, refine_steps)
     result = report(model, batches, skipped, ckpt["sigma"], device, *options)

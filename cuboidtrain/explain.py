@@ -15,6 +15,7 @@ keypoints are plotted as they are, with no half-pixel shift.
 """
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -27,6 +28,7 @@ import numpy as np  # noqa: E402
 
 from shared.shapes import Shape, get_shape  # noqa: E402
 
+log = logging.getLogger(__name__)
 FRONT_COLOUR, BACK_COLOUR, POINT_COLOUR = "#ff7f0e", "#17becf", "#ffdd00"
 MAX_TILES_PER_ROW = 8
 
@@ -193,9 +195,10 @@ class Explainer:
             raise ValueError(f"--explain {self.folder}: not a folder")
         self.folder.mkdir(parents=True, exist_ok=True)
         self.written: list[Path] = []
+        self.stems: dict[str, int] = {}  # picture name -> the input that took it
 
     def __call__(self, index: int, path: str, record: dict, explanation: dict) -> None:
-        stem = Path(path).stem + (f"-{record['component']}" if record.get("component") is not None else "")
+        stem = self._stem(index, path) + (f"-{record['component']}" if record.get("component") is not None else "")
         photo = self._photo(index, record)
         on_photo = None
         if photo is not None:
@@ -203,6 +206,13 @@ class Explainer:
             fig, dpi = overlay_figure(photo, record, on_photo)
             self._save(fig, self.folder / f"{stem}-overlay.png", dpi=dpi)
         self._save(explanation_figure(explanation, record, photo, on_photo), self.folder / f"{stem}.png", dpi=110)
+
+    def _stem(self, index: int, path: str) -> str:
+        """The input's file stem; a second input of the same stem (a/x.png, b/x.png) gets its index too."""
+        stem = Path(path).stem
+        if self.stems.setdefault(stem, index) != index:
+            stem = f"{stem}-input{index}"
+        return stem
 
     def _photo(self, index: int, record: dict) -> np.ndarray | None:
         """Input `index`'s photo; one that cannot be decoded is a warning in its record, not a failure."""
@@ -212,6 +222,7 @@ class Explainer:
             return read_photo(self.photos[index])
         except ValueError as error:
             record["warnings"].append(f"no overlay: {error}")
+            log.warning("%s", record["warnings"][-1])
             return None
 
     def _save(self, fig, path: Path, dpi: int) -> None:

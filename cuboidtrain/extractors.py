@@ -52,12 +52,15 @@ def centre_of_mass(heatmaps: torch.Tensor, tabulated: torch.Tensor | None = None
     h, w = heatmaps.shape[-2:]
     maps = heatmaps.float()
     weights = (maps - 0.5 * maps.amax(dim=(-2, -1), keepdim=True)).clamp(min=0)
-    total = weights.sum(dim=(-2, -1)).clamp(min=1e-12)  # a constant map has no mass: falls back to 0
+    mass = weights.sum(dim=(-2, -1))
+    total = mass.clamp(min=1e-12)
     xs = torch.arange(w, dtype=maps.dtype, device=maps.device)
     ys = torch.arange(h, dtype=maps.dtype, device=maps.device)
     x = (weights.sum(-2) * xs).sum(-1) / total
     y = (weights.sum(-1) * ys).sum(-1) / total
-    return torch.stack([x, y], -1)
+    # An all-zero map has no mass at all: its argmax stands rather than a point at 0 / 0.
+    # (A positive constant map is all mass: its centre is the image's.)
+    return torch.where((mass > 0).unsqueeze(-1), torch.stack([x, y], -1), argmax(maps))
 
 
 def gaussian_blur(maps: torch.Tensor, sigma: float) -> torch.Tensor:

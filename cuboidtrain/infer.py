@@ -23,6 +23,7 @@ from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.files import write_json_atomically
 from cuboidtrain.masks import components, frame, load_mask
+from cuboidtrain.pdm import parse_components
 from cuboidtrain.networks import CuboidNet
 from shared.shapes import Shape, get_shape
 
@@ -201,9 +202,11 @@ def error_record(path: str, reason: str, all_components: bool) -> dict:
     return record | ({"component": None} if all_components else {})
 
 
-def check_options(shape: str, refine_steps: int | None, margin: float, models: list[CuboidNet]) -> list[CuboidNet]:
+def check_options(shape: str, refine_steps: int | None, margin: float, models: list[CuboidNet],
+                  pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> list[CuboidNet]:
     """The candidate models; ValueError for a bad option, before any input is read."""
     chosen = candidate_models(models, shape)
+    parse_components(pdm_components)  # checked even when the PDM is not used: a typo is never silent
     if refine_steps is not None and refine_steps < 0:
         raise ValueError(f"--refine-steps {refine_steps}: expected 0 or more, or auto")
     if not 0 <= margin < 0.5:
@@ -222,7 +225,7 @@ def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "
     is read. `explain(index, path, record, explanation)` is called for each fitted
     component (cuboidtrain.explain draws the pictures).
     """
-    chosen, device = check_options(shape, refine_steps, margin, models), resolve_device(device)
+    chosen, device = check_options(shape, refine_steps, margin, models, pdm_components), resolve_device(device)
     extractors = {m.shape: make_extractor(extractor, m, pdm_components) for m in chosen}
     for model in chosen:
         model.to(device).eval()
@@ -243,9 +246,18 @@ def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "
             for warning in record["warnings"]:
                 log.warning("%s: %s", path, warning)
             if explain is not None:
-                explain(index, str(path), record, explanation)
+                draw(explain, index, str(path), record, explanation)
             records.append(record)
     return records
+
+
+def draw(explain, index: int, path: str, record: dict, explanation: dict) -> None:
+    """Call the explanation writer; a picture that cannot be made is a warning, never a lost record."""
+    try:
+        explain(index, path, record, explanation)
+    except (OSError, ValueError, RuntimeError) as exc:  # a full disk, an unwritable folder, matplotlib
+        record["warnings"].append("no explanation: " + " ".join(str(exc).split()))
+        log.warning("%s: %s", path, record["warnings"][-1])
 
 
 def write_records(path: Path, records: list[dict]) -> None:

@@ -34,6 +34,7 @@ from cuboidtrain.device import resolve_device
 from cuboidtrain.evaluate import load_batches, measure, report
 from cuboidtrain.extractors import EXTRACTORS, make_extractor
 from cuboidtrain.infer import fit_component
+from cuboidtrain.masks import components
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import encode
 from shared.spool import SpoolWriter, check_spool
@@ -54,7 +55,7 @@ class ReportConfig:
     e2e: tuple[str, ...] = ()  # models trained from random weights with the final loss only
     out: str = "reports"
     samples: int = 500  # per spool and model
-    sweep_samples: int = 200  # per noise level, for the occlusion sweep and per shape for shape selection
+    sweep_samples: int = 200  # per noise level and per shape for shape selection; twice this for occlusion
     seed: int = 0
     device: str = "cpu"
 
@@ -87,7 +88,8 @@ def read_validation(spools: tuple[str, ...], model: CuboidNet, samples: int) -> 
     for spool in spools:
         try:
             batches, _ = load_batches(Path(spool), model.shape, model.size, 32, samples)
-        except ValueError:  # no sample of this shape and size there: try the next spool
+        except ValueError as exc:  # no sample of this shape and size there: try the next spool
+            log.info("report: %s", exc)
             continue
         return batches, spool
     return None
@@ -158,7 +160,7 @@ def occlusion_sweep(model: CuboidNet, workdir: Path, count: int, seed: int, devi
     fractions = np.array([params[name]["occluded_fraction"] for batch in batches for name in batch["names"]])
     rows = []
     for low, high in zip(OCCLUSION_BINS[:-1], OCCLUSION_BINS[1:]):
-        inside = (fractions >= low) & (fractions < high)
+        inside = (fractions >= low) & ((fractions < high) | (high == OCCLUSION_BINS[-1]))  # the last bin holds 1.0
         rows.append({"occluded_from": low, "occluded_to": high, "samples": int(inside.sum()),
                      "mean_px_error": float(errors[inside].mean()) if inside.any() else None})
     return rows
@@ -173,10 +175,12 @@ def shape_selection(models: dict[str, CuboidNet], count: int, seed: int, device,
     for truth in models:
         for k in range(count):
             sample = make_sample(truth, PAPER, size, seed + k, library)
-            record, _ = fit_component(sample.noisy, chosen, extractors, 1, 0.1, device)
+            parts = components(sample.noisy)  # as infer_paths does: the largest component is fitted
+            record, _ = fit_component(parts[0], chosen, extractors, 1, 0.1, device)
             confusion[truth][record["shape"]] += 1
     right = sum(confusion[s][s] for s in models)
-    return {"samples": count * len(models), "accuracy": right / (count * len(models)), "confusion": confusion}
+    return {"samples": count * len(models), "accuracy": right / (count * len(models)), "confusion": confusion,
+            "seeds": [seed, seed + count - 1]}
 
 
 def run_report(config: ReportConfig) -> dict:
@@ -185,12 +189,15 @@ def run_report(config: ReportConfig) -> dict:
     device = resolve_device(config.device)
     main = load_by_shape(config.checkpoints, "--checkpoint")
     finetune, e2e = load_by_shape(config.finetune, "--finetune"), load_by_shape(config.e2e, "--e2e")
+    check_ablations(main, {"--finetune": finetune, "--e2e": e2e})
     library = OccluderLibrary.load(None)
     results = {"config": config.__dict__, "models": {}, "shapes": {}}
     with tempfile.TemporaryDirectory(prefix="cuboid-report-") as tmp:
         for shape, (model, ckpt, path) in main.items():
             log.info("report: %s", shape)
             results["models"][shape] = _describe(ckpt, path, finetune.get(shape), e2e.get(shape))
+            pdm = make_extractor("pdm", model)
+            results["models"][shape]["pdm"] = {"components": pdm.active, "variance_fraction": pdm.components}
             results["shapes"][shape] = _shape_results(config, model, finetune.get(shape), e2e.get(shape),
                                                       Path(tmp), library, device)
         if len(main) > 1:
@@ -200,6 +207,18 @@ def run_report(config: ReportConfig) -> dict:
                                                              config.sweep_samples, config.seed + 50_000, device,
                                                              library)
     return results
+
+
+def check_ablations(main: dict, ablations: dict[str, dict]) -> None:
+    """An ablation is measured on its trained model's samples: same shape class, size and sigma."""
+    for role, models in ablations.items():
+        for shape, (model, _, path) in models.items():
+            if shape not in main:
+                raise ValueError(f"{role} {path}: a {shape} model, but no --checkpoint of that shape to compare with")
+            trained = main[shape][0]
+            if (model.size, model.sigma) != (trained.size, trained.sigma):
+                raise ValueError(f"{role} {path}: a {model.size} px model with sigma {model.sigma}, expected "
+                                 f"{trained.size} px and sigma {trained.sigma} like {main[shape][2]}")
 
 
 def _shape_results(config: ReportConfig, model: CuboidNet, finetune, e2e, workdir: Path, library,
@@ -230,8 +249,3 @@ def _describe(ckpt: dict, path: str, finetune, e2e) -> dict:
                                            "phase": entry[1].get("config", {}).get("phase")}
     return {"trained": one((None, ckpt, path)), "finetune": one(finetune), "e2e": one(e2e),
             "size": ckpt["size"], "sigma": ckpt["sigma"]}
-
-
-def pdm_default_components(model: CuboidNet) -> int:
-    """How many components the default PDM keeps for this model (the report names it)."""
-    return make_extractor("pdm", model).active

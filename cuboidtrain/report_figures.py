@@ -145,7 +145,10 @@ def _table3_section(results: dict) -> list[str]:
         lines.append(f"| {name} | {PAPER_TABLE3[name]} | " + " | ".join(cells) + " |")
     samples = {s: results["shapes"][s]["table3"][0]["samples"] for s in shapes}
     lines += ["", "Samples: " + ", ".join(f"{s} {n} from `{results['shapes'][s]['clean_spool']}`"
-                                          for s, n in samples.items()) + ".", ""]
+                                          for s, n in samples.items()) + ". "
+              + "The PDM row projects argmax locations onto " + ", ".join(
+                  f"{m['pdm']['components']} components ({s}, {m['pdm']['variance_fraction']} of the shape variance)"
+                  for s, m in results["models"].items()) + ", fitted on 2,000 generated keypoint sets.", ""]
     return lines
 
 
@@ -216,7 +219,8 @@ def _selection_section(results: dict) -> list[str]:
     shapes = list(selection["confusion"])
     lines = ["## Shape selection (`--shape auto`)", "",
              f"Both models on {selection['samples']} noisy, occluded samples ({selection['samples'] // len(shapes)} "
-             f"of each class, seeds not used for anything else): **{selection['accuracy']:.1%} right**.", "",
+             f"of each class, seeds {selection['seeds'][0]:,} to {selection['seeds'][1]:,}, not those the 0.02 "
+             f"margin was chosen on): **{selection['accuracy']:.1%} right**.", "",
              "| true \\ chosen | " + " | ".join(shapes) + " |", "| --- | " + " | ".join("---" for _ in shapes) + " |"]
     for truth in shapes:
         lines.append(f"| {truth} | " + " | ".join(str(selection["confusion"][truth][c]) for c in shapes) + " |")

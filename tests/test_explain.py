@@ -74,3 +74,14 @@ def test_a_missing_photo_is_an_option_error_and_an_unreadable_one_a_warning(tmp_
     assert records[0]["error"] is None and records[0]["keypoints"] is not None
     assert "no overlay: --overlay" in records[0]["warnings"][0] and "cannot read it as an image" in records[0]["warnings"][0]
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["building.png"]
+
+
+def test_inputs_of_the_same_name_in_other_folders_get_their_own_panels(tmp_path):
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    paths = [write_png(tmp_path / d / "x.png", hexagon()) for d in ("a", "b")]
+    refiner = Recording()
+    model = stub_model("box", refiner, lambda: rect_keypoints(refiner.last, 8))
+    explainer = Explainer(tmp_path / "out")
+    infer_paths(paths, [model], explain=explainer)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x-input1.png", "x.png"]
+    assert len(set(explainer.written)) == 2

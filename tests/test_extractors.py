@@ -145,3 +145,24 @@ def test_twobox_pdm_and_extractor_on_true_maps():
     truth = torch.from_numpy(generated_sets("twobox", 4, seed=3))
     points = make_extractor("pdm", model, pdm_components="0.999")(render_heatmaps(truth, SIZE, 1.0), None)
     assert points.shape == truth.shape and distances(points, truth).mean() < 0.6
+
+
+def test_the_cli_offers_every_extractor_and_the_library_default():
+    from cuboidtrain import cli, extractors
+
+    assert cli.EXTRACTOR_NAMES == extractors.EXTRACTORS
+    assert float(cli.DEFAULT_PDM_COMPONENTS) == extractors.DEFAULT_PDM_COMPONENTS
+
+
+def test_dark_uses_the_mixed_derivative_on_a_tilted_blob():
+    # A correlated Gaussian: a sign slip in the Hessian's off-diagonal term would show.
+    ys, xs = torch.meshgrid(torch.arange(SIZE, dtype=torch.float64), torch.arange(SIZE, dtype=torch.float64), indexing="ij")
+    dx, dy = xs - 30.4, ys - 20.7
+    blob = torch.exp(-(0.5 * dx**2 + 0.7 * dx * dy + 0.5 * dy**2) / 2)[None, None].float()
+    assert distances(dark(blob, sigma=0.5), torch.tensor([[[30.4, 20.7]]])).max() < 0.05
+
+
+def test_flat_maps_give_the_image_centre_or_the_argmax():
+    maps = torch.full((1, 2, 8, 8), 0.3)
+    maps[0, 1] = 0.0  # no mass at all
+    assert torch.allclose(centre_of_mass(maps), torch.tensor([[[3.5, 3.5], [0.0, 0.0]]]))  # argmax: first pixel

@@ -93,6 +93,7 @@ def test_run_report_measures_every_experiment(setup):
     assert selection["accuracy"] == pytest.approx((selection["confusion"]["box"]["box"]
                                                    + selection["confusion"]["twobox"]["twobox"]) / 6)
     assert results["models"]["box"]["trained"]["step"] == 7
+    assert 1 <= results["models"]["box"]["pdm"]["components"] <= 16
 
 
 def test_cli_writes_the_report_its_json_and_plots(setup):
@@ -118,13 +119,19 @@ def test_cli_writes_the_report_its_json_and_plots(setup):
 
 @pytest.mark.parametrize("extra, message", [
     (["--samples", "0"], "--samples 0: expected a positive number"),
+    (["--e2e", "{twobox}"], "--e2e {twobox}: a twobox model, but no --checkpoint of that shape"),
+    (["--finetune", "{box64}"], "a 64 px model with sigma 1.0, expected 32 px"),
     (["--clean-spool", "{root}/nowhere"], "nowhere"),
     (["--checkpoint", "{box}"], "a second 'box' model"),
 ])
 def test_cli_bad_options_are_one_line_errors(setup, extra, message):
     root, spools, ckpts = setup
     args = ["report", "--checkpoint", str(ckpts["box"]), "--clean-spool", str(spools["clean-box"]), "--out", str(root / "x")]
-    result = runner.invoke(app, args + [a.format(root=root, box=ckpts["box"]) for a in extra])
+    if not (root / "box64.pt").exists():
+        save_checkpoint(root / "box64.pt", build_model("box", 64), TrainConfig(shape="box", size=64), step=1)
+    names = {"root": root, "box": ckpts["box"], "twobox": ckpts["twobox"], "box64": root / "box64.pt"}
+    message = message.format(**names)
+    result = runner.invoke(app, args + [a.format(**names) for a in extra])
     assert result.exit_code == 2, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and message in lines[0], result.output
