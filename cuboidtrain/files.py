@@ -6,7 +6,7 @@ import os
 import time
 from pathlib import Path
 
-from shared.spool import process_alive
+from shared.spool import process_alive, remove_orphans
 
 ORPHAN_AGE = 600.0  # s: a temporary file this old is no live writer's (a checkpoint takes seconds)
 
@@ -30,24 +30,16 @@ def sweep_orphans(folder: Path, max_age: float = ORPHAN_AGE) -> int:
 
     One is an orphan when its pid is gone, or when it is older than `max_age`.
     """
-    swept, now = 0, time.time()
-    for entry in os.scandir(folder):
-        if not entry.name.startswith(".tmp-"):
-            continue
+    now = time.time()
+
+    def orphan(entry: os.DirEntry) -> bool:
         try:
             pid = int(entry.name.split("-")[1])
-            orphan = not process_alive(pid) or now - entry.stat().st_mtime > max_age
         except (IndexError, ValueError):
-            orphan = True  # not a name we write: a stray from an older version
-        except FileNotFoundError:
-            continue
-        if orphan:
-            try:
-                os.unlink(entry.path)
-                swept += 1
-            except FileNotFoundError:
-                pass
-    return swept
+            return True  # not a name we write: a stray from an older version
+        return not process_alive(pid) or now - entry.stat().st_mtime > max_age
+
+    return remove_orphans(folder, ".tmp-", orphan)
 
 
 def repair_jsonl(path: Path) -> bool:

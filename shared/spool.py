@@ -143,22 +143,34 @@ def sweep_orphans(spool: Path, max_age: float = ORPHAN_AGE) -> int:
     A temporary file is an orphan when its writer ran on this host and is gone,
     or when it is older than `max_age` (a live writer keeps one for microseconds).
     """
-    here, swept, now = host_tag(), 0, time.time()
-    for entry in os.scandir(spool):
-        if not entry.name.startswith(TMP_PREFIX):
-            continue
+    here, now = host_tag(), time.time()
+
+    def orphan(entry: os.DirEntry) -> bool:
         parts = entry.name[len(TMP_PREFIX) :].split("-")
         try:
             dead = parts[1] == here and not process_alive(int(parts[2]))
-            old = now - entry.stat().st_mtime > max_age
-        except (IndexError, ValueError, FileNotFoundError):
-            dead, old = False, True
-        if dead or old:
-            try:
+        except (IndexError, ValueError):
+            return True  # not a name we write: a stray
+        return dead or now - entry.stat().st_mtime > max_age
+
+    return remove_orphans(spool, TMP_PREFIX, orphan)
+
+
+def remove_orphans(folder: Path, prefix: str, orphan) -> int:
+    """Delete the files in `folder` named `prefix...` for which `orphan(entry)` is true; returns how many.
+
+    One that vanishes meanwhile (its writer renamed or removed it) is skipped.
+    """
+    swept = 0
+    for entry in os.scandir(folder):
+        if not entry.name.startswith(prefix):
+            continue
+        try:
+            if orphan(entry):
                 os.unlink(entry.path)
                 swept += 1
-            except FileNotFoundError:
-                pass
+        except FileNotFoundError:
+            continue
     return swept
 
 
