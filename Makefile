@@ -25,6 +25,9 @@ demo: $(STAMP)
 	$(BIN)/cuboidtrain run --phase 1 --spool runs/demo/spool --size 64 --batch-size 8 --steps 40 --out runs/demo/p1 --no-dashboard
 	$(BIN)/cuboidtrain run --phase 2 --spool runs/demo/spool --size 64 --batch-size 8 --steps 10 --init runs/demo/p1/last.pt --out runs/demo/p2 --no-dashboard
 	$(BIN)/cuboidtrain eval --checkpoint runs/demo/p2/last.pt --spool runs/demo/val
+	# Inference on a mask of another size, with the picture of how the networks got there.
+	$(BIN)/cuboidtrain infer examples/building.png --checkpoint runs/demo/p2/last.pt --explain runs/demo/explain --json runs/demo/infer.json
+	@echo "records in runs/demo/infer.json; explanation panel runs/demo/explain/building.png (a one-minute model: expect a rough fit)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
