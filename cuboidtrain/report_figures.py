@@ -31,12 +31,13 @@ def write_report(results: dict, out: Path, command: str, localization: Path | No
     """REPORT.md, report.json and the PNGs in `out`; returns the paths written."""
     out.mkdir(parents=True, exist_ok=True)
     figures = [
-        _plot(out / "noise.png", results, "noise", "contour_noise_256px", "contour noise std (px at 256 px)",
-              "Figure 14: error against contour noise (no occlusion)"),
-        _plot(out / "occlusion.png", results, "occlusion", None, "occluded fraction of the silhouette",
-              "Error against occlusion (no contour noise)"),
-        _plot(out / "refinement.png", results, "refinement", "refine_steps", "Refiner passes",
-              "Iterative refinement (Figure 7), noisy and occluded masks"),
+        _plot(out / "noise.png", results, "noise", "contour noise std (px at 256 px)",
+              "Figure 14: error against contour noise (no occlusion)", x_key="contour_noise_256px"),
+        _plot(out / "occlusion.png", results, "occlusion", "occluded fraction of the silhouette",
+              "Error against occlusion (no contour noise)",
+              category=lambda r: f"{r['occluded_from']:.2f}-{r['occluded_to']:.2f}"),
+        _plot(out / "refinement.png", results, "refinement", "Refiner passes",
+              "Iterative refinement (Figure 7), noisy and occluded masks", category=lambda r: str(r["refine_steps"])),
         _extractor_plot(out / "extractors.png", results),
     ]
     write_json_atomically(out / "report.json", results, indent=2)
@@ -49,20 +50,21 @@ def _units(results: dict, shape: str) -> float:
     return 256 / results["models"][shape]["size"]
 
 
-def _plot(path: Path, results: dict, key: str, x_key: str | None, x_label: str, title: str) -> Path:
+def _plot(path: Path, results: dict, key: str, x_label: str, title: str, x_key: str | None = None,
+          category=None) -> Path:
+    """One line per shape of `key`'s rows: at `row[x_key]`, or evenly spaced and labelled by
+    `category(row)` (occlusion bins, refinement passes). Rows without a value leave a gap."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for shape, data in results["shapes"].items():
-        rows = [r for r in data.get(key, []) if r.get("mean_px_error") is not None]
-        if not rows:
+        rows = data.get(key, [])
+        points = [(k if category else r[x_key], r["mean_px_error"]) for k, r in enumerate(rows)
+                  if r.get("mean_px_error") is not None]
+        if not points:
             continue
-        if x_key is None:  # occlusion bins: plot at each bin's middle, label the bins
-            xs = [(r["occluded_from"] + r["occluded_to"]) / 2 for r in rows]
-        else:
-            xs = list(range(len(rows))) if key == "refinement" else [r[x_key] for r in rows]
-        ax.plot(xs, [r["mean_px_error"] for r in rows], "o-", color=SHAPE_COLOURS.get(shape),
+        ax.plot(*zip(*points), "o-", color=SHAPE_COLOURS.get(shape),
                 label=f"{shape} ({results['models'][shape]['size']} px model)")
-        if key == "refinement":
-            ax.set_xticks(xs, [str(r["refine_steps"]) for r in rows])
+        if category:
+            ax.set_xticks(range(len(rows)), [category(r) for r in rows], fontsize=8)
     ax.set_xlabel(x_label)
     ax.set_ylabel("mean keypoint error (px at the model's size)")
     ax.set_title(title, fontsize=10)
