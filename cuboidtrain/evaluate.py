@@ -21,7 +21,7 @@ from cuboidtrain.data import SKIP_REASONS, SpoolBatches
 from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.infer import refine
+from cuboidtrain.infer import chain
 from cuboidtrain.pdm import parse_components
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import decode_record
@@ -86,16 +86,6 @@ def _nothing_to_evaluate(spool: Path, shape: str, size: int, names: list[str]) -
             found["corrupt"] += 1
     held = ", ".join(f"{count} {what}" for what, count in found.most_common())
     return f"spool {spool}: 0 {shape} {size} px samples among {len(names)} ({held})"
-
-
-def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> dict[str, torch.Tensor]:
-    """T(S(R^K(x1))), the inference chain of paper 3.4, with K Refiner passes (None: until settled)."""
-    if refine_steps == 1:
-        return model(x1)
-    refined, _ = refine(model, x1, refine_steps)
-    heatmaps = model.estimator(refined)
-    keypoints, ratios = model.tabulator(heatmaps)
-    return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios}
 
 
 @torch.inference_mode()

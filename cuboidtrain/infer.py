@@ -64,6 +64,19 @@ def refine(model: CuboidNet, mask_pm1: torch.Tensor, steps: int | None,
     return refined, limit
 
 
+def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> dict:
+    """T(S(R^K(x1))), the inference chain of paper 3.4, on a (B, 1, S, S) +-1 batch, with K
+    Refiner passes (None: until settled). Returns refined, heatmaps, keypoints (T's), ratios
+    and the passes run."""
+    if refine_steps == 1:  # one pass on a binary mask is the model's own forward
+        return model(x1) | {"refine_steps": 1}
+    refined, steps_run = refine(model, x1, refine_steps)
+    heatmaps = model.estimator(refined)  # S sees R's tanh output, as in CuboidNet.forward and training
+    keypoints, ratios = model.tabulator(heatmaps)
+    return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios,
+            "refine_steps": steps_run}
+
+
 def silhouette(shape: str | Shape, keypoints: np.ndarray, size: int) -> np.ndarray:
     """The fitted cuboid's bool (S, S) silhouette: the union of its parts' convex hulls,
     drawn by the generator's own rasteriser so a perfect fit reproduces a training mask."""
@@ -103,22 +116,18 @@ def fit(model: CuboidNet, framed_mask: np.ndarray, refine_steps: int | None,
         raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
     device = resolve_device(device)
     mask = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None].to(device)
-    refined, steps_run = refine(model, mask, refine_steps)
-    heatmaps = model.estimator(refined)  # S sees R's tanh output, as in CuboidNet.forward and training
-    keypoints, ratios = model.tabulator(heatmaps)
-    if extractor is not None:
-        keypoints = extractor(heatmaps, keypoints)
+    out = chain(model, mask, refine_steps)
+    keypoints = out["keypoints"] if extractor is None else extractor(out["heatmaps"], out["keypoints"])
     keypoints = keypoints[0].double().cpu().numpy()
     geometry = get_shape(model.shape)
-    refined_np = refined[0, 0].float().cpu().numpy()
     return {
         "shape": model.shape,
         "keypoints": keypoints,
-        "ratios": geometry.ratio_dict(ratios[0].cpu().tolist()),
+        "ratios": geometry.ratio_dict(out["ratios"][0].cpu().tolist()),
         "confidence": confidence(geometry, keypoints, framed_mask),
-        "refine_steps": steps_run,
-        "refined": refined_np,
-        "heatmaps": heatmaps[0].float().cpu().numpy(),
+        "refine_steps": out["refine_steps"],
+        "refined": out["refined"][0, 0].float().cpu().numpy(),
+        "heatmaps": out["heatmaps"][0].float().cpu().numpy(),
     }
 
 
