@@ -10,25 +10,14 @@
 # Run again after an interruption, and each continues from its last checkpoint.
 set -euo pipefail
 SHAPE=${1:?usage: recipes/ablations.sh box|twobox}
-SIZE=${SIZE:-64}
-BIN=${BIN:-.venv/bin}
-SPOOLS=${SPOOLS:-spools}
-RUN=${RUN:-runs/cpu-$SHAPE}
 FINETUNE_STEPS=${FINETUNE_STEPS:-500}
 E2E_STEPS=${E2E_STEPS:-2000}
-THREADS=${THREADS:-}
-
-train=$SPOOLS/train-$SHAPE-$SIZE
-clean=$SPOOLS/val-clean-$SHAPE-$SIZE
+source "$(dirname "$0")/common.sh"
 if [ ! -f "$RUN/p1/last.pt" ]; then
     echo "no $RUN/p1/last.pt: run recipes/cpu.sh $SHAPE first" >&2
     exit 1
 fi
 
-resume() { if [ -f "$1/last.pt" ]; then echo --resume; fi; }
-threads=(); if [ -n "$THREADS" ]; then threads=(--threads "$THREADS"); fi
-common=("${threads[@]}" --spool "$train" --shape "$SHAPE" --size "$SIZE" --batch-size 16 --loader-workers 1
-        --lr-schedule cosine --checkpoint-every 200 --val-spool "$clean" --val-every 400 --val-samples 128)
 "$BIN/cuboidtrain" run --phase finetune "${common[@]}" --steps "$FINETUNE_STEPS" --lr 2e-4 --max-minutes 10 \
     --init "$RUN/p1/last.pt" --out "$RUN/finetune" --no-dashboard $(resume "$RUN/finetune")
 "$BIN/cuboidtrain" run --phase e2e "${common[@]}" --steps "$E2E_STEPS" --lr 1e-3 --max-minutes 34 \

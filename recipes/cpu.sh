@@ -9,17 +9,9 @@
 # Budgets: phase 1 at most 24 minutes, phase 2 at most 10, evaluation about 2.
 set -euo pipefail
 SHAPE=${1:?usage: recipes/cpu.sh box|twobox}
-SIZE=${SIZE:-64}
-BIN=${BIN:-.venv/bin}
-SPOOLS=${SPOOLS:-spools}
-RUN=${RUN:-runs/cpu-$SHAPE}
 PHASE1_STEPS=${PHASE1_STEPS:-1500}
 PHASE2_STEPS=${PHASE2_STEPS:-500}
-THREADS=${THREADS:-}  # e.g. THREADS=1 on a CPU shared with other busy processes
-
-train=$SPOOLS/train-$SHAPE-$SIZE
-clean=$SPOOLS/val-clean-$SHAPE-$SIZE
-noisy=$SPOOLS/val-noisy-$SHAPE-$SIZE
+source "$(dirname "$0")/common.sh"
 
 spool() {  # spool DIR SEED SCENE COUNT: a frozen spool, drawn once
     if [ "$(find "$1" -name '*.cub' 2>/dev/null | wc -l)" -lt "$4" ]; then
@@ -32,12 +24,6 @@ spool "$train" 1 paper 20000
 spool "$clean" 2 paper-clean 500
 spool "$noisy" 3 paper 500
 
-# Run again after an interruption, and each phase continues from its last checkpoint.
-resume() { if [ -f "$1/last.pt" ]; then echo --resume; fi; }
-threads=(); if [ -n "$THREADS" ]; then threads=(--threads "$THREADS"); fi
-
-common=("${threads[@]}" --spool "$train" --shape "$SHAPE" --size "$SIZE" --batch-size 16 --loader-workers 1
-        --lr-schedule cosine --checkpoint-every 200 --val-spool "$clean" --val-every 400 --val-samples 128)
 "$BIN/cuboidtrain" run --phase 1 "${common[@]}" --steps "$PHASE1_STEPS" --lr 1e-3 --max-minutes 24 \
     --out "$RUN/p1" --no-dashboard $(resume "$RUN/p1")
 "$BIN/cuboidtrain" run --phase 2 "${common[@]}" --steps "$PHASE2_STEPS" --lr 2e-4 --max-minutes 10 \
