@@ -105,6 +105,15 @@ def test_a_full_disk_backs_off_says_so_and_resumes_publishing(tmp_path, monkeypa
     assert view.workers[0].state == "disk full, backing off" and "disk full" in view.notes[0]
 
 
+def remount_read_only(disk: Path, timeout: float = 20.0) -> None:
+    """Remount `disk` read-only under a running writer. The kernel refuses (EBUSY) while a file
+    there is open for writing, so try again until the writer is between two samples."""
+    deadline = time.monotonic() + timeout
+    while subprocess.run(["mount", "-o", "remount,ro", str(disk)], capture_output=True).returncode != 0:
+        assert time.monotonic() < deadline, f"could not remount {disk} read-only within {timeout} s"
+        time.sleep(0.005)
+
+
 def _mount_tmpfs(where: Path, size: str) -> bool:
     where.mkdir()
     return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
@@ -304,7 +313,7 @@ def test_a_spool_turned_read_only_mid_run_stops_the_generator_with_a_one_line_er
         deadline = time.monotonic() + 60
         while len(enumerate_spool(disk)) < 20 and time.monotonic() < deadline:
             time.sleep(0.1)
-        subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+        remount_read_only(disk)
         output = proc.communicate(timeout=60)[0]
         assert proc.returncode == 2, output
         assert f"error: spool {disk}: cannot write to it (Read-only file system)" in output
