@@ -47,6 +47,7 @@ def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, ste
         "version": VERSION,
         "shape": model.shape,
         "size": model.size,
+        "arch": model.arch,
         "sigma": config.heatmap_sigma,
         "config": config.resolved().to_dict(),
         "step": step,
@@ -66,7 +67,8 @@ def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, ste
     return path
 
 
-def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None = None) -> dict:
+def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None = None,
+                    arch: str | None = None) -> dict:
     """The checkpoint's dict, checked; ValueError names what is wrong with it."""
     path = Path(path)
     if not path.is_file():
@@ -84,15 +86,22 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
         raise ValueError(f"checkpoint {path}: a {ckpt['shape']!r} model, expected {shape!r}")
     if size is not None and ckpt["size"] != size:
         raise ValueError(f"checkpoint {path}: a {ckpt['size']} px model, expected {size} px")
+    if arch is not None and checkpoint_arch(ckpt) != arch:
+        raise ValueError(f"checkpoint {path}: a {checkpoint_arch(ckpt)!r} arch model, expected {arch!r} (--arch)")
     return ckpt
 
 
 def load_model(path: str | Path, shape: str | None = None, size: int | None = None) -> tuple[CuboidNet, dict]:
     """A model rebuilt from its checkpoint (on the CPU, in eval mode) and the checkpoint dict."""
     ckpt = load_checkpoint(path, shape, size)
-    model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"])
+    model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"], checkpoint_arch(ckpt))
     model.load_state_dict(ckpt["model"])
     return model.eval(), ckpt
+
+
+def checkpoint_arch(ckpt: dict) -> str:
+    """The checkpoint's architecture; files written before the registry hold the paper's."""
+    return ckpt.get("arch", "paper")
 
 
 def loader_state(ckpt: dict) -> LoaderState | None:

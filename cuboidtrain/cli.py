@@ -32,7 +32,9 @@ def run(
     phase: PhaseChoice = typer.Option(PhaseChoice.one, envvar="CUBOIDTRAIN_PHASE", help="1: each network alone; 2: chained with all losses; e2e / finetune: the paper's ablations (final loss only)."),
     spool: Path = typer.Option(Path("data_spool"), envvar="CUBOIDTRAIN_SPOOL", help="Spool folder, enumerated afresh every epoch."),
     shape: ShapeChoice = typer.Option(ShapeChoice.box, envvar="CUBOIDTRAIN_SHAPE", help="Shape class of the model."),
-    size: int = typer.Option(256, envvar="CUBOIDTRAIN_SIZE", help="Model input size in px (a multiple of 32); the spool's samples must match."),
+    size: int = typer.Option(256, envvar="CUBOIDTRAIN_SIZE", help="Model input size in px (a multiple of 32)."),
+    arch: str = typer.Option("compact", envvar="CUBOIDTRAIN_ARCH", help="Architecture of R, S and T: compact (the shipped models'), paper (three ResNet-18s, Table 3), tiny (tests)."),
+    reframe: bool = typer.Option(True, "--reframe/--no-reframe", envvar="CUBOIDTRAIN_REFRAME", help="Frame each sample as infer frames a mask (its largest visible component), from a spool of any size; --no-reframe: train on the spool's own framing, whose size must be --size."),
     steps: Optional[int] = typer.Option(None, envvar="CUBOIDTRAIN_STEPS", help="Train until this step (neither --steps nor --epochs: until stopped)."),
     epochs: Optional[int] = typer.Option(None, envvar="CUBOIDTRAIN_EPOCHS", help="Or this many epochs over the spool."),
     batch_size: int = typer.Option(32, envvar="CUBOIDTRAIN_BATCH_SIZE", help="Samples per step."),
@@ -68,7 +70,8 @@ def run(
     setup_logging()
     try:
         config = TrainConfig(
-            phase=phase.value, spool=str(spool), shape=shape.value, size=size, steps=steps, epochs=epochs,
+            phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe,
+            steps=steps, epochs=epochs,
             batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, max_minutes=max_minutes, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
             alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
             out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),

@@ -29,6 +29,8 @@ class TrainConfig:
     spool: str = "data_spool"
     shape: str = "box"
     size: int = 256  # px, the model's square input
+    arch: str = "compact"  # a name in cuboidtrain.networks.ARCHS: paper (three ResNet-18s), compact, tiny
+    reframe: bool = True  # frame each sample as `infer` frames a mask (largest visible component); any spool size
     steps: int | None = None  # train until this step (a run's steps count from 0; --resume continues the count)
     epochs: int | None = None  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
     batch_size: int = 32
@@ -60,6 +62,9 @@ class TrainConfig:
         if self.phase not in PHASES:
             raise ValueError(f"--phase {self.phase!r}: expected one of {', '.join(PHASES)}")
         get_shape(self.shape)
+        from cuboidtrain.networks import check_arch  # networks imports this module
+
+        check_arch(self.arch)
         if self.size < 32 or self.size % 32:
             raise ValueError(f"--size {self.size}: expected a multiple of 32, at least 32 (ResNet-18 halves it 5 times)")
         if self.steps is not None and self.epochs is not None:

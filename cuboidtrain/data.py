@@ -26,7 +26,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from shared.sample import collate, decode_record
+from cuboidtrain.masks import components, frame, warp
+from shared.sample import collate, decode_record, unpack_mask
 from shared.shapes import get_shape
 from shared.spool import enumerate_spool, name_time, read_sample_bytes
 
@@ -35,11 +36,28 @@ log = logging.getLogger(__name__)
 SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size")
 
 
-class SpoolBatches(Dataset):
-    """Index: a list of sample names. Item: one collated batch, masks still bit-packed."""
+def reframe(record: dict, size: int) -> dict:
+    """The sample as `infer` would see it (train as you infer): the noisy mask's largest
+    component framed at `size` by `cuboidtrain.masks.frame`, the clean mask and the
+    keypoints carried by the same map. A generated sample is framed by its clean
+    silhouette; a real mask can only be framed by what is visible of it."""
+    noisy = components(unpack_mask(record["noisy"], record["size"]))
+    if not noisy:
+        raise ValueError("no visible pixel to frame")
+    framed, framing = frame(noisy[0], size)
+    clean = warp(unpack_mask(record["clean"], record["size"]), framing)
+    keypoints = framing.to_model(np.frombuffer(record["keypoints"], "<f8").reshape(-1, 2))
+    return record | {"size": size, "noisy": np.packbits(framed).tobytes(), "clean": np.packbits(clean).tobytes(),
+                     "keypoints": keypoints.astype("<f8").tobytes()}
 
-    def __init__(self, spool: str | Path, shape: str, size: int):
-        self.spool, self.shape, self.size = Path(spool), shape, size
+
+class SpoolBatches(Dataset):
+    """Index: a list of sample names. Item: one collated batch, masks still bit-packed.
+
+    With `reframe`, samples of any size are framed as `infer` frames a mask, at `size`."""
+
+    def __init__(self, spool: str | Path, shape: str, size: int, reframe: bool = False):
+        self.spool, self.shape, self.size, self.reframe = Path(spool), shape, size, reframe
 
     def __getitem__(self, names: list[str]) -> dict:
         records, kept, skipped = [], [], dict.fromkeys(SKIP_REASONS, 0)
@@ -71,6 +89,11 @@ class SpoolBatches(Dataset):
             return "corrupt", None
         if record["shape"] != self.shape:
             return "other_shape", None
+        if self.reframe:
+            try:
+                return None, reframe(record, self.size)
+            except ValueError:  # occluders hid every pixel: nothing a mask could show
+                return "corrupt", None
         if record["size"] != self.size:
             return "other_size", None
         return None, record
@@ -178,11 +201,11 @@ def spool_names(spool: Path) -> list[str]:
 
 def make_loader(spool: str | Path, shape: str, size: int, batch_size: int, seed: int, workers: int,
                 pin_memory: bool = False, timeout: float | None = None,
-                worker_init_fn=None, **sampler_options) -> tuple[DataLoader, EpochSampler]:
+                worker_init_fn=None, reframe: bool = False, **sampler_options) -> tuple[DataLoader, EpochSampler]:
     """`sampler_options`: EpochSampler's rank, world, list_spool and interrupted (torchrun)."""
     sampler = EpochSampler(spool, batch_size, seed, timeout=timeout, **sampler_options)
     loader = DataLoader(
-        SpoolBatches(spool, shape, size),
+        SpoolBatches(spool, shape, size, reframe),
         sampler=sampler,
         batch_size=None,  # the sampler yields whole batches of names
         num_workers=workers,

@@ -49,12 +49,13 @@ def mask_iou(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
 
 def load_batches(spool: Path, shape: str, size: int, batch_size: int,
                  max_samples: int | None) -> tuple[list[dict], dict[str, int]]:
-    """The first `max_samples` samples of this shape and size, in name order, as packed batches.
+    """The first `max_samples` samples of this shape, in name order, framed at `size` as `infer`
+    frames a mask (so a spool of any size serves), as packed batches.
 
     Read once and kept, so two models can be evaluated on the very same samples
     even while a generator evicts from the spool. Returns the skip counts too.
     """
-    reader, names = SpoolBatches(spool, shape, size), enumerate_spool(spool)
+    reader, names = SpoolBatches(spool, shape, size, reframe=True), enumerate_spool(spool)
     wanted = len(names) if max_samples is None else max_samples
     batches, skipped, kept, position = [], dict.fromkeys(SKIP_REASONS, 0), 0, 0
     while kept < wanted and position < len(names):
@@ -183,7 +184,7 @@ def evaluate_checkpoint(checkpoint: Path, spool: Path, device: str | torch.devic
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
     options = (PCK_THRESHOLDS, extractor, pdm_components, refine_steps)
     result = report(model, batches, skipped, ckpt["sigma"], device, *options)
-    random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"])
+    random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"], arch=model.arch)
     baseline = report(random_model, batches, skipped, ckpt["sigma"], device, *options)
     result.update({
         "random_init_mean_px_error": baseline["mean_px_error"],

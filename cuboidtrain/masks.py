@@ -146,6 +146,13 @@ def frame(mask: np.ndarray, size: int, margin: float = 0.1) -> tuple[np.ndarray,
     return _warp(mask, (x, y, w, h), framing) >= 0.5, framing
 
 
+def warp(mask: np.ndarray, framing: Framing) -> np.ndarray:
+    """All of `mask` carried onto the model's input by `framing`, as `frame` carries its
+    object (training frames the clean silhouette by its noisy one's framing)."""
+    height, width = mask.shape
+    return _warp(mask, (0, 0, width, height), framing) >= 0.5
+
+
 def _warp(mask: np.ndarray, box: tuple[int, int, int, int], framing: Framing) -> np.ndarray:
     """The float coverage of `mask` sampled at the model's pixel centres."""
     s = framing.scale

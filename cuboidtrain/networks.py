@@ -1,4 +1,7 @@
-"""The three networks of paper 3.2, all on torchvision's ResNet-18.
+"""The three networks of paper 3.2 and the registry of architectures that build them.
+
+`paper` is the paper's: all three on torchvision's ResNet-18 (below). `compact`
+(cuboidtrain.compact) keeps the roles and outputs at a fraction of the cost.
 
 Refiner (R): FCN, mask (B, 1, H, W) -> refined mask (B, 1, H, W), tanh.
 Estimator (S): FCN, mask (B, 1, H, W) -> heat maps (B, N, H, W), sigmoid.
@@ -12,11 +15,14 @@ heat maps are sharp at the pixel, which the sub-pixel target needs.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 from torchvision.models import resnet18
 
+from cuboidtrain import compact
 from cuboidtrain.config import default_sigma
 from shared.shapes import get_shape
 
@@ -125,18 +131,60 @@ class Tabulator(nn.Module):
         return keypoints, ratios
 
 
+# The registry (timm's pattern): an architecture's name -> a constructor of its (R, S, T)
+# from (num_keypoints, num_ratios, size). The name is stored in every config and checkpoint.
+Parts = tuple[nn.Module, nn.Module, nn.Module]
+ARCHS: dict[str, Callable[[int, int, int], Parts]] = {}
+DEFAULT_ARCH = "compact"
+
+
+def register_arch(name: str):
+    def register(constructor: Callable[[int, int, int], Parts]):
+        ARCHS[name] = constructor
+        return constructor
+    return register
+
+
+def check_arch(name: str) -> str:
+    if name not in ARCHS:
+        raise ValueError(f"arch {name!r}: expected one of {', '.join(ARCHS)}")
+    return name
+
+
+@register_arch("paper")
+def paper_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
+    """The paper's networks (three ResNet-18s, 28 GFLOP at 256 px): Table 3 is reproduced with these."""
+    return Refiner(), Estimator(num_keypoints), Tabulator(num_keypoints, num_ratios, size)
+
+
+@register_arch("compact")
+def compact_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
+    """Narrow U-Nets at stride 2 and a spatial-expectation T (cuboidtrain.compact): the shipped models."""
+    return _compact(num_keypoints, num_ratios, size, compact.WIDTHS)
+
+
+@register_arch("tiny")
+def tiny_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
+    """The compact design at a few channels: for tests and smoke runs, not for fitting."""
+    return _compact(num_keypoints, num_ratios, size, (4, 8, 8, 8))
+
+
+def _compact(num_keypoints: int, num_ratios: int, size: int, widths: tuple[int, ...]) -> Parts:
+    return (compact.CompactRefiner(widths), compact.CompactEstimator(num_keypoints, widths),
+            compact.CompactTabulator(num_keypoints, num_ratios, size, widths))
+
+
 class CuboidNet(nn.Module):
     """R, S and T for one shape class at one size; `forward` chains them (inference, phase 2)."""
 
-    def __init__(self, shape: str, size: int, sigma: float | None = None):
+    def __init__(self, shape: str, size: int, sigma: float | None = None, arch: str = DEFAULT_ARCH):
         super().__init__()
         geometry = get_shape(shape)
-        self.shape, self.size = shape, size
+        self.shape, self.size, self.arch = shape, size, check_arch(arch)
         # The heat maps' Gaussian std in px that S was trained to draw: sub-pixel decoders need it.
         self.sigma = sigma if sigma is not None else default_sigma(size)
-        self.refiner = Refiner()
-        self.estimator = Estimator(geometry.num_keypoints)
-        self.tabulator = Tabulator(geometry.num_keypoints, len(geometry.ratio_names), size)
+        self.refiner, self.estimator, self.tabulator = ARCHS[arch](
+            geometry.num_keypoints, len(geometry.ratio_names), size)
 
     def forward(self, mask: torch.Tensor) -> dict[str, torch.Tensor]:
         refined = self.refiner(mask)
@@ -145,8 +193,9 @@ class CuboidNet(nn.Module):
         return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios}
 
 
-def build_model(shape: str, size: int, seed: int = 0, sigma: float | None = None) -> CuboidNet:
+def build_model(shape: str, size: int, seed: int = 0, sigma: float | None = None,
+                arch: str = DEFAULT_ARCH) -> CuboidNet:
     """A freshly initialised model; the same seed gives the same weights."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return CuboidNet(shape, size, sigma)
+        return CuboidNet(shape, size, sigma, arch)

@@ -106,7 +106,7 @@ def mean_error(model: CuboidNet, batches: list[dict], device, extractor: str = "
 def table3(shape: str, model: CuboidNet, batches: list[dict], device, finetune=None, e2e=None) -> list[dict]:
     """The paper's Table 3 rows for one shape class, in its order; a model not given is None."""
     rows = [
-        ("random weights", build_model(shape, model.size, seed=0, sigma=model.sigma), "tabulator"),
+        ("random weights", build_model(shape, model.size, seed=0, sigma=model.sigma, arch=model.arch), "tabulator"),
         ("trained with rep. meaning", model, "tabulator"),
         ("trained with rep. meaning, T replaced with PDM", model, "pdm"),
         ("pre-trained with rep. meaning, trained without rep. meaning", finetune, "tabulator"),

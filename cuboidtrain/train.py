@@ -69,15 +69,15 @@ def _leave_signals_to_main(_worker_id: int) -> None:
 def build_state(config: TrainConfig, device: torch.device) -> tuple[CuboidNet, torch.optim.Optimizer, int, dict | None]:
     """Model, optimizer, first step and a checkpoint to resume from (None for a fresh run)."""
     torch.manual_seed(config.seed)
-    model = build_model(config.shape, config.size, config.seed, config.heatmap_sigma)
+    model = build_model(config.shape, config.size, config.seed, config.heatmap_sigma, config.arch)
     resume = None
     if config.resume:
-        resume = load_checkpoint(Path(config.out) / LAST, config.shape, config.size)
+        resume = load_checkpoint(Path(config.out) / LAST, config.shape, config.size, config.arch)
         if resume["config"]["phase"] != config.phase:
             raise ValueError(f"--resume: {config.out}/{LAST} is phase {resume['config']['phase']}, not {config.phase}")
         model.load_state_dict(resume["model"])
     elif config.init:
-        model.load_state_dict(load_checkpoint(config.init, config.shape, config.size)["model"])
+        model.load_state_dict(load_checkpoint(config.init, config.shape, config.size, config.arch)["model"])
     model.to(device)
     if device.type == "cuda":
         model.to(memory_format=torch.channels_last)
@@ -191,7 +191,8 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     losses_of = wrap(model, config.phase, config.ratio_weight, ranks)
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
                                   config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,
-                                  worker_init_fn=_leave_signals_to_main, **_sampler_options(ranks, stop))
+                                  worker_init_fn=_leave_signals_to_main, reframe=config.reframe,
+                                  **_sampler_options(ranks, stop))
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))
     freshness = Freshness()
