@@ -117,10 +117,14 @@ class CompactTabulator(nn.Module):
     The maps, joined by x/y coordinate channels, go through a U-Net whose stride-2
     features give one logit map per corner: gain * log(map) + correction, the map
     pooled to stride 2 (a Gaussian of std >= 1 px keeps its centroid under 2x2
-    averaging). A softmax over
-    each logit map is a distribution over the stride-2 pixel centres; its mean is
-    the keypoint, which is sub-pixel and can fall anywhere in the image. The
-    ratios come from the pooled deepest features. The readout runs in float32.
+    averaging). A softmax over each logit map is a distribution over the stride-2
+    cell centres; its mean is the keypoint, sub-pixel and differentiable.
+
+    The grid reaches `border` px beyond each side of the image (the maps are
+    padded with zeros, the coordinate ramps continue): a corner hidden below the
+    visible silhouette's frame, a building's bottom behind a parked car, can be
+    placed where it is instead of clipped to the edge. The ratios come from the
+    pooled deepest features. The readout runs in float32.
     """
 
     def __init__(self, num_keypoints: int, num_ratios: int, size: int, widths: tuple[int, ...] = WIDTHS):
@@ -136,21 +140,24 @@ class CompactTabulator(nn.Module):
         # sharpen it into an argmax on the stride-2 grid (0.5 px off).
         self.gain = nn.Parameter(torch.tensor(2.0))
         self.ratio_head = nn.Linear(widths[-1], num_ratios)
-        half = size // 2
-        # Cell (i, j) of the stride-2 grid averages full-res pixels 2j, 2j + 1: its centre is x = 2j + 0.5.
-        centres = torch.arange(half, dtype=torch.float32) * 2 + 0.5
+        self.border = 2 * (size // 16)  # px, even: padded pixels pair up under the 2x2 pooling
+        padded = size + 2 * self.border
+        # Cell j of the stride-2 grid averages padded pixels 2j, 2j + 1, which are image pixels
+        # 2j - border and 2j + 1 - border: its centre is x = 2j + 0.5 - border.
+        centres = torch.arange(padded // 2, dtype=torch.float32) * 2 + 0.5 - self.border
         self.register_buffer("centres", centres, persistent=False)
-        ramp = torch.linspace(-1.0, 1.0, size)
+        ramp = (torch.arange(padded, dtype=torch.float32) - self.border) / (size - 1) * 2 - 1  # -1..1 on the image
         self.register_buffer("coords", torch.stack(torch.meshgrid(ramp, ramp, indexing="xy")), persistent=False)
 
     def forward(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b, n = heatmaps.shape[:2]
+        padded = F.pad(heatmaps, (self.border,) * 4)  # (B, N, P, P), P = S + 2 border
         coords = self.coords.to(heatmaps.dtype).expand(b, -1, -1, -1)
-        features, deepest = self.body(torch.cat([heatmaps, coords], dim=1))  # (B, C, S/2, S/2)
-        pooled = F.avg_pool2d(heatmaps, 2)  # (B, N, S/2, S/2), on the features' grid
+        features, deepest = self.body(torch.cat([padded, coords], dim=1))  # (B, C, P/2, P/2)
+        pooled = F.avg_pool2d(padded, 2)  # (B, N, P/2, P/2), on the features' grid
         with torch.autocast(device_type=heatmaps.device.type, enabled=False):
             log_map = torch.log(pooled.float().clamp(min=1e-6))
-            logits = self.gain * log_map + self.correction(features.float())  # (B, N, S/2, S/2)
+            logits = self.gain * log_map + self.correction(features.float())  # (B, N, P/2, P/2)
             weights = torch.softmax(logits.flatten(2), dim=-1).view_as(logits)
             x = (weights.sum(dim=2) * self.centres).sum(dim=-1)  # marginal over rows, then E[x]
             y = (weights.sum(dim=3) * self.centres).sum(dim=-1)

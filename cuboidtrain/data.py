@@ -33,7 +33,14 @@ from shared.spool import enumerate_spool, name_time, read_sample_bytes
 
 log = logging.getLogger(__name__)
 
-SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size")
+SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size", "cut_off")
+# A reframed sample whose corner lies further than this fraction of the size outside the frame is
+# skipped: its largest visible component is a fragment, and no Tabulator could reach the corner.
+MAX_OUTSIDE = 0.125
+
+
+class CutOff(ValueError):
+    """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
 
 def reframe(record: dict, size: int) -> dict:
@@ -43,10 +50,13 @@ def reframe(record: dict, size: int) -> dict:
     silhouette; a real mask can only be framed by what is visible of it."""
     noisy = components(unpack_mask(record["noisy"], record["size"]))
     if not noisy:
-        raise ValueError("no visible pixel to frame")
+        raise CutOff("no visible pixel to frame")
     framed, framing = frame(noisy[0], size)
     clean = warp(unpack_mask(record["clean"], record["size"]), framing)
     keypoints = framing.to_model(np.frombuffer(record["keypoints"], "<f8").reshape(-1, 2))
+    reach = MAX_OUTSIDE * size
+    if keypoints.min() < -0.5 - reach or keypoints.max() > size - 0.5 + reach:
+        raise CutOff(f"a corner lies more than {reach:g} px outside the frame")
     return record | {"size": size, "noisy": np.packbits(framed).tobytes(), "clean": np.packbits(clean).tobytes(),
                      "keypoints": keypoints.astype("<f8").tobytes()}
 
@@ -92,8 +102,8 @@ class SpoolBatches(Dataset):
         if self.reframe:
             try:
                 return None, reframe(record, self.size)
-            except ValueError:  # occluders hid every pixel: nothing a mask could show
-                return "corrupt", None
+            except CutOff:
+                return "cut_off", None
         if record["size"] != self.size:
             return "other_size", None
         return None, record

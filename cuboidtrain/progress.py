@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.config import PHASES, TrainConfig
+from cuboidtrain.data import SKIP_REASONS
 from cuboidtrain.dashboard import write_status
 from shared.spool import foreign_names
 
@@ -50,7 +51,7 @@ class Progress:
         self.history = {k: deque(maxlen=HISTORY) for k in ("D_R", "D_S", "D_T", "total")}
         self.recent = deque(maxlen=WINDOW)  # (samples, waited s, step s) per step
         self.logged = {"losses": Counter(), "steps": 0}  # sums since the last metrics record
-        self.skipped = Counter(dict.fromkeys(("vanished", "corrupt", "other_shape", "other_size"), 0))
+        self.skipped = Counter(dict.fromkeys(SKIP_REASONS, 0))
         self.freshness = {"mean_age_s": None, "mean_reuse": None}
         self.last_end = time.perf_counter()
         self.last_publish = 0.0
