@@ -15,6 +15,10 @@ from shared.sample import encode
 from shared.spool import SpoolWriter
 
 SIZE = 48  # px: tests stay tiny
+# The registry's test architecture (cuboidtrain.networks): the compact design at a few
+# channels, built and stepped in milliseconds. Tests of behaviour (training, resume,
+# checkpoints, inference, export) use it; only tests of the real networks build others.
+ARCH = "tiny"
 
 
 @pytest.fixture(scope="session")
@@ -35,6 +39,20 @@ def fill_spool(spool: Path, count: int, limit: int = 0, shape: str = "box", libr
     """Publish `count` samples (seeds 0..count-1); returns their names, oldest first."""
     with SpoolWriter(spool, limit=limit) as writer:
         return [writer.publish(encode(build_sample(i, shape, library=library))) for i in range(count)]
+
+
+def tiny_model(shape: str = "box", size: int = SIZE, seed: int = 0, sigma: float | None = None):
+    """A freshly initialised model of the test architecture (`build_model(..., arch=ARCH)`)."""
+    from cuboidtrain.networks import build_model  # torch: only for the tests that need it
+
+    return build_model(shape, size, seed=seed, sigma=sigma, arch=ARCH)
+
+
+def train_config(**fields):
+    """A TrainConfig of the test architecture; `fields` as TrainConfig's."""
+    from cuboidtrain.config import TrainConfig
+
+    return TrainConfig(arch=ARCH, **fields)
 
 
 def tiny_config(spool: Path, **changes) -> GenConfig:
