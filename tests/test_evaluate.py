@@ -10,14 +10,12 @@ import torch
 from torch import nn
 
 from cuboidtrain.checkpoint import save_checkpoint
-from cuboidtrain.config import TrainConfig
 from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
 from cuboidtrain.heatmaps import render_heatmaps
-from cuboidtrain.networks import build_model
 from shared.sample import encode, signed
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter
-from tests.conftest import build_sample
+from tests.conftest import build_sample, tiny_model, train_config
 
 SIZE = 32  # px: the smallest size a ResNet-18 model takes
 CPU = torch.device("cpu")
@@ -73,7 +71,7 @@ def test_mask_iou_on_hand_made_masks():
 
 
 def test_evaluate_reports_every_metric_in_range(box_spool):
-    model = build_model("box", SIZE, seed=0).train()
+    model = tiny_model("box", SIZE, seed=0).train()
     result = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=4)  # batches of 4 and 2
     assert KEYS <= set(result)
     assert (result["shape"], result["size"], result["samples"]) == ("box", SIZE, 6)
@@ -92,7 +90,7 @@ def test_evaluate_reports_every_metric_in_range(box_spool):
 
 
 def test_evaluate_is_deterministic_and_independent_of_batch_size(box_spool):
-    model = build_model("box", SIZE, seed=1)
+    model = tiny_model("box", SIZE, seed=1)
     a = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=6)
     b = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=1)
     assert a["mean_px_error"] == pytest.approx(b["mean_px_error"], rel=1e-5)
@@ -163,7 +161,7 @@ def test_evaluate_skips_and_counts_other_samples(tmp_path):
                     build_sample(2, "box", size=64), build_sample(3, "box", size=SIZE),
                     build_sample(4, "box", size=SIZE)])
     (spool / "0000000000000000001-junk.cub").write_bytes(b"not a sample")  # sorts first
-    model = build_model("box", SIZE)
+    model = tiny_model("box", SIZE)
     result = evaluate(model, spool, sigma=1.0, device=CPU)
     assert result["samples"] == 3
     assert result["skipped"] == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 1}
@@ -174,7 +172,7 @@ def test_evaluate_skips_and_counts_other_samples(tmp_path):
 def test_a_spool_without_the_models_samples_is_a_clear_error(tmp_path):
     spool = tmp_path / "val"
     publish(spool, [build_sample(i, "twobox", size=SIZE) for i in range(2)])
-    model = build_model("box", SIZE)
+    model = tiny_model("box", SIZE)
     with pytest.raises(ValueError, match=r"spool .*val: 0 box 32 px samples among 2 \(2 twobox 32 px\)"):
         evaluate(model, spool, sigma=1.0, device=CPU)
     empty = tmp_path / "empty"
@@ -184,8 +182,8 @@ def test_a_spool_without_the_models_samples_is_a_clear_error(tmp_path):
 
 
 def test_evaluate_checkpoint_reports_the_random_weights_row(tmp_path, box_spool):
-    config = TrainConfig(shape="box", size=SIZE, steps=1, sigma=1.5)
-    path = save_checkpoint(tmp_path / "random.pt", build_model("box", SIZE, seed=3), config, step=7)
+    config = train_config(shape="box", size=SIZE, steps=1, sigma=1.5)
+    path = save_checkpoint(tmp_path / "random.pt", tiny_model("box", SIZE, seed=3), config, step=7)
     result = evaluate_checkpoint(path, box_spool, device="cpu", max_samples=4, random_init_seed=3)
     assert {"random_init_mean_px_error", "random_init_median_px_error", "checkpoint", "step", "spool"} <= set(result)
     assert (result["step"], result["samples"], result["sigma"]) == (7, 4, 1.5)

@@ -14,13 +14,11 @@ from typer.testing import CliRunner
 
 from cuboidtrain.checkpoint import load_model, save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.config import TrainConfig
 from cuboidtrain.export import FORMAT, OUTPUTS, OnnxPipeline, read_metadata
 from cuboidtrain.infer import refine
-from cuboidtrain.networks import build_model
 from shared.sample import signed
 from shared.shapes import get_shape
-from tests.conftest import build_sample
+from tests.conftest import build_sample, tiny_model, train_config
 
 SIZE = 64
 STEP = 7  # the checkpoints' step, which the metadata must carry
@@ -40,8 +38,8 @@ def exported(tmp_path_factory):
     folder = tmp_path_factory.mktemp("export")
     files = {}
     for shape, seed in (("box", 1), ("twobox", 2)):
-        model = build_model(shape, SIZE, seed=seed)
-        ckpt = save_checkpoint(folder / f"{shape}.pt", model, TrainConfig(shape=shape, size=SIZE), step=STEP)
+        model = tiny_model(shape, SIZE, seed=seed)
+        ckpt = save_checkpoint(folder / f"{shape}.pt", model, train_config(shape=shape, size=SIZE), step=STEP)
         for steps in ((1, 2) if shape == "box" else (1,)):
             out = folder / f"{shape}-k{steps}.onnx"
             cli_export(ckpt, out, "--refine-steps", str(steps))
@@ -94,7 +92,7 @@ def test_export_is_a_valid_onnx_model_with_its_metadata(exported, shape, steps):
     meta = read_metadata(path)
     assert meta["format"] == FORMAT and meta["version"] == "1"
     assert meta["shape"] == shape and int(meta["size"]) == SIZE and int(meta["refine_steps"]) == steps
-    assert float(meta["sigma"]) == TrainConfig(shape=shape, size=SIZE).heatmap_sigma
+    assert float(meta["sigma"]) == train_config(shape=shape, size=SIZE).heatmap_sigma
     assert json.loads(meta["keypoint_names"]) == list(geometry.keypoint_names)
     assert json.loads(meta["ratio_names"]) == list(geometry.ratio_names)
     assert int(meta["checkpoint_step"]) == STEP

@@ -9,9 +9,9 @@ from cuboidgen.config import PAPER
 from cuboidgen.scene import draw_view
 from cuboidtrain.extractors import EXTRACTORS, argmax, centre_of_mass, dark, make_extractor
 from cuboidtrain.heatmaps import render_heatmaps
-from cuboidtrain.networks import build_model
 from cuboidtrain.pdm import MIN_SAMPLES, PointDistributionModel, parse_components
 from shared.shapes import get_shape
+from tests.conftest import tiny_model
 
 SIZE = 64
 
@@ -64,7 +64,7 @@ def test_peaks_at_the_border_and_flat_maps_give_finite_points_inside_the_image()
 
 
 def test_tabulator_extractor_passes_t_through_and_names_are_checked():
-    model = build_model("box", 32)
+    model = tiny_model("box", 32)
     tabulated = torch.rand(1, 8, 2)
     assert make_extractor("tabulator", model)(torch.rand(1, 8, 32, 32), tabulated) is tabulated
     with pytest.raises(ValueError, match="--extractor 'soft'.*tabulator, argmax, centre-of-mass, dark, pdm"):
@@ -141,7 +141,7 @@ def test_a_pdm_needs_enough_well_formed_sets():
 
 
 def test_twobox_pdm_and_extractor_on_true_maps():
-    model = build_model("twobox", SIZE)
+    model = tiny_model("twobox", SIZE)
     truth = torch.from_numpy(generated_sets("twobox", 4, seed=3))
     points = make_extractor("pdm", model, pdm_components="0.999")(render_heatmaps(truth, SIZE, 1.0), None)
     assert points.shape == truth.shape and distances(points, truth).mean() < 0.6

@@ -30,7 +30,7 @@ from cuboidtrain.train import StopRequest, run
 from shared.inspect import inspect_spool
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
-from tests.conftest import build_sample, tiny_config
+from tests.conftest import build_sample, tiny_config, train_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
@@ -43,7 +43,7 @@ def fill(spool: Path, count: int) -> list[str]:
 
 
 def config(spool: Path, out: Path, **changes) -> TrainConfig:
-    base = TrainConfig(spool=str(spool), out=str(out), size=SIZE, steps=3, batch_size=2, loader_workers=0,
+    base = train_config(spool=str(spool), out=str(out), size=SIZE, steps=3, batch_size=2, loader_workers=0,
                        dashboard=False, log_every=1, checkpoint_every=1000)
     return replace(base, **changes).validate()
 

@@ -16,13 +16,11 @@ from typer.testing import CliRunner
 
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.config import TrainConfig
 from cuboidtrain.infer import RICHER_SHAPE_MARGIN, choose, confidence, fit, infer_paths, refine, silhouette
 from cuboidtrain.masks import components, frame, load_mask
-from cuboidtrain.networks import build_model
 from shared.sample import signed
 from shared.shapes import get_shape
-from tests.conftest import build_sample
+from tests.conftest import build_sample, tiny_model, train_config
 
 SIZE = 32
 RECORD_KEYS = {"input", "shape", "confidence", "keypoints", "ratios", "refine_steps", "error", "warnings", "candidates"}
@@ -75,7 +73,7 @@ class FixedTabulator(nn.Module):
 
 
 def stub_model(shape: str, refiner: nn.Module | None = None, points=None):
-    model = build_model(shape, SIZE)
+    model = tiny_model(shape, SIZE)
     if refiner is not None:
         model.refiner = refiner
     if points is not None:
@@ -111,13 +109,13 @@ def rect_keypoints(framed: np.ndarray, n: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def random_models():
-    return [build_model("box", SIZE, seed=1).eval(), build_model("twobox", SIZE, seed=2).eval()]
+    return [tiny_model("box", SIZE, seed=1).eval(), tiny_model("twobox", SIZE, seed=2).eval()]
 
 
 @pytest.fixture(scope="module")
 def checkpoints(tmp_path_factory, random_models):
     folder = tmp_path_factory.mktemp("ckpt")
-    return {m.shape: save_checkpoint(folder / f"{m.shape}.pt", m, TrainConfig(shape=m.shape, size=SIZE), step=0)
+    return {m.shape: save_checkpoint(folder / f"{m.shape}.pt", m, train_config(shape=m.shape, size=SIZE), step=0)
             for m in random_models}
 
 

@@ -15,12 +15,10 @@ from typer.testing import CliRunner
 from cuboidgen.config import PAPER
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.config import TrainConfig
 from cuboidtrain.localize import (Building, ExperimentConfig, accuracy, draw_street, localize_masks, mask_sequence,
                                   rank_starts, read_street, run_experiment, silhouette_of, start_probabilities,
                                   street_from_dict, street_ratios, street_to_dict, subsequence_distances, true_ranks)
-from cuboidtrain.networks import build_model
-from tests.conftest import small_library
+from tests.conftest import small_library, tiny_model, train_config
 
 SIZE = 64  # the smallest size a street's masks are drawn and fitted at in the CPU recipe
 runner = CliRunner()
@@ -185,7 +183,7 @@ def test_more_masks_than_buildings_is_refused():
 
 def test_a_street_needs_a_box_model():
     with pytest.raises(ValueError, match="needs a box model .* got twobox"):
-        localize_masks(street_of([[1, 1]]), ["a.png"], models=[build_model("twobox", SIZE)])
+        localize_masks(street_of([[1, 1]]), ["a.png"], models=[tiny_model("twobox", SIZE)])
 
 
 def test_mask_sequence_keeps_street_order():
@@ -201,7 +199,7 @@ def test_mask_sequence_keeps_street_order():
 @pytest.fixture(scope="module")
 def box_checkpoint(tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "box.pt"
-    return save_checkpoint(path, build_model("box", SIZE, seed=1).eval(), TrainConfig(shape="box", size=SIZE), step=0)
+    return save_checkpoint(path, tiny_model("box", SIZE, seed=1).eval(), train_config(shape="box", size=SIZE), step=0)
 
 
 @pytest.fixture(scope="module")

@@ -14,14 +14,12 @@ from typer.testing import CliRunner
 from cuboidgen.config import PAPER
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.config import TrainConfig
 from cuboidtrain.evaluate import evaluate, load_batches
-from cuboidtrain.networks import build_model
 from cuboidtrain.report import NOISE_LEVELS, OCCLUSION_BINS, ReportConfig, generated_batches, run_report, table3
 from cuboidtrain.report_figures import PAPER_TABLE3
 from shared.sample import encode
 from shared.spool import SpoolWriter
-from tests.conftest import build_sample, small_library
+from tests.conftest import build_sample, small_library, tiny_model, train_config
 
 SIZE = 32
 runner = CliRunner()
@@ -43,7 +41,7 @@ def setup(tmp_path_factory):
         "clean-twobox": spool_of(root / "clean-twobox", "twobox", 4, clean),
         "noisy-box": spool_of(root / "noisy-box", "box", 4),
     }
-    ckpts = {s: save_checkpoint(root / f"{s}.pt", build_model(s, SIZE, seed=1), TrainConfig(shape=s, size=SIZE), step=7)
+    ckpts = {s: save_checkpoint(root / f"{s}.pt", tiny_model(s, SIZE, seed=1), train_config(shape=s, size=SIZE), step=7)
              for s in ("box", "twobox")}
     return root, spools, ckpts
 
@@ -62,7 +60,7 @@ def test_generated_sweep_levels_share_poses_and_differ_in_noise(tmp_path):
 
 def test_table3_trained_row_is_evaluate_on_the_same_samples(setup):
     _, spools, _ = setup
-    model = build_model("box", SIZE, seed=2)
+    model = tiny_model("box", SIZE, seed=2)
     batches, _ = load_batches(spools["clean-box"], "box", SIZE, 32, None)
     rows = table3("box", model, batches, torch.device("cpu"))
     assert [r["configuration"] for r in rows] == list(PAPER_TABLE3)
@@ -128,7 +126,7 @@ def test_cli_bad_options_are_one_line_errors(setup, extra, message):
     root, spools, ckpts = setup
     args = ["report", "--checkpoint", str(ckpts["box"]), "--clean-spool", str(spools["clean-box"]), "--out", str(root / "x")]
     if not (root / "box64.pt").exists():
-        save_checkpoint(root / "box64.pt", build_model("box", 64), TrainConfig(shape="box", size=64), step=1)
+        save_checkpoint(root / "box64.pt", tiny_model("box", 64), train_config(shape="box", size=64), step=1)
     names = {"root": root, "box": ckpts["box"], "twobox": ckpts["twobox"], "box64": root / "box64.pt"}
     message = message.format(**names)
     result = runner.invoke(app, args + [a.format(**names) for a in extra])

@@ -18,11 +18,10 @@ from cuboidtrain.config import TrainConfig
 from cuboidtrain.data import SpoolBatches
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.losses import combine, phase_losses
-from cuboidtrain.networks import build_model
 from cuboidtrain.train import learning_rate, run
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
-from tests.conftest import build_sample
+from tests.conftest import ARCH, build_sample, tiny_model, train_config
 
 SIZE = 32
 CPU = torch.device("cpu")
@@ -38,7 +37,7 @@ def spool(tmp_path_factory) -> Path:
 
 
 def config(spool: Path, out: Path, **changes) -> TrainConfig:
-    base = TrainConfig(spool=str(spool), out=str(out), shape="box", size=SIZE, steps=4, batch_size=4,
+    base = train_config(spool=str(spool), out=str(out), shape="box", size=SIZE, steps=4, batch_size=4,
                        loader_workers=0, dashboard=False, log_every=1, checkpoint_every=1000)
     return replace(base, **changes).validate()
 
@@ -58,7 +57,7 @@ def grads_by_network(model, loss: torch.Tensor) -> dict[str, bool]:
 
 
 def test_phase_1_trains_each_network_on_its_own_loss(spool):
-    model = build_model("box", SIZE)
+    model = tiny_model("box", SIZE)
     losses = phase_losses(model, batch_of(spool), "1", ratio_weight=1.0)
     assert grads_by_network(model, losses["D_R"]) == {"refiner": True, "estimator": False, "tabulator": False}
     assert grads_by_network(model, losses["D_S"]) == {"refiner": False, "estimator": True, "tabulator": False}
@@ -66,7 +65,7 @@ def test_phase_1_trains_each_network_on_its_own_loss(spool):
 
 
 def test_phase_2_chains_so_the_final_loss_reaches_every_network(spool):
-    model = build_model("box", SIZE)
+    model = tiny_model("box", SIZE)
     losses = phase_losses(model, batch_of(spool), "2", ratio_weight=1.0)
     assert grads_by_network(model, losses["D_T"]) == {"refiner": True, "estimator": True, "tabulator": True}
     assert grads_by_network(model, losses["D_S"]) == {"refiner": True, "estimator": True, "tabulator": False}
@@ -86,7 +85,7 @@ def test_a_short_run_lowers_every_loss_on_its_samples(spool, tmp_path):
     # the running statistics that eval mode uses to settle.
     x = batch_of(spool, 8)
     with torch.no_grad():
-        before = phase_losses(build_model("box", SIZE, seed=0).train(), x, "1", 1.0)
+        before = phase_losses(tiny_model("box", SIZE, seed=0).train(), x, "1", 1.0)
     status = run(config(spool, tmp_path, steps=40, lr=2e-3, batch_size=6))
     with torch.no_grad():
         after = phase_losses(load_model(tmp_path / "last.pt")[0].train(), x, "1", 1.0)
@@ -154,7 +153,7 @@ def test_sigterm_to_every_process_writes_a_checkpoint_then_exits(spool, tmp_path
     out = tmp_path / "run"
     proc = subprocess.Popen(
         [sys.executable, "-m", "cuboidtrain", "run", "--spool", str(spool), "--size", str(SIZE), "--batch-size", "4",
-         "--out", str(out), "--no-dashboard", "--loader-workers", "1"],
+         "--out", str(out), "--no-dashboard", "--loader-workers", "1", "--arch", ARCH],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1], start_new_session=True,
     )
     deadline = time.monotonic() + 120
