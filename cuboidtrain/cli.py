@@ -41,6 +41,7 @@ def run(
     lr: float = typer.Option(1e-3, envvar="CUBOIDTRAIN_LR", help="Adam learning rate."),
     lr_schedule: str = typer.Option("constant", envvar="CUBOIDTRAIN_LR_SCHEDULE", help="constant, or cosine (decays to lr/100 at --steps)."),
     max_minutes: Optional[float] = typer.Option(None, envvar="CUBOIDTRAIN_MAX_MINUTES", help="Stop, with a checkpoint, after this many minutes."),
+    max_wait: Optional[float] = typer.Option(None, metavar="SECONDS", envvar="CUBOIDTRAIN_MAX_WAIT", help="Give up (exit 1) after waiting this long for a usable sample: an empty spool, or none of its samples fit (default: wait on)."),
     weight_decay: float = typer.Option(1e-5, envvar="CUBOIDTRAIN_WEIGHT_DECAY", help="Adam's L2 penalty."),
     sigma: Optional[float] = typer.Option(None, envvar="CUBOIDTRAIN_SIGMA", help="Heat-map Gaussian std in px (default size/128, at least 1)."),
     alpha_r: float = typer.Option(1.0, envvar="CUBOIDTRAIN_ALPHA_R", help="Phase 2 weight of D_R."),
@@ -65,6 +66,7 @@ def run(
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
     from cuboidtrain.config import TrainConfig
     from cuboidtrain.dashboard import Dashboard
+    from cuboidtrain.train import NoUsableSamples
     from cuboidtrain.train import run as run_training
 
     setup_logging()
@@ -72,7 +74,7 @@ def run(
         config = TrainConfig(
             phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe,
             steps=steps, epochs=epochs,
-            batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, max_minutes=max_minutes, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
+            batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
             alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
             out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
             resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
@@ -85,8 +87,13 @@ def run(
             status = run_training(config, dashboard=board)
     except ValueError as exc:
         fail(str(exc))
+    except NoUsableSamples as exc:
+        fail(str(exc), code=1)
     if status.get("rank", 0) == 0:  # under torchrun rank 0 speaks for the run
-        console.print(f"{status['state']} at step {status['step']}; checkpoint {status['last_checkpoint']['path']}")
+        ckpt = status["last_checkpoint"]
+        console.print(f"{status['state']} at step {status['step']}; "
+                      + (f"checkpoint {ckpt['path']}" if ckpt else "no checkpoint written (no step was trained)"),
+                      highlight=False)
 
 
 # cuboidtrain.extractors' names, spelled out so that --help does not import torch (a test keeps them equal).

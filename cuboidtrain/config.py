@@ -37,6 +37,7 @@ class TrainConfig:
     lr: float = 1e-3  # Adam
     lr_schedule: str = "constant"  # or "cosine": decays to lr/100 at --steps (needs --steps)
     max_minutes: float | None = None  # stop (with a checkpoint) after this much wall time
+    max_wait: float | None = None  # s: give up (exit 1) after waiting this long for a usable sample; None: wait on
     weight_decay: float = 1e-5  # Adam's L2 penalty (paper 3.2)
     sigma: float | None = None  # heat-map Gaussian std in px; None: size/128, at least 1
     alpha_r: float = 1.0  # phase 2 weights of eq. (1)
@@ -79,6 +80,8 @@ class TrainConfig:
             raise ValueError("--lr-schedule cosine needs --steps N: the step it decays to")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise ValueError(f"--max-minutes {self.max_minutes}: expected a positive number")
+        if self.max_wait is not None and self.max_wait <= 0:
+            raise ValueError(f"--max-wait {self.max_wait}: expected a positive number of seconds")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"--threads {self.threads}: expected a positive integer")
         if self.loader_workers < 0:

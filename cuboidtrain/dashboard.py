@@ -27,7 +27,7 @@ from cuboidtrain.files import write_json_atomically
 log = logging.getLogger(__name__)
 
 STATUS_FILE = "status.json"
-FINISHED = ("done", "stopped")
+FINISHED = ("done", "stopped", "gave up")
 DASH = "—"
 SPARK = "▁▂▃▄▅▆▇█"
 SPARK_POINTS = 30  # points of loss_history drawn as the trend
@@ -37,7 +37,8 @@ PHASE_MEANING = {"1": "separate networks", "2": "chained", "e2e": "ablation: end
                  "finetune": "ablation: fine-tune"}
 LOSSES = (("D_R", "Refiner"), ("D_S", "Estimator"), ("D_T", "Tabulator"), ("total", "weighted sum"))
 STATE_STYLE = {"training": "green", "waiting for samples": "yellow", "checkpointing": "cyan",
-               "evaluating": "cyan", "done": "bold green", "stopped": "bold yellow"}
+               "evaluating": "cyan", "done": "bold green", "stopped": "bold yellow",
+               "gave up": "bold red"}
 
 
 # --- formatting: every helper takes None and gives "—" -----------------------------------
@@ -309,12 +310,12 @@ def _annotated(status: dict) -> dict:
 
 def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console | None = None) -> int:
     """Show the dashboard of the run in `out` until it is done or stopped, its trainer dies,
-    or Ctrl-C. Returns 1 when the trainer died before finishing, else 0."""
+    or Ctrl-C. Returns 1 when the trainer died before finishing or gave up, else 0."""
     console = console or Console()
     status = read_status(out)
     if once:
         console.print(render(_annotated(status)))
-        return int(_trainer_gone(status))
+        return _exit_code(status)
     try:
         with Live(render(_annotated(status)), console=console, auto_refresh=False, transient=False) as live:
             while status.get("state") not in FINISHED and not _trainer_gone(status):
@@ -326,4 +327,9 @@ def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console
                 live.update(render(_annotated(status)), refresh=True)
     except KeyboardInterrupt:
         return 0
-    return int(_trainer_gone(status))
+    return _exit_code(status)
+
+
+def _exit_code(status: dict) -> int:
+    """1 when the trainer died before finishing or gave up waiting for samples, else 0."""
+    return int(_trainer_gone(status) or status.get("state") == "gave up")

@@ -61,7 +61,7 @@ class Progress:
             "pid": os.getpid(), "rank": rank, "world_size": world, "started": time.time(), "updated": time.time(),
             "step": 0, "steps_total": config.steps, "epoch": 0, "epochs_total": config.epochs,
             "batch_in_epoch": 0, "batches_in_epoch": 0, "loss_weights": list(config.loss_weights),
-            "last_checkpoint": None, "val": None, "notes": [],
+            "last_checkpoint": None, "val": None, "notes": [], "idle": None,
         }
 
     # ---- events from the loop
@@ -92,12 +92,16 @@ class Progress:
             except OSError:
                 self.foreign = 0
 
-    def idle(self, reason: str) -> None:
-        """Nothing to train on for a moment: say so on the dashboard, and in the log once a minute."""
+    def idle(self, reason: str, wait: float | None) -> None:
+        """Nothing to train on: say why on the dashboard, and in the log when the reason
+        changes or once a minute. `wait`: seconds until the next listing (None: giving up)."""
+        self._status["idle"] = reason
         self.state("waiting for samples")
+        self._publish(force=True)
         said, when = self.idle_said
         if reason != said or time.monotonic() - when > IDLE_LOG_EVERY:
-            log.warning("%s (skipped so far: %s); waiting", reason, _counts(self.skipped))
+            then = f"listing again in {wait:g} s" if wait is not None else "giving up"
+            log.warning("%s; %s (skipped so far: %s)", reason, then, _counts(self.skipped))
             self.idle_said = (reason, time.monotonic())
 
     def replicas(self, ranks: list[dict]) -> None:
@@ -111,6 +115,7 @@ class Progress:
         self.recent.append((samples, waited, now - self.last_end))
         self.last_end = now
         self.skipped.update(skipped)
+        self._status["idle"] = None  # training again
         self.freshness = {"mean_age_s": age, "mean_reuse": reuse}
         for key, value in losses.items():
             previous = self.smoothed.get(key, value)
@@ -179,7 +184,7 @@ class Progress:
         return max(0, remaining) * step_time
 
     def _notes(self, rates: dict) -> list[str]:
-        notes = []
+        notes = [self._status["idle"]] if self._status.get("idle") else []
         wait = rates["data_wait_fraction"]
         if wait is not None and wait > STARVING and len(self.recent) == WINDOW:
             notes.append(f"data wait {wait:.0%} of step time: the loader is starving (more --loader-workers, or a faster spool disk)")

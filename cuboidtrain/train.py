@@ -36,6 +36,23 @@ from shared.spool import check_spool
 log = logging.getLogger(__name__)
 
 LAST = "last.pt"
+IDLE_WAIT = (0.5, 30.0)  # s: first and longest pause between listings of a spool with no usable sample
+
+
+class NoUsableSamples(RuntimeError):
+    """--max-wait ran out with nothing to train on: an empty spool, or none of its samples usable."""
+
+
+def next_wait(wait: float) -> float:
+    """The pause after `wait` while the spool stays unusable: doubled, at most IDLE_WAIT[1]."""
+    return min(2 * wait, IDLE_WAIT[1])
+
+
+def idle_pause(seconds: float, stop) -> None:
+    """Sleep between listings, waking early when a stop is asked for."""
+    deadline = time.monotonic() + seconds
+    while not stop and time.monotonic() < deadline:
+        time.sleep(min(0.1, max(deadline - time.monotonic(), 0)))
 
 
 class StopRequest:
@@ -190,13 +207,15 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         drop_records_after(out / "metrics.jsonl", step)
     losses_of = wrap(model, config.phase, config.ratio_weight, ranks)
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
-                                  config.loader_workers, pin_memory=device.type == "cuda", timeout=loader_timeout,
+                                  config.loader_workers, pin_memory=device.type == "cuda",
+                                  timeout=loader_timeout if loader_timeout is not None else config.max_wait,
                                   worker_init_fn=_leave_signals_to_main, reframe=config.reframe,
                                   **_sampler_options(ranks, stop))
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))
     freshness = Freshness()
-    started, sigma = time.monotonic(), config.heatmap_sigma
+    started, sigma, first_step = time.monotonic(), config.heatmap_sigma, step
+    wait, idle_since = IDLE_WAIT[0], None  # the next pause between unusable listings; since when none was usable
     with SpoolWatcher(config.spool) as watcher, Progress(config, device, watcher, dashboard, ranks.rank, ranks.world) as progress:
         sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names),
                                             progress.listed(config.spool))
@@ -204,12 +223,14 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         while not ranks.any(bool(stop) or finished(config, step, sampler.epochs_done(), started)):
             progress.state("waiting for samples" if watcher.count < config.batch_size else "training")
             stepped = went_stale = False
+            unusable = {}  # this listing's skipped samples, by reason
             try:
                 for batch in loader:  # one epoch: the spool as listed now (this rank's share of it)
                     # 1. fetch: the time spent waiting for this batch is the data wait
                     waited = progress.fetched()
                     sampler.state.position += 1
                     skipped, too_small = batch_facts(ranks, batch)
+                    unusable = {k: unusable.get(k, 0) + n for k, n in skipped.items()}
                     if stale(skipped, config.batch_size * ranks.world):
                         # The generator evicted most of this listing (it outruns the trainer):
                         # end the epoch and list the spool afresh rather than skip through it.
@@ -226,7 +247,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                         group["lr"] = learning_rate(config, step)
                     losses = train_step(model, optimizer, x, config, device, losses_of)
                     step += 1
-                    stepped = True
+                    stepped, wait, idle_since = True, IDLE_WAIT[0], None
                     # 3. account and report
                     age, reuse = freshness.observe(batch["names"])
                     losses, samples = global_losses(ranks, losses, len(batch["names"]))
@@ -241,18 +262,43 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                         break
             except WaitInterrupted:
                 break
+            except TimeoutError as exc:  # --max-wait ran out while the spool held less than a batch
+                progress.state("gave up")
+                raise NoUsableSamples(f"{exc}; gave up (--max-wait {sampler.timeout:g})") from None
             if not (stepped or went_stale):
-                # Every sample of the listing was unusable (corrupt, another shape or size):
-                # wait before listing again rather than spin through the same files.
-                progress.idle(f"spool {config.spool}: no usable samples in the last listing")
-                time.sleep(sampler.wait)
-        # 5. the last checkpoint, also on SIGTERM / Ctrl-C
-        progress.state("checkpointing")
-        progress.checkpointed(_checkpoint(ranks, out, model, config, step, optimizer, sampler, progress), step)
+                # Every sample of the listing was unusable (corrupt, another shape or size, cut
+                # off): wait before listing again, longer each time, rather than spin through
+                # the same files; give up after --max-wait.
+                idle_since = time.monotonic() if idle_since is None else idle_since
+                reason = _unusable_reason(config, unusable)
+                left = math.inf if config.max_wait is None else config.max_wait - (time.monotonic() - idle_since)
+                if ranks.any(left <= 0):
+                    progress.idle(reason, None)
+                    progress.state("gave up")
+                    raise NoUsableSamples(f"{reason}; gave up after {time.monotonic() - idle_since:.0f} s "
+                                          f"(--max-wait {config.max_wait:g})")
+                progress.idle(reason, min(wait, left))
+                idle_pause(min(wait, left), stop)
+                wait = next_wait(wait)
+        # 5. the last checkpoint, also on SIGTERM / Ctrl-C; none before a step was trained
+        if step > first_step:
+            progress.state("checkpointing")
+            progress.checkpointed(_checkpoint(ranks, out, model, config, step, optimizer, sampler, progress), step)
         if ranks.distributed:
             progress.replicas(ranks.gather({"rank": ranks.rank, "step": step, "weights": weights_digest(model)}))
         progress.state("stopped" if ranks.any(bool(stop)) else "done")
         return progress.status()
+
+
+def _unusable_reason(config: TrainConfig, skipped: dict) -> str:
+    """Why the last listing gave nothing to train on, with what would fix it."""
+    counts = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in skipped.items() if n) or "none read"
+    reason = f"spool {config.spool}: no usable sample in the last listing ({counts})"
+    if skipped.get("other_size"):
+        reason += f"; samples of another size need --reframe, or a generator with --size {config.size}"
+    elif skipped.get("other_shape"):
+        reason += f"; the spool holds no {config.shape} samples (--shape)"
+    return reason
 
 
 def _sampler_options(ranks: Ranks, stop: StopRequest) -> dict:

@@ -20,7 +20,7 @@ def setup_logging(verbose: bool = False) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
 
 
-def fail(message: str) -> None:
-    """One line on stderr and a non-zero exit: how every bad value is reported."""
+def fail(message: str, code: int = 2) -> None:
+    """One line on stderr and a non-zero exit (2: a bad value): how every error is reported."""
     console.print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
-    raise typer.Exit(2)
+    raise typer.Exit(code)

@@ -21,16 +21,17 @@ from typer.testing import CliRunner
 
 import cuboidgen.daemon as daemon
 import cuboidtrain.data as data
+import cuboidtrain.train as train_module
 from cuboidgen.cli import app as gen_app
 from cuboidtrain.checkpoint import load_checkpoint
 from cuboidtrain.cli import app as train_app
 from cuboidtrain.config import TrainConfig
 from cuboidtrain.dashboard import render
-from cuboidtrain.train import StopRequest, run
+from cuboidtrain.train import NoUsableSamples, StopRequest, run
 from shared.inspect import inspect_spool
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
-from tests.conftest import build_sample, tiny_config, train_config
+from tests.conftest import ARCH, build_sample, tiny_config, train_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
@@ -256,7 +257,7 @@ def test_an_empty_spool_waits_saying_so_without_spinning_and_stops_when_asked(tm
     assert status["state"] == "stopped" and status["step"] == 0
     assert "holds 0 samples: waiting for at least 2" in caplog.text
     assert len(listings) == 3 and listings[2] - listings[0] >= 0.9  # polled every 0.5 s, not in a busy loop
-    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 0
+    assert not (tmp_path / "run" / "last.pt").exists()  # no checkpoint of untrained weights
 
 
 def test_a_spool_of_three_samples_is_reused_and_says_how_often(tmp_path):
@@ -278,7 +279,61 @@ def test_a_spool_of_only_corrupt_files_waits_rather_than_spins(tmp_path, monkeyp
     assert status["state"] == "stopped" and status["step"] == 0
     assert len(listings) == 3 and listings[2] - listings[0] >= 0.9  # a pause between listings: no spinning
     assert status["skipped"]["corrupt"] == 3 * 2  # one batch of 2 per listing of 3
-    assert "no usable samples" in caplog.text
+    assert "no usable sample in the last listing (2 corrupt)" in caplog.text
+
+
+def test_a_spool_of_unusable_samples_backs_off_says_why_and_writes_no_checkpoint(tmp_path, monkeypatch, caplog):
+    # 64 px samples for a 32 px trainer that does not reframe: every listing is unusable.
+    spool = tmp_path / "spool"
+    with SpoolWriter(spool, limit=0) as writer:
+        for seed in range(3):
+            writer.publish(encode(build_sample(seed, size=64)))
+    pauses = []
+    monkeypatch.setattr(train_module, "idle_pause", lambda seconds, stop: pauses.append(seconds))
+    stop, listings = stop_at_listing(monkeypatch, 9)
+    caplog.set_level(logging.INFO, "cuboidtrain")
+    status = run(config(spool, tmp_path / "run", steps=None, reframe=False), stop=stop)
+    assert status["state"] == "stopped" and status["step"] == 0
+    assert pauses == [0.5, 1, 2, 4, 8, 16, 30, 30, 30]  # doubling up to 30 s between listings
+    reason = "no usable sample in the last listing (2 other size); samples of another size need --reframe"
+    assert reason in status["idle"] and reason in " ".join(status["notes"])
+    assert "no usable sample" in shown(status)  # on the dashboard
+    assert reason in caplog.text and "listing again in 0.5 s" in caplog.text
+    assert caplog.text.count(reason) == 1  # the same reason is logged once (again after a minute)
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+def test_max_wait_gives_up_on_an_unusable_spool_and_writes_no_checkpoint(tmp_path):
+    spool = tmp_path / "spool"
+    with SpoolWriter(spool, limit=0) as writer:
+        writer.publish(encode(build_sample(0, "twobox", size=SIZE)))
+        writer.publish(encode(build_sample(1, "twobox", size=SIZE)))
+    started = time.monotonic()
+    with pytest.raises(NoUsableSamples, match=r"2 other shape.*no box samples.*gave up after 1 s \(--max-wait 1\)"):
+        run(config(spool, tmp_path / "run", steps=None, max_wait=1.0))
+    assert time.monotonic() - started >= 1.0
+    assert not (tmp_path / "run" / "last.pt").exists()
+    assert json.loads((tmp_path / "run" / "status.json").read_text())["state"] == "gave up"
+
+
+@pytest.mark.parametrize("samples, message", [
+    (0, "0 samples after 1 s, need at least one batch (2); gave up (--max-wait 1)"),
+    (3, "no usable sample in the last listing (2 other size)"),
+])
+def test_the_max_wait_option_exits_1_with_a_one_line_error(tmp_path, samples, message):
+    spool = tmp_path / "spool"
+    spool.mkdir()
+    with SpoolWriter(spool, limit=0) as writer:
+        for seed in range(samples):
+            writer.publish(encode(build_sample(seed, size=64)))
+    result = runner.invoke(train_app, ["run", "--spool", str(spool), "--size", str(SIZE), "--batch-size", "2",
+                                       "--out", str(tmp_path / "run"), "--no-dashboard", "--loader-workers", "0",
+                                       "--arch", ARCH, "--no-reframe", "--max-wait", "1"])
+    assert result.exit_code == 1, result.output
+    last = result.output.strip().splitlines()[-1]
+    assert last.startswith("error: ") and message in last and "Traceback" not in result.output
+    assert not (tmp_path / "run" / "last.pt").exists()
+    assert runner.invoke(train_app, ["run", "--max-wait", "0"]).exit_code == 2  # a bad value, not a give-up
 
 
 # ---- what a killed trainer leaves behind ----------------------------------------------
