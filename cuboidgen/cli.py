@@ -13,9 +13,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from shared.console import console, fail, setup_logging
+from shared.console import Commands, console, fail, setup_logging
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="Synthetic cuboid samples into a capped spool.")
+app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
+                  help="Synthetic cuboid samples into a capped spool.")
 occluders_app = typer.Typer(no_args_is_help=True, help="Occluder libraries: extract cutouts, preview them.")
 app.add_typer(occluders_app, name="occluders")
 

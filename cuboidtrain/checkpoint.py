@@ -77,6 +77,9 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
         # weights_only=False: the payload holds RNG states (numpy arrays, tuples); only load your own files
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # torch raises many types for a truncated or foreign file
+        if not _torch_file(path):  # a PNG, a text file: say what it is not, not what pickle tripped on
+            raise ValueError(f"checkpoint {path}: cannot read it: not a cuboid-fit checkpoint "
+                             f"(not a file that torch.save writes)") from None
         raise ValueError(f"checkpoint {path}: cannot read it ({type(exc).__name__}: {exc})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r})")
@@ -97,6 +100,13 @@ def load_model(path: str | Path, shape: str | None = None, size: int | None = No
     model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"], checkpoint_arch(ckpt))
     model.load_state_dict(ckpt["model"])
     return model.eval(), ckpt
+
+
+def _torch_file(path: Path) -> bool:
+    """Whether the file starts as torch.save's files do: a zip archive, or (before torch 1.6) a pickle."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    return head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"
 
 
 def checkpoint_arch(ckpt: dict) -> str:

@@ -9,9 +9,9 @@ from typing import Optional
 
 import typer
 
-from shared.console import console, fail, setup_logging
+from shared.console import Commands, console, fail, setup_logging
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
                   help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run; infer.")
 
 
@@ -205,7 +205,8 @@ def infer(
     except (ValueError, OSError) as exc:
         fail(str(exc))
     if explainer is not None:
-        console.print(f"{len(explainer.written)} pictures in {explain}", highlight=False)
+        count = len(explainer.written)
+        console.print(f"{count} picture{'' if count == 1 else 's'} in {explain}", highlight=False)
     failed = sum(r["error"] is not None for r in records)
     if failed:
         console.print(f"{failed} of {len(records)} records have an error (see their \"error\" field)", highlight=False)

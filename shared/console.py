@@ -6,6 +6,7 @@ import logging
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from typer.core import TyperGroup
 
 console = Console(stderr=True)
 
@@ -24,3 +25,26 @@ def fail(message: str, code: int = 2) -> None:
     """One line on stderr and a non-zero exit (2: a bad value): how every error is reported."""
     console.print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
+
+
+class Commands(TyperGroup):
+    """A command line whose option errors give the message alone.
+
+    typer checks a value with pydantic and passes on pydantic's wording of a rejected
+    one, "Value error, '3' is not one of ...": the prefix is dropped here, where the
+    subcommand's options are parsed (`Typer(cls=Commands)`)."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except typer.BadParameter as exc:
+            exc.message = plain_message(exc.message)
+            raise
+
+
+def plain_message(message: str) -> str:
+    """A validation message without pydantic's kind prefix ("Value error, ...")."""
+    for prefix in ("Value error, ", "Assertion failed, "):
+        if message.startswith(prefix):
+            return message[len(prefix):]
+    return message

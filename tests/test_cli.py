@@ -98,3 +98,17 @@ def test_cuboidtrain_prints_help():
     from cuboidtrain.cli import app as train_app
 
     assert "Refiner" in runner.invoke(train_app, ["--help"]).stdout
+
+
+@pytest.mark.parametrize("program, args, message", [
+    ("cuboidgen", ["run", "--shape", "cube"], "'cube' is not one of 'box', 'twobox', 'mix'"),
+    ("cuboidgen", ["occluders", "extract", "--min-pixels", "many"], "valid integer"),
+    ("cuboidtrain", ["run", "--phase", "3"], "'3' is not one of '1', '2', 'e2e', 'finetune'"),
+])
+def test_option_errors_give_the_message_without_pydantics_prefix(program, args, message):
+    from cuboidtrain.cli import app as train_app
+
+    result = runner.invoke({"cuboidgen": app, "cuboidtrain": train_app}[program], args)
+    assert result.exit_code == 2
+    text = " ".join(result.output.replace("│", " ").split())  # the error box's lines, joined
+    assert message in text and "Value error" not in text, result.output
