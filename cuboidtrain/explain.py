@@ -9,7 +9,10 @@ A panel per fitted input, `<stem>.png` in the explanation folder:
     below:  one tile per keypoint heat map, named, with the chosen point on it
 
 and, given a photo, `<stem>-overlay.png`: the fit drawn over the photo at its own
-resolution. Images are shown with imshow's default extent, which puts pixel
+resolution, or a whole multiple of it up to at least MIN_OVERLAY px on the long side
+(a 70 x 49 px crop would be a postage stamp). Where a tile shows more than its image
+(a keypoint outside the input), the area outside is hatched grey, named in a legend:
+white is the foreground's colour. Images are shown with imshow's default extent, which puts pixel
 (row i, column j) at (x = j, y = i): DESIGN.md's pixel-centre convention, so
 keypoints are plotted as they are, with no half-pixel shift.
 """
@@ -26,11 +29,15 @@ matplotlib.use("Agg")  # files only; never a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from matplotlib.patches import Patch, Rectangle  # noqa: E402
+
 from shared.shapes import Shape, get_shape  # noqa: E402
 
 log = logging.getLogger(__name__)
 FRONT_COLOUR, BACK_COLOUR, POINT_COLOUR = "#ff7f0e", "#17becf", "#ffdd00"
 MAX_TILES_PER_ROW = 8
+MIN_OVERLAY = 512  # px: a smaller photo's overlay is scaled up to at least this on its long side
+OUTSIDE = dict(facecolor="#8c8c8c", edgecolor="#5e5e5e", hatch="///", linewidth=0)  # beyond the image
 
 
 def front_arrow(geometry: Shape, keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,6 +82,21 @@ def _show(ax, image, title: str, **kwargs) -> None:
     ax.set_yticks([])
 
 
+def mark_outside(ax, height: int, width: int) -> bool:
+    """Hatch the part of the tile's view beyond its `height` x `width` image and name it in a
+    legend; True when there is such a part. Call it once the view's limits are final."""
+    (x0, x1), (y1, y0) = ax.get_xlim(), ax.get_ylim()  # y grows downwards
+    if x0 >= -0.5 and y0 >= -0.5 and x1 <= width - 0.5 and y1 <= height - 0.5:
+        return False
+    ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, zorder=-1, **OUTSIDE))
+    for image in ax.get_images():
+        image.set_zorder(0)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y1, y0)
+    ax.legend(handles=[Patch(label="outside the input", **OUTSIDE)], loc="lower right", fontsize=7, framealpha=0.85)
+    return True
+
+
 def _input_tile(ax, mask: np.ndarray, geometry: Shape, keypoints: np.ndarray) -> None:
     """The whole input mask with the fit in input pixels, zoomed to the object and the fit."""
     _show(ax, mask, f"input mask, {mask.shape[1]} x {mask.shape[0]} px (zoomed)", cmap="gray", vmin=0, vmax=1)
@@ -85,6 +107,7 @@ def _input_tile(ax, mask: np.ndarray, geometry: Shape, keypoints: np.ndarray) ->
     pad = 0.08 * (hi - lo).max() + 2
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(hi[1] + pad, lo[1] - pad)  # images grow downwards
+    mark_outside(ax, *mask.shape)
 
 
 def _heatmap_tiles(fig, grid, geometry: Shape, heatmaps: np.ndarray, keypoints: np.ndarray,
@@ -128,6 +151,7 @@ def explanation_figure(explanation: dict, record: dict, photo: np.ndarray | None
     if photo is not None:
         _show(tiles[4], photo, "photo with the fit")
         draw_fit(tiles[4], geometry, photo_keypoints, indices=False, scale=max(1.0, photo.shape[1] / 800))
+        mark_outside(tiles[4], *photo.shape[:2])
     heat_grid = fig.add_gridspec(heat_rows, columns, top=(small * heat_rows) / height, bottom=0.01,
                                  left=0.01, right=0.99, hspace=0.35, wspace=0.06)
     _heatmap_tiles(fig, heat_grid, geometry, fit["heatmaps"], keypoints, fit["refined"])
@@ -162,15 +186,20 @@ def read_photo(path: Path) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def overlay_zoom(height: int, width: int) -> int:
+    """Figure pixels per photo pixel: 1, or the least whole number that brings the long side to MIN_OVERLAY."""
+    return max(1, math.ceil(MIN_OVERLAY / max(height, width)))
+
+
 def overlay_figure(photo: np.ndarray, record: dict, keypoints: np.ndarray):
-    """The fit over the photo at the photo's own resolution (one figure pixel per photo pixel)."""
+    """The fit over the photo: `overlay_zoom` figure pixels per photo pixel (one, from MIN_OVERLAY px up)."""
     height, width = photo.shape[:2]
-    dpi = 100
-    fig = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi)
+    zoom, dpi = overlay_zoom(height, width), 100
+    fig = plt.figure(figsize=(width * zoom / dpi, height * zoom / dpi), dpi=dpi)
     ax = fig.add_axes((0, 0, 1, 1))
     ax.imshow(photo, interpolation="nearest")
     ax.set_axis_off()
-    scale = max(1.0, width / 640)
+    scale = max(1.0, width * zoom / 640)
     draw_fit(ax, get_shape(record["shape"]), keypoints, scale=scale)
     ax.text(0.01 * width, 0.02 * height, f"{record['shape']} {record['confidence']:.2f}", color="white",
             fontsize=10 * scale, va="top", bbox=dict(fc="black", alpha=0.6, lw=0))

@@ -7,10 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
-from cuboidtrain.explain import Explainer, front_arrow, to_photo
+from typer.testing import CliRunner
+
+from cuboidtrain.cli import app
+from cuboidtrain.explain import Explainer, _input_tile, front_arrow, overlay_zoom, to_photo
 from cuboidtrain.infer import infer_paths
 from shared.shapes import get_shape
-from tests.test_infer import Recording, hexagon, rect_keypoints, rectangles, stub_model, write_png
+from tests.test_infer import (Recording, checkpoints, hexagon, random_models, rect_keypoints,  # noqa: F401 (fixtures)
+                              rectangles, stub_model, write_png)
 
 
 def test_to_photo_maps_pixel_centres_between_resolutions():
@@ -46,13 +50,57 @@ def test_the_panel_and_the_overlay_are_written_per_input(tmp_path):
     panel = cv2.imread(str(tmp_path / "explain" / "building.png"))
     assert panel.shape[1] > 1200 and panel.shape[0] > 600  # big enough to read the heat-map tiles
     overlay = cv2.imread(str(tmp_path / "explain" / "building-overlay.png"))
-    assert overlay.shape == photo.shape  # one picture pixel per photo pixel
+    # A 180 px wide photo is drawn at 3 picture pixels per photo pixel: 540 px, at least 512 on the long side.
+    assert overlay.shape == (3 * 120, 3 * 180, 3)
     # The rectangle's corners, mapped onto the photo, are drawn over; a far corner is untouched.
-    corners = to_photo(np.array(records[0]["keypoints"]), (60, 90), (120, 180))
+    corners = to_photo(np.array(records[0]["keypoints"]), (60, 90), (360, 540))
     for x, y in np.round(corners).astype(int):
         patch = overlay[max(y - 2, 0) : y + 3, max(x - 2, 0) : x + 3].astype(int)
         assert np.abs(patch - 128).max() > 60
-    assert np.abs(overlay[108:, 165:].astype(int) - 128).max() < 12  # JPEG noise only
+    assert np.abs(overlay[324:, 495:].astype(int) - 128).max() < 12  # JPEG noise only
+
+
+@pytest.mark.parametrize("height, width, zoom", [(49, 70, 8), (120, 180, 3), (300, 512, 1), (1080, 1920, 1)])
+def test_small_photos_are_overlaid_at_least_512_px_on_the_long_side(height, width, zoom):
+    assert overlay_zoom(height, width) == zoom
+    assert max(height, width) * zoom >= 512 and (zoom == 1 or max(height, width) * (zoom - 1) < 512)
+
+
+def tile_pixels(fig, ax, x: float, y: float) -> np.ndarray:
+    """The RGB pixels around data point (x, y) of `ax`, as drawn."""
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(int)
+    px, py = ax.transData.transform((x, y))
+    row, col = image.shape[0] - int(py), int(px)
+    return image[row - 3 : row + 4, col - 3 : col + 4].reshape(-1, 3)
+
+
+def test_the_area_outside_the_input_is_hatched_grey_not_the_foregrounds_white():
+    import matplotlib.pyplot as plt
+
+    mask = rectangles((40, 60), (10, 10, 50, 30)).astype(np.float64)  # 1 = building, drawn white
+    geometry = get_shape("box")
+    keypoints = np.array([[-30.0, 12.0], [50, 10], [10, 30], [50, 30], [12, 12], [48, 12], [12, 28], [48, 28]])
+    fig, ax = plt.subplots(figsize=(4, 3), dpi=100)
+    _input_tile(ax, mask, geometry, keypoints)  # a corner 30 px left of the input: the view reaches past it
+    outside, building, background = (tile_pixels(fig, ax, *p) for p in ((-20, 35), (30, 20), (4, 36)))
+    assert 70 < outside.mean() < 190 and outside.min() < outside.max()  # grey, hatched
+    assert building.mean() > 240 and background.mean() < 20  # white building, black background
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["outside the input"]
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(4, 3), dpi=100)
+    inside = np.vstack([[10.0, 10.0], keypoints[1:]])
+    _input_tile(ax, mask, geometry, inside)  # the view within the input: nothing to mark
+    assert ax.get_legend() is None
+    plt.close(fig)
+
+
+def test_the_cli_counts_its_pictures_in_words(tmp_path, checkpoints):
+    path = write_png(tmp_path / "building.png", rectangles((60, 90), (10, 10, 70, 50)))
+    result = CliRunner().invoke(app, ["infer", path, "--checkpoint", str(checkpoints["box"]),
+                                      "--explain", str(tmp_path / "out"), "--json", str(tmp_path / "out.json")])
+    assert result.exit_code == 0, result.output
+    assert f"1 picture in {tmp_path / 'out'}" in result.output
 
 
 def test_components_get_their_own_panels(tmp_path):
