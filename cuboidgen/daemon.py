@@ -182,35 +182,59 @@ def pause(seconds: float, shared: Shared) -> None:
 
 
 def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threading.Event) -> None:
-    """Refresh the dashboard until every worker is done or a stop is asked for."""
+    """Refresh the dashboard until every worker is done or a stop is asked for. A stop is
+    shown while the workers finish the sample in hand, then the final frame shows them
+    stopped with their final counts."""
     started = time.monotonic()
     last = (started, [0] * len(workers))
     with Dashboard(live=config.dashboard) as dashboard:
         while True:
             time.sleep(0.5)
             finished = stop_asked.is_set() or not any(w.is_alive() for w in workers)
+            if finished:
+                break
             now = time.monotonic()
             published = [shared.get(i, "published") for i in range(len(workers))]
             rates = [(p - q) / max(now - last[0], 1e-9) for p, q in zip(published, last[1])]
-            if now - last[0] >= 2.0 or finished:
+            if now - last[0] >= 2.0:
                 last = (now, published)
-            if dashboard.due(final=finished):
-                dashboard.update(snapshot(config, shared, rates, now - started), final=finished)
-            if finished:
-                return
+            if dashboard.due():
+                dashboard.update(snapshot(config, shared, rates, now - started))
+        if stop_asked.is_set():
+            rates = [0.0] * len(workers)
+            dashboard.update(snapshot(config, shared, rates, time.monotonic() - started, stopping=True), final=True)
+            shared.request_stop()
+            _join(workers)
+        elapsed = time.monotonic() - started
+        means = [shared.get(i, "published") / max(elapsed, 1e-9) for i in range(len(workers))]  # over the run
+        dashboard.update(snapshot(config, shared, means, elapsed, alive=[w.is_alive() for w in workers]), final=True)
 
 
-def snapshot(config: GenConfig, shared: Shared, rates: list[float], elapsed: float) -> GenSnapshot:
+def snapshot(config: GenConfig, shared: Shared, rates: list[float], elapsed: float, stopping: bool = False,
+             alive: list[bool] | None = None) -> GenSnapshot:
+    """`stopping`: a stop was asked for and running workers are finishing their sample;
+    `alive`: whether each worker process still runs (a dead one cannot be running)."""
+    states = []
+    for i in range(len(rates)):
+        state = shared.get(i, "state")
+        if state in (RUNNING, BACKING_OFF) and stopping:
+            states.append("stopping")
+        elif state in (RUNNING, BACKING_OFF) and alive is not None and not alive[i]:
+            states.append("stopped")  # killed after JOIN_TIMEOUT
+        else:
+            states.append(STATE_NAMES[state])
     workers = [
         WorkerView(
             published=shared.get(i, "published"), evicted=shared.get(i, "evicted"),
-            errors=shared.get(i, "errors"), rate=rates[i], state=STATE_NAMES[shared.get(i, "state")],
+            errors=shared.get(i, "errors"), rate=rates[i], state=states[i],
         )
         for i in range(len(rates))
     ]
     count, size, oldest, newest = spool_summary(config.spool)
     notes = ["disk full: workers back off and resume when space returns"] if any(
         w.state == STATE_NAMES[BACKING_OFF] for w in workers) else []
+    if stopping:
+        notes.append("stopping: each worker finishes the sample in hand")
     return GenSnapshot(
         elapsed=elapsed, workers=workers, spool=str(config.spool), spool_samples=count, spool_bytes=size,
         limit=config.limit, max_samples=config.max_samples, oldest_age=oldest, newest_age=newest,

@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 from rich.console import Console, Group
 from rich.live import Live
 from rich.panel import Panel
 from rich.table import Table
+
+from shared.console import ECHO_ROOM
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +26,7 @@ class WorkerView:
     evicted: int
     errors: int
     rate: float  # samples/s over the last interval
-    state: str  # running | backing off (disk full) | done
+    state: str  # running | disk full, backing off | stopping | done | stopped | failed: cannot write
 
 
 @dataclass
@@ -60,11 +63,12 @@ class GenSnapshot:
 
 
 def human_bytes(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
+    """Bytes in binary units, named as such: 1 KiB = 1024 B."""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
-    return f"{n:.1f} GB"
+    return f"{n:.1f} GiB"
 
 
 def human_age(seconds: float | None) -> str:
@@ -75,8 +79,8 @@ def human_age(seconds: float | None) -> str:
     return f"{seconds / 60:.1f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
 
 
-def render(s: GenSnapshot) -> Panel:
-    """The dashboard for one snapshot."""
+def render(s: GenSnapshot, width: int | None = None) -> Panel:
+    """The dashboard for one snapshot; `width` in columns (None: the console's)."""
     workers = Table("worker", "samples/s", "published", "evicted", "errors", "state", box=None, expand=True)
     for i, w in enumerate(s.workers):
         style = "red" if w.errors else ("yellow" if w.state != "running" else "")
@@ -91,7 +95,7 @@ def render(s: GenSnapshot) -> Panel:
     spool.add_row("oldest", human_age(s.oldest_age), "newest", human_age(s.newest_age))
     spool.add_row("sample", f"{s.shape} {s.size}x{s.size}, scene {s.scene}", "uptime", human_age(s.elapsed))
     parts = [spool, workers] + [f"[yellow]{note}" for note in s.notes]
-    return Panel(Group(*parts), title="cuboidgen", subtitle="Ctrl-C stops cleanly")
+    return Panel(Group(*parts), title="cuboidgen", subtitle="Ctrl-C stops cleanly", width=width)
 
 
 def log_line(s: GenSnapshot) -> str:
@@ -104,6 +108,9 @@ def log_line(s: GenSnapshot) -> str:
         f"errors {s.errors}",
         f"oldest {human_age(s.oldest_age)} newest {human_age(s.newest_age)}",
     ]
+    states = Counter(w.state for w in s.workers)
+    if set(states) != {"running"}:  # the usual state goes without saying
+        parts.append("workers " + ", ".join(f"{n} {state}" for state, n in states.items()))
     return " | ".join(parts + s.notes)
 
 
@@ -133,7 +140,7 @@ class Dashboard:
 
     def update(self, snapshot: GenSnapshot, final: bool = False) -> None:
         if self.live:
-            self.live.update(render(snapshot))
+            self.live.update(render(snapshot, width=max(self.console.width - ECHO_ROOM, 40)), refresh=final)
         elif self.due(final):
             self._last_log = time.monotonic()
             log.info("%s", log_line(snapshot))

@@ -1,12 +1,15 @@
 """The generator daemon: max-samples, the cap, clean SIGTERM/SIGINT shutdown, limit 0 and metadata."""
 import json
+import multiprocessing as mp
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+import cuboidgen.daemon as daemon
 from cuboidgen.daemon import run
 from shared.inspect import inspect_spool
 from shared.spool import META_NAME, enumerate_spool
@@ -111,3 +114,58 @@ def test_kill_9_and_restart_cycles_leave_nothing_corrupt_and_no_orphans(tmp_path
     daemon.communicate(timeout=30)
     report = inspect_spool(tmp_path)
     assert report["corrupt"] == 0 and report["temporary"] == 0
+
+
+class FinishingWorker:
+    """A worker process stand-in that finishes its sample in hand when joined."""
+
+    def __init__(self, index: int, shared):
+        self.index, self.shared, self.name = index, shared, f"fake-{index}"
+
+    def is_alive(self) -> bool:
+        return self.shared.get(self.index, "state") == daemon.RUNNING
+
+    def join(self, timeout=None) -> None:
+        self.shared.set(self.index, "published", self.shared.get(self.index, "published") + 1)
+        self.shared.set(self.index, "state", daemon.DONE)
+
+    def kill(self) -> None:
+        raise AssertionError("a finishing worker needs no kill")
+
+
+def test_after_a_stop_the_last_frame_shows_the_workers_stopped_with_their_final_counts(tmp_path, monkeypatch):
+    frames = []
+
+    class Recorder:
+        def __init__(self, live):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            pass
+
+        def due(self, final=False):
+            return True
+
+        def update(self, snapshot, final=False):
+            frames.append((snapshot, final))
+
+    monkeypatch.setattr(daemon, "Dashboard", Recorder)
+    ctx = mp.get_context("spawn")
+    shared = daemon.Shared(counters=ctx.Array("q", 2 * len(daemon.FIELDS), lock=False), stop=ctx.RawValue("b", 0),
+                           tickets=None)
+    for i, published in enumerate((7, 9)):
+        shared.set(i, "published", published)
+    stop = threading.Event()
+    stop.set()  # Ctrl-C
+    config = tiny_config(tmp_path / "spool")
+    (tmp_path / "spool").mkdir()
+    daemon.watch(config, shared, [FinishingWorker(i, shared) for i in range(2)], stop)
+    (stopping, final_a), (last, final_b) = frames  # one frame while stopping, then the outcome
+    assert final_a and final_b
+    assert [w.state for w in stopping.workers] == ["stopping", "stopping"] and "stopping" in " ".join(stopping.notes)
+    assert [w.state for w in last.workers] == ["done", "done"] and not last.notes
+    assert [w.published for w in last.workers] == [8, 10] and last.published == 18  # counted after the join
+    assert shared.stopping()

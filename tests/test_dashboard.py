@@ -23,7 +23,7 @@ def as_text(renderable) -> str:
 
 def test_dashboard_shows_rates_spool_and_workers():
     text = as_text(render(snapshot()))
-    for expected in ("1,850", "950", "900", "10,000 / 10,000", "162.1 MB", "2,300", "380",
+    for expected in ("1,850", "950", "900", "10,000 / 10,000", "162.1 MiB", "2,300", "380",
                      "disk full, backing off", "11.0 s", "0.2 s", "75.0 s"):
         assert expected in text, expected
 
@@ -39,7 +39,8 @@ def test_log_line_has_the_same_figures():
 
 
 def test_human_units():
-    assert human_bytes(512) == "512 B" and human_bytes(17 * 1024) == "17.0 KB"
+    assert human_bytes(512) == "512 B" and human_bytes(17 * 1024) == "17.0 KiB"
+    assert human_bytes(170_000_000) == "162.1 MiB" and human_bytes(3 * 1024**3) == "3.0 GiB"  # binary units
     assert human_age(None) == "-" and human_age(5400) == "90.0 min" and human_age(9000) == "2.5 h"
 
 
@@ -50,3 +51,26 @@ def test_log_mode_is_due_only_every_log_interval():
     assert board.due()  # nothing logged yet
     board.update(snapshot())
     assert not board.due() and board.due(final=True)
+
+
+def test_the_log_line_names_workers_that_are_not_running():
+    assert "| workers" not in log_line(snapshot(workers=[WorkerView(5, 0, 0, 1.0, "running")], notes=[]))
+    line = log_line(snapshot(workers=[WorkerView(5, 0, 0, 0.0, "done"), WorkerView(4, 0, 0, 0.0, "done")], notes=[]))
+    assert line.endswith(" | workers 2 done")
+
+
+def test_the_live_panel_leaves_room_for_the_echoed_ctrl_c():
+    # A full-width last line would make the terminal wrap the echoed "^C" onto a new line,
+    # and the next redraw would then start a line too low: the top border twice.
+    import io
+    import re
+
+    from cuboidgen.dashboard import ECHO_ROOM, Dashboard
+
+    out = io.StringIO()
+    console = Console(file=out, force_terminal=True, width=80, color_system=None)
+    with Dashboard(live=True, console=console) as board:
+        board.update(snapshot(), final=True)
+    lines = [re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", line) for line in out.getvalue().splitlines()]
+    drawn = [line for line in lines if line.strip()]
+    assert drawn[0].startswith("╭") and max(len(line) for line in drawn) == 80 - ECHO_ROOM
