@@ -23,6 +23,7 @@ from rich.table import Table
 from rich.text import Text
 
 from cuboidtrain.files import write_json_atomically
+from shared.console import ECHO_ROOM
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +37,8 @@ WAIT_TARGET = 0.05  # data-wait fraction of step time above which the loader is 
 PHASE_MEANING = {"1": "separate networks", "2": "chained", "e2e": "ablation: end to end",
                  "finetune": "ablation: fine-tune"}
 LOSSES = (("D_R", "Refiner"), ("D_S", "Estimator"), ("D_T", "Tabulator"), ("total", "weighted sum"))
-STATE_STYLE = {"training": "green", "waiting for samples": "yellow", "checkpointing": "cyan",
+STATE_STYLE = {"training": "green", "waiting for samples": "yellow", "stopping after this step": "bold yellow",
+               "checkpointing": "cyan",
                "evaluating": "cyan", "done": "bold green", "stopped": "bold yellow",
                "gave up": "bold red"}
 
@@ -183,12 +185,13 @@ def _facts(s: dict, now: float) -> Table:
     return grid
 
 
-def render(status: dict, now: float | None = None) -> Panel:
-    """The dashboard for one status dict; `now` (unix s) dates the checkpoint and the update."""
+def render(status: dict, now: float | None = None, width: int | None = None) -> Panel:
+    """The dashboard for one status dict; `now` (unix s) dates the checkpoint and the update;
+    `width` in columns (None: the console's)."""
     now = time.time() if now is None else now
     parts: list[RenderableType] = [_title(status), _progress(status), _losses(status), _facts(status, now)]
     parts += [Text(note, style="yellow") for note in status.get("notes") or []]
-    return Panel(Group(*parts), title="cuboidtrain", title_align="left")
+    return Panel(Group(*parts), title="cuboidtrain", title_align="left", width=width)
 
 
 def log_line(status: dict) -> str:
@@ -238,7 +241,8 @@ class Dashboard:
             if not self._started:  # started on first use so the panel never shows empty
                 self._live.start()
                 self._started = True
-            self._live.update(render(status), refresh=True)
+            # Narrower than the terminal: an echoed "^C" must not wrap (shared.console.ECHO_ROOM).
+            self._live.update(render(status, width=max(self.console.width - ECHO_ROOM, 40)), refresh=True)
             return
         state = status.get("state")
         if (self._last_log is None or state != self._last_state

@@ -2,13 +2,17 @@
 
 The loop tells `Progress` what happened (a batch fetched, a step taken, a
 checkpoint written); Progress keeps the running figures and publishes them at
-most once a second, so reporting costs nothing next to a step.
+most once a second, so reporting costs nothing next to a step. A heartbeat
+thread republishes the last figures every second while a step runs (a step can
+take many seconds on a CPU), so `watch` sees a live trainer, and shows
+"stopping after this step" as soon as SIGTERM or Ctrl-C arrives.
 """
 from __future__ import annotations
 
 import json
 import logging
 import os
+import threading
 import time
 from collections import Counter, deque
 from pathlib import Path
@@ -27,6 +31,8 @@ HISTORY = 120  # loss values kept for the dashboard's trend
 EMA = 0.1  # weight of the newest loss in the smoothed value
 STARVING = 0.05  # data wait above this fraction of step time is a problem (DESIGN.md)
 PUBLISH_EVERY = 1.0  # s
+HEARTBEAT_EVERY = 0.25  # s between the heartbeat's looks at the clock and the stop request
+STOPPING = "stopping after this step"
 IDLE_LOG_EVERY = 60.0  # s between repeats of the same "no usable samples" warning
 
 
@@ -40,9 +46,16 @@ def tensorboard_writer(out: Path):
 
 
 class Progress:
-    def __init__(self, config: TrainConfig, device: torch.device, watcher, dashboard=None, rank: int = 0, world: int = 1):
-        """`rank`, `world`: torchrun's; ranks other than 0 keep the figures but write nothing."""
+    def __init__(self, config: TrainConfig, device: torch.device, watcher, dashboard=None, rank: int = 0, world: int = 1,
+                 stop=None):
+        """`rank`, `world`: torchrun's; ranks other than 0 keep the figures but write nothing.
+        `stop`: the run's StopRequest, which the heartbeat watches."""
         self.config, self.out, self.watcher, self.dashboard = config, Path(config.out), watcher, dashboard
+        self.stop = stop
+        self._lock = threading.Lock()  # one writer of status.json and the dashboard at a time
+        self._published: dict | None = None  # the last status written, which the heartbeat refreshes
+        self._beating = threading.Event()
+        self._heart: threading.Thread | None = None
         self.writes = rank == 0
         self.tensorboard = tensorboard_writer(self.out) if self.writes else None
         self.foreign = 0  # files in the spool that are not samples (ignored)
@@ -72,6 +85,8 @@ class Progress:
         self._publish(force=True)
 
     def state(self, state: str) -> None:
+        if self._status["state"] == STOPPING and state in ("training", "waiting for samples"):
+            return  # a stop was asked for: the step in hand is the last
         if state != self._status["state"]:
             self._status["state"] = state
             self._publish(force=True)
@@ -229,14 +244,46 @@ class Progress:
         status = self.status()
         status["spool_arrivals_per_s"] = self.watcher.arrivals_per_s()
         self._status["spool_arrivals_per_s"] = status["spool_arrivals_per_s"]
-        write_status(self.out, status)
-        if self.dashboard is not None:
-            self.dashboard.update(status)
+        self._show(status)
+
+    def _show(self, status: dict) -> None:
+        with self._lock:
+            self._published = status
+            write_status(self.out, status)
+            if self.dashboard is not None:
+                self.dashboard.update(status)
+
+    def beat(self) -> None:
+        """The heartbeat: the last status again, dated now (and, once a stop was asked for,
+        in state "stopping after this step"), when the loop has published nothing for a second."""
+        last = self._published
+        if last is None:
+            return
+        stopping = self.stop is not None and self.stop.asked() and last["state"] in ("training", "waiting for samples")
+        if stopping:
+            self._status["state"] = STOPPING
+        elif time.monotonic() - self.last_publish < PUBLISH_EVERY:
+            return
+        self.last_publish = time.monotonic()
+        self._show({**last, "state": self._status["state"], "updated": time.time()})
+
+    def _heartbeat(self) -> None:
+        while not self._beating.wait(HEARTBEAT_EVERY):
+            try:
+                self.beat()
+            except Exception:  # a full disk, say: the loop's own writes will say so
+                log.debug("heartbeat", exc_info=True)
 
     def __enter__(self) -> "Progress":
+        if self.writes:
+            self._heart = threading.Thread(target=self._heartbeat, name="progress-heartbeat", daemon=True)
+            self._heart.start()
         return self
 
     def __exit__(self, *exc) -> None:
+        if self._heart is not None:
+            self._beating.set()
+            self._heart.join()
         if self.tensorboard is not None:
             self.tensorboard.close()
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import signal
 import time
 from pathlib import Path
@@ -56,21 +57,51 @@ def idle_pause(seconds: float, stop) -> None:
 
 
 class StopRequest:
-    """Set by SIGTERM or SIGINT; the loop checks it between steps."""
+    """Set by SIGTERM or SIGINT; the loop checks it between steps.
+
+    Python runs a signal's handler in the main thread, between bytecodes: not while that
+    thread is inside a step's backward pass, which can take seconds. `asked` sees the
+    signal at once, from any thread, through the wakeup file the signal module writes
+    the signal's number to (installed() sets it up), so the dashboard can say
+    "stopping after this step" while the step is still running."""
+
+    STOPS = (signal.SIGTERM, signal.SIGINT)
 
     def __init__(self):
         self.signal: int | None = None
+        self._wakeup: int | None = None  # the read end of the signal module's wakeup pipe
+        self._woken = False
 
     def __bool__(self) -> bool:
         return self.signal is not None
 
+    def asked(self) -> bool:
+        """Whether a stop was asked for, even one whose handler has not run yet."""
+        if self.signal is not None or self._woken:
+            return True
+        if self._wakeup is not None:
+            try:
+                self._woken = any(b in self.STOPS for b in os.read(self._wakeup, 64))
+            except (BlockingIOError, OSError):
+                pass
+        return self._woken
+
     @contextlib.contextmanager
     def installed(self):
         handler = lambda signum, frame: setattr(self, "signal", signum)  # noqa: E731
-        previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+        previous = {s: signal.signal(s, handler) for s in self.STOPS}
+        read, write = os.pipe()
+        os.set_blocking(read, False)
+        os.set_blocking(write, False)
+        wakeup = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+        self._wakeup = read
         try:
             yield self
         finally:
+            signal.set_wakeup_fd(wakeup)
+            self._wakeup = None
+            os.close(read)
+            os.close(write)
             for s, h in previous.items():
                 signal.signal(s, h)
 
@@ -216,7 +247,8 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     freshness = Freshness()
     started, sigma, first_step = time.monotonic(), config.heatmap_sigma, step
     wait, idle_since = IDLE_WAIT[0], None  # the next pause between unusable listings; since when none was usable
-    with SpoolWatcher(config.spool) as watcher, Progress(config, device, watcher, dashboard, ranks.rank, ranks.world) as progress:
+    with SpoolWatcher(config.spool) as watcher, \
+            Progress(config, device, watcher, dashboard, ranks.rank, ranks.world, stop=stop) as progress:
         sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names),
                                             progress.listed(config.spool))
         progress.begin(step, sampler)

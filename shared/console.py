@@ -9,6 +9,10 @@ from rich.logging import RichHandler
 from typer.core import TyperGroup
 
 console = Console(stderr=True)
+# Columns a live dashboard leaves free on the right: a terminal echoes Ctrl-C as "^C" after
+# the panel's last line; were that line full width, the echo would wrap onto a new line and
+# the next redraw would start one line too low, leaving the top border printed twice.
+ECHO_ROOM = 2
 
 
 def setup_logging(verbose: bool = False) -> None:

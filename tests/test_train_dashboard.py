@@ -183,3 +183,67 @@ def test_live_mode_leaves_the_last_panel_on_screen():
         board.update(status(step=10))
         board.update(status(step=11))
     assert "step 11 / 1,000" in console.export_text()
+
+
+# ---- a live status while a step runs, and a stop asked for during one ---------------------
+
+
+def test_the_live_panel_leaves_room_for_the_echoed_ctrl_c():
+    from shared.console import ECHO_ROOM
+
+    out = io.StringIO()
+    board = Dashboard(live=True, console=Console(file=out, force_terminal=True, width=100, color_system=None))
+    board.update(status())
+    board.close()
+    lines = [re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", line) for line in out.getvalue().splitlines()]
+    assert max(len(line) for line in lines) == 100 - ECHO_ROOM
+
+
+def test_a_stop_is_seen_before_its_handler_runs(tmp_path):
+    import signal
+
+    from cuboidtrain.train import StopRequest
+
+    with StopRequest().installed() as stop:
+        write = signal.set_wakeup_fd(-1)  # the pipe the signal module writes each signal's number to
+        signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+        os.write(write, bytes([signal.SIGCHLD]))  # another signal: not a stop
+        assert not stop.asked()
+        os.write(write, bytes([signal.SIGINT]))  # as the C-level handler writes it, before Python's runs
+        assert stop.asked() and not stop
+    assert signal.set_wakeup_fd(-1) == -1  # the previous wakeup file is back
+
+
+def test_status_stays_fresh_through_a_long_step_and_says_when_a_stop_waits_for_it(tmp_path, monkeypatch):
+    import signal
+    import time
+
+    import cuboidtrain.train as train_module
+    from shared.sample import encode
+    from shared.spool import SpoolWriter
+    from tests.conftest import build_sample, train_config
+
+    spool, out = tmp_path / "spool", tmp_path / "run"
+    with SpoolWriter(spool, limit=0) as writer:
+        for seed in range(4):
+            writer.publish(encode(build_sample(seed, size=32)))
+    real_step, seen = train_module.train_step, []
+
+    def slow_step(*args, **kwargs):  # a 17 s CPU step, shortened: status.json must not wait for its end
+        if not seen:
+            for when in (0.3, 2.5, 4.5):
+                time.sleep(when - (seen[-1][0] if seen else 0))
+                if when == 2.5:
+                    os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of the step
+                seen.append((when, time.time(), json.loads((out / "status.json").read_text())))
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "train_step", slow_step)
+    config = train_config(spool=str(spool), out=str(out), size=32, batch_size=2, loader_workers=0, dashboard=False)
+    final = train_module.run(config)  # installs the Ctrl-C handler itself
+    (_, t0, first), (_, t1, second), (_, t2, third) = seen
+    assert first["state"] == "training" and second["state"] == "training"
+    assert second["updated"] > first["updated"] and t1 - second["updated"] < 2.0  # rewritten during the step
+    assert third["state"] == "stopping after this step" and third["step"] == 0
+    assert final["state"] == "stopped" and final["step"] == 1  # the step in hand was finished
+    assert "stopping after this step" in as_text(render(third, now=third["updated"]))
