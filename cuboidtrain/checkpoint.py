@@ -8,7 +8,6 @@ have run. Writing goes to a temporary file in the same folder, then
 """
 from __future__ import annotations
 
-import os
 import random
 from pathlib import Path
 
@@ -17,9 +16,11 @@ import torch
 
 from cuboidtrain.config import TrainConfig
 from cuboidtrain.data import LoaderState
+from cuboidtrain.files import atomic_path
 from cuboidtrain.networks import CuboidNet
 
-FORMAT = "cuboid-fit/checkpoint"
+FORMAT = "cuboid-fit/checkpoint"  # a training run's state: weights, optimizer, loader, RNG (cuboidtrain run)
+MODEL_FORMAT = "cuboid-fit/model"  # weights, config and model card only (cuboidtrain.zoo.pack)
 VERSION = 1
 
 
@@ -57,13 +58,8 @@ def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, ste
         "rng": rng_state(),
         "metrics": metrics or {},
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    try:
+    with atomic_path(path) as tmp:
         torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -81,8 +77,9 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
             raise ValueError(f"checkpoint {path}: cannot read it: not a cuboid-fit checkpoint "
                              f"(not a file that torch.save writes)") from None
         raise ValueError(f"checkpoint {path}: cannot read it ({type(exc).__name__}: {exc})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise ValueError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r})")
+    if not isinstance(ckpt, dict) or ckpt.get("format") not in (FORMAT, MODEL_FORMAT):
+        raise ValueError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r} "
+                         f"or {MODEL_FORMAT!r})")
     if ckpt.get("version") != VERSION:
         raise ValueError(f"checkpoint {path}: format version {ckpt.get('version')!r}, expected {VERSION}")
     if shape is not None and ckpt["shape"] != shape:

@@ -109,8 +109,9 @@ PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape var
 
 @app.command("eval")
 def evaluate(
-    checkpoint: Path = typer.Option(..., help="Checkpoint to evaluate."),
-    spool: Path = typer.Option(..., help="Validation spool (e.g. `cuboidgen run --scene paper-clean --limit 0 --max-samples 1000`)."),
+    checkpoint: Optional[Path] = typer.Option(None, help="Checkpoint or model file to evaluate (default: the shipped model of --shape)."),
+    spool: Path = typer.Option(..., help="Validation spool (e.g. `cuboidgen run --scene paper-clean --limit 0 --max-samples 1000`); any size: samples are framed as infer frames a mask."),
+    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Without --checkpoint: which shipped model."),
     batch_size: int = typer.Option(32, help="Samples per forward pass."),
     max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
@@ -121,9 +122,11 @@ def evaluate(
 ) -> None:
     """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
     from cuboidtrain.evaluate import evaluate_checkpoint, format_report
+    from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
     try:
+        checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
         result = evaluate_checkpoint(checkpoint, spool, device=device, batch_size=batch_size, max_samples=max_samples,
                                      extractor=extractor.value, pdm_components=pdm_components,
                                      refine_steps=parse_refine_steps(refine_steps))
@@ -172,7 +175,7 @@ def parse_refine_steps(value: str) -> int | None:
 @app.command()
 def infer(
     paths: list[str] = typer.Argument(..., metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id."),
-    checkpoint: list[Path] = typer.Option(..., metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input."),
+    checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
     json_out: str = typer.Option("-", "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout."),
     shape: InferShape = typer.Option(InferShape.auto, help="auto: every given model, the best-explained fit wins."),
     refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, each on the last one's binary output; auto: until nothing changes (at most 16)."),
@@ -190,12 +193,14 @@ def infer(
     Exits 1 when any input failed (its record says why); the others are still written.
     """
     from cuboidtrain.infer import infer_paths, load_models, write_records
+    from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
     try:
         steps = parse_refine_steps(refine_steps)
         explainer = make_explainer(explain, overlay, len(paths))
-        records = infer_paths(paths, load_models(checkpoint), shape=shape.value, refine_steps=steps,
+        shapes = ("box", "twobox") if shape.value == "auto" else (shape.value,)
+        records = infer_paths(paths, load_models(default_checkpoints(checkpoint, shapes)), shape=shape.value, refine_steps=steps,
                               all_components=all_components, label_id=label_id, margin=margin, device=device,
                               extractor=extractor.value, pdm_components=pdm_components, explain=explainer)
         if json_out == "-":
@@ -229,16 +234,19 @@ def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
 
 @app.command()
 def export(
-    checkpoint: Path = typer.Option(..., metavar="CKPT", help="A trained model (cuboidtrain run's last.pt)."),
+    checkpoint: Optional[Path] = typer.Option(None, metavar="CKPT", help="A trained model (cuboidtrain run's last.pt, or a model file); default: the shipped model of --shape."),
+    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Without --checkpoint: which shipped model."),
     onnx: Path = typer.Option(..., metavar="OUT.onnx", help="Where the ONNX model goes (replaced atomically)."),
     refine_steps: int = typer.Option(1, metavar="K", help="Refiner passes in the graph, each on the last one's binary output."),
     opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
 ) -> None:
     """Export R (K passes), S and T as one ONNX graph: +-1 mask in; refined, heatmaps, keypoints, ratios out."""
     from cuboidtrain.export import export_checkpoint
+    from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
     try:
+        checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
         meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
     except (ValueError, OSError) as exc:
         fail(str(exc))
@@ -251,7 +259,7 @@ def localize(
     mask_args: Optional[list[str]] = typer.Argument(None, metavar="MASK", help="With --street: masks of consecutive buildings, in street order."),
     street: Optional[Path] = typer.Option(None, metavar="STREET.json", help="A street's known buildings (README: Localization); locate MASKs in it."),
     masks: Optional[list[str]] = typer.Option(None, "--masks", metavar="MASK", help="Masks in street order: --masks A B C, or one per --masks."),
-    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help="A trained box model (street buildings are single boxes)."),
+    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help="A trained box model (street buildings are single boxes); default: the shipped one."),
     buildings: int = typer.Option(100, help="Experiment: N, buildings per random street."),
     max_m: int = typer.Option(30, help="Experiment: M, the longest sub-sequence (at most N)."),
     top_l: int = typer.Option(5, help="Experiment: L, the widest top-l."),
@@ -280,24 +288,25 @@ def localize(
     from cuboidtrain import localize as loc
     from cuboidtrain import localize_report as report
     from cuboidtrain.infer import load_models
+    from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
     out = console if json_out == "-" else Console()
     try:
+        if not oracle:
+            checkpoint = default_checkpoints(checkpoint, ("box",))
         if threads is not None:
             torch.set_num_threads(max(threads, 1))
         steps, paths = parse_refine_steps(refine_steps), loc.mask_sequence(masks, mask_args)
         if street is not None:
-            if oracle or not paths or not checkpoint:
-                raise ValueError("--street: expected masks (--masks A B C) and --checkpoint, and no --oracle")
+            if oracle or not paths:
+                raise ValueError("--street: expected masks (--masks A B C), and no --oracle")
             result = loc.localize_masks(loc.read_street(street), paths, load_models(checkpoint), refine_steps=steps,
                                         margin=margin, device=device, temperature=temperature)
             out.print(report.ranking_table(result))
         else:
             if paths:
                 raise ValueError(f"masks {paths}: expected --street STREET.json to locate them in")
-            if not oracle and not checkpoint:
-                raise ValueError("--checkpoint: expected a box model for the experiment (or --oracle)")
             config = loc.ExperimentConfig(
                 buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
                 mask_size=mask_size, refine_steps=steps, margin=margin, oracle=oracle, oracle_noise=oracle_noise,
@@ -319,7 +328,7 @@ def localize(
 
 @app.command()
 def report(
-    checkpoint: list[Path] = typer.Option(..., metavar="CKPT", help="The trained model of a shape class (phase 1 + 2); repeat per class."),
+    checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="The trained model of a shape class (phase 1 + 2); repeat per class. Default: the shipped models."),
     clean_spool: list[Path] = typer.Option(..., metavar="DIR", help="Clean validation spool(s) (--scene paper-clean): Table 3, extractors."),
     noisy_spool: list[Path] = typer.Option([], metavar="DIR", help="Noisy, occluded validation spool(s) (--scene paper): extractors, refinement."),
     finetune: list[Path] = typer.Option([], metavar="CKPT", help="Table 3: the phase 1 model trained on with the final loss only (--phase finetune)."),
@@ -338,11 +347,13 @@ def report(
 
     from cuboidtrain.report import ReportConfig, run_report
     from cuboidtrain.report_figures import write_report
+    from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
     if threads:
         torch.set_num_threads(threads)
     try:
+        checkpoint = default_checkpoints(checkpoint)
         config = ReportConfig(
             checkpoints=tuple(map(str, checkpoint)), clean_spools=tuple(map(str, clean_spool)),
             noisy_spools=tuple(map(str, noisy_spool)), finetune=tuple(map(str, finetune)), e2e=tuple(map(str, e2e)),
@@ -355,6 +366,70 @@ def report(
     except (ValueError, OSError) as exc:
         fail(str(exc))
     console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False)
+
+
+models_app = typer.Typer(add_completion=False, help="The shipped models: their cards, and packing a checkpoint into a model file.")
+app.add_typer(models_app, name="models")
+
+
+@models_app.callback(invoke_without_command=True)
+def models(
+    ctx: typer.Context,
+    folder: Optional[Path] = typer.Option(None, metavar="DIR", help="Model files to list (default: the shipped ones, or $CUBOID_MODELS)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the cards as JSON."),
+) -> None:
+    """Print the model cards: arch, size, scenes, steps, samples seen, wall time, commit, validation figures."""
+    if ctx.invoked_subcommand is not None:
+        return
+    from cuboidtrain.zoo import cards
+
+    try:
+        found = cards(folder)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(found, indent=2))
+    else:
+        console.print(_cards_table(found))
+
+
+def _cards_table(found: list[dict]):
+    from rich.table import Table
+
+    table = Table(title="Model files (cuboidtrain models --json: the whole cards)" if found else "No model files")
+    for column in ("shape", "arch", "px", "scenes", "steps", "samples", "hours", "clean/paper/street", "MiB"):
+        table.add_column(column, overflow="fold")
+    for card in found:
+        sets = card.get("validation", {}).get("sets", {})
+        figures = "/".join(f"{sets[s]['infer_mean_256']:.2f}" if s in sets else "-"
+                           for s in ("paper-clean", "paper", "street"))
+        table.add_row(card["shape"], card["arch"], str(card["size"]), "+".join(card.get("scenes", [])) or "-",
+                      f"{card.get('steps', 0):,}", f"{card.get('samples_seen', 0):,}",
+                      f"{(card.get('wall_time_s') or 0) / 3600:.2f}", figures, f"{card['bytes'] / 2**20:.1f}")
+    if found:
+        table.caption = "errors: mean corner px at 256 px, through infer"
+    return table
+
+
+@models_app.command("pack")
+def models_pack(
+    checkpoint: Path = typer.Option(..., metavar="CKPT", help="A training checkpoint (cuboidtrain run's last.pt)."),
+    out: Path = typer.Option(..., metavar="OUT.pt", help="The model file to write (replaced atomically)."),
+    scene: list[str] = typer.Option([], metavar="NAME", help="A scene the training spool was drawn from, for the card (repeat)."),
+    validation: Optional[Path] = typer.Option(None, metavar="JSON", help="Validation figures for the card (benchmarks/bench_accuracy.py --json output)."),
+    recipe: Optional[str] = typer.Option(None, help="The command that trained it, for the card."),
+    half: bool = typer.Option(True, "--half/--float32", help="Store the weights as float16 (half the size)."),
+) -> None:
+    """Write a model file (weights, config, card; no optimizer state) from a training checkpoint."""
+    from cuboidtrain.zoo import pack, validation_for
+
+    try:
+        figures = validation_for(validation, checkpoint) if validation else None
+        card = pack(checkpoint, out, scene, figures, recipe, half)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    console.print(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "
+                  f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False)
 
 
 @app.command()

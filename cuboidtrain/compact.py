@@ -132,7 +132,8 @@ class CompactTabulator(nn.Module):
         self.num_keypoints, self.num_ratios, self.size = num_keypoints, num_ratios, size
         self.body = CompactUNet(num_keypoints + 2, widths)
         self.correction = nn.Conv2d(widths[0], num_keypoints, 1)
-        nn.init.zeros_(self.correction.weight)
+        # Near zero, not zero: T starts by reading its maps (below), and every layer still gets a gradient.
+        nn.init.normal_(self.correction.weight, std=1e-3)
         nn.init.zeros_(self.correction.bias)
         # softmax(gain * log map) is map ** gain, normalised: at gain 1 a true map's own Gaussian,
         # whose mean is its centre to ~0.01 px; 2 starts sharper, so that a background of faint
@@ -148,6 +149,10 @@ class CompactTabulator(nn.Module):
         self.register_buffer("centres", centres, persistent=False)
         ramp = (torch.arange(padded, dtype=torch.float32) - self.border) / (size - 1) * 2 - 1  # -1..1 on the image
         self.register_buffer("coords", torch.stack(torch.meshgrid(ramp, ramp, indexing="xy")), persistent=False)
+
+    def keypoint_range(self) -> tuple[float, float]:
+        """The least and greatest coordinate (px) it can output: the outermost cell centres."""
+        return self.centres[0].item(), self.centres[-1].item()
 
     def forward(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b, n = heatmaps.shape[:2]

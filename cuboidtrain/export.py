@@ -11,7 +11,6 @@ the source checkpoint's step); the runner checks them before it runs anything.
 from __future__ import annotations
 
 import json
-import os
 import warnings
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import torch
 from torch import nn
 
 from cuboidtrain.checkpoint import load_model
+from cuboidtrain.files import atomic_path
 from cuboidtrain.infer import binarise
 from cuboidtrain.networks import CuboidNet
 from shared.shapes import get_shape
@@ -60,7 +60,7 @@ def metadata(model: CuboidNet, sigma: float, refine_steps: int, step: int | None
     """The file's metadata_props (ONNX keeps string values only: lists are JSON)."""
     geometry = get_shape(model.shape)
     return {
-        "format": FORMAT, "version": str(VERSION), "shape": model.shape, "size": str(model.size),
+        "format": FORMAT, "version": str(VERSION), "shape": model.shape, "size": str(model.size), "arch": model.arch,
         "sigma": repr(float(sigma)), "keypoint_names": json.dumps(list(geometry.keypoint_names)),
         "ratio_names": json.dumps(list(geometry.ratio_names)), "refine_steps": str(refine_steps),
         "checkpoint_step": "" if step is None else str(step),
@@ -95,17 +95,12 @@ def export_model(model: CuboidNet, out: str | Path, sigma: float, refine_steps: 
 
     check_options(refine_steps, opset)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".tmp-{os.getpid()}-{out.name}")
-    try:
+    with atomic_path(out) as tmp:
         trace_to_onnx(model, tmp, refine_steps, opset)
         proto = onnx.load(str(tmp))
         onnx.helper.set_model_props(proto, metadata(model, sigma, refine_steps, step))
         onnx.save(proto, str(tmp))
         onnx.checker.check_model(str(tmp))  # by path: also right for files past protobuf's 2 GB
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return out
 
 

@@ -1,6 +1,7 @@
 """Files that other processes read while we write them: replaced atomically, never half-written."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -11,18 +12,27 @@ from shared.spool import process_alive, remove_orphans
 ORPHAN_AGE = 600.0  # s: a temporary file this old is no live writer's (a checkpoint takes seconds)
 
 
-def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
-    """JSON to a temporary file in the same folder (so os.replace stays atomic), then renamed over `path`.
+@contextlib.contextmanager
+def atomic_path(path: str | Path):
+    """Yields a temporary path beside `path` to write; on success it replaces `path` (os.replace in
+    one folder is atomic), on failure it is removed. Readers see the old file or the new one.
 
-    NaN stays NaN: a diverged loss must show, not crash the writer.
+    The name `.tmp-<pid>-<name>` is what `sweep_orphans` parses to find a killed writer's leftovers.
     """
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
     try:
-        tmp.write_text(json.dumps(data, indent=indent) + "\n")
+        yield tmp
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
+    """JSON to `path`, replaced atomically. NaN stays NaN: a diverged loss must show, not crash the writer."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=indent) + "\n")
 
 
 def sweep_orphans(folder: Path, max_age: float = ORPHAN_AGE) -> int:
@@ -64,12 +74,8 @@ def drop_records_after(path: Path, step: int) -> int:
         return 0
     kept = [line for line in lines if _step_of(line) <= step]
     if len(kept) < len(lines):
-        tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-        try:
+        with atomic_path(path) as tmp:
             tmp.write_text("".join(kept))
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
     return len(lines) - len(kept)
 
 

@@ -119,6 +119,10 @@ class Tabulator(nn.Module):
         ramp = torch.linspace(-1.0, 1.0, size)
         self.register_buffer("coords", torch.stack(torch.meshgrid(ramp, ramp, indexing="xy")), persistent=False)
 
+    def keypoint_range(self) -> tuple[float, float]:
+        """The least and greatest coordinate (px) it can output: the image, edge to edge."""
+        return -0.5, self.size - 0.5
+
     def forward(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b = heatmaps.shape[0]
         coords = self.coords.to(heatmaps.dtype).expand(b, -1, -1, -1)

@@ -1,0 +1,177 @@
+"""Accuracy as a user meets it: generated 256 px masks through `infer`, scored against the samples' keypoints.
+
+For each validation set (a spool of 256 px samples: `paper-clean`, noisy and
+occluded `paper`, `street`) and each shape class, every sample's noisy mask is
+written as a PNG and fitted by `cuboidtrain.infer.infer_paths`: reading, the
+largest component, framing, R, S, T, and the map back to the input's pixels. The
+mean corner error is then in 256 px units by construction. Beside it:
+
+* `eval`'s figures on the same spool (`cuboidtrain.evaluate`), px x 256 / size,
+  and the error budget they carry: R's IoU, S's peak error (DARK on S's maps
+  against the truth), T alone on true heat maps, and the whole chain;
+* shape selection (box against twobox, `--shape auto`) on the noisy sets;
+* the whole `infer` path's latency per mask (median of --latency-repeats single-mask
+  calls, both models, the shape chosen), with the `paper` arch at the same size as the
+  baseline run in the same process.
+
+    .venv/bin/python benchmarks/bench_accuracy.py --samples 300 --json bench-accuracy.json
+
+Spools are drawn on first use under --spools (seeded, so every run scores the same masks).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from rich.console import Console
+from rich.table import Table
+
+from cuboidtrain.checkpoint import load_model
+from cuboidtrain.evaluate import evaluate
+from cuboidtrain.infer import infer_paths
+from cuboidtrain.networks import build_model
+from cuboidtrain.zoo import default_checkpoints
+from shared.sample import decode
+from shared.spool import enumerate_spool, read_sample_bytes
+
+SETS = ("paper-clean", "paper", "street")
+NOISY_SETS = ("paper", "street")
+# Seeds of the validation spools: distinct from every training spool's (recipes/shipped.sh uses 11-22).
+SEEDS = {("box", "paper-clean"): 14, ("box", "paper"): 15, ("box", "street"): 16,
+         ("twobox", "paper-clean"): 24, ("twobox", "paper"): 25, ("twobox", "street"): 26}
+TARGETS = {"paper-clean": 2.0, "paper": 3.0, "street": 3.0, "selection": 0.95, "latency_ms": 30.0}
+
+
+def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
+    """The seeded 256 px validation spool of (shape, scene), drawn once with `samples` samples."""
+    spool = root / f"val-{scene}-{shape}-256"
+    if not spool.is_dir() or len(enumerate_spool(spool)) < samples:
+        subprocess.run([str(Path(sys.executable).parent / "cuboidgen"), "run", "--spool", str(spool), "--shape", shape,
+                        "--size", "256", "--scene", scene, "--seed", str(SEEDS[shape, scene]), "--limit", "0",
+                        "--max-samples", str(samples), "--workers", "1", "--no-dashboard"],
+                       check=True, capture_output=True)
+    return spool
+
+
+def write_masks(spool: Path, samples: int, folder: Path) -> tuple[list[str], list[np.ndarray], list[str]]:
+    """The first `samples` samples' noisy masks as PNGs: their paths, true keypoints and shapes."""
+    paths, truths, shapes = [], [], []
+    for name in enumerate_spool(spool)[:samples]:
+        sample = decode(read_sample_bytes(spool, name))
+        path = folder / f"{spool.name}-{len(paths):04d}.png"
+        cv2.imwrite(str(path), sample.noisy.astype(np.uint8) * 255)
+        paths.append(str(path))
+        truths.append(sample.keypoints)
+        shapes.append(sample.shape)
+    return paths, truths, shapes
+
+
+def corner_errors(records: list[dict], truths: list[np.ndarray]) -> list[float]:
+    """Mean corner error per record, in the input's px (256 px units here); a failed record is NaN."""
+    errors = []
+    for record, truth in zip(records, truths):
+        if record["error"] is not None:
+            errors.append(float("nan"))
+            continue
+        errors.append(float(np.linalg.norm(np.asarray(record["keypoints"]) - truth, axis=1).mean()))
+    return errors
+
+
+def eval_figures(model, spool: Path, samples: int) -> dict:
+    """`eval` on the same spool, in 256 px units, with the error budget (S's peaks by DARK)."""
+    scale = 256 / model.size
+    chain = evaluate(model, spool, model.sigma, torch.device("cpu"), max_samples=samples)
+    peaks = evaluate(model, spool, model.sigma, torch.device("cpu"), max_samples=samples, extractor="dark")
+    return {"eval_mean_256": chain["mean_px_error"] * scale, "refiner_iou": chain["refiner_iou"],
+            "s_peaks_dark_256": peaks["mean_px_error"] * scale,
+            "t_alone_256": chain["tabulator_px_error_on_true_heatmaps"] * scale, "skipped": chain["skipped"]}
+
+
+def latency_ms(models: list, path: str, repeats: int) -> float:
+    """Median wall time of one whole `infer_paths` call on one mask file."""
+    infer_paths([path], models)  # warm-up: first-call allocations, lazy imports
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        infer_paths([path], models)
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--checkpoint", nargs="*", type=Path, help="box and twobox models (default: the shipped ones)")
+    parser.add_argument("--samples", type=int, default=300, help="masks per set and shape")
+    parser.add_argument("--spools", type=Path, default=Path("spools"))
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--latency-repeats", type=int, default=30)
+    parser.add_argument("--no-eval", action="store_true", help="skip eval's figures and the error budget")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    paths = default_checkpoints(args.checkpoint)
+    models = {m.shape: m for m in (load_model(p)[0] for p in paths)}
+    rows, selection = [], {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene in SETS:
+            chosen, total = 0, 0
+            for shape, model in models.items():
+                spool = spool_for(args.spools, shape, scene, args.samples)
+                files, truths, _ = write_masks(spool, args.samples, Path(tmp))
+                errors = corner_errors(infer_paths(files, [model], shape=shape), truths)
+                row = {"set": scene, "shape": shape, "samples": len(files), "size": model.size,
+                       "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
+                       "failed": int(np.isnan(errors).sum())}
+                if not args.no_eval:
+                    row |= eval_figures(model, spool, args.samples)
+                rows.append(row)
+                if scene in NOISY_SETS and len(models) > 1:
+                    picked = infer_paths(files, list(models.values()), shape="auto")
+                    chosen += sum(r["shape"] == shape for r in picked)
+                    total += len(picked)
+            if total:
+                selection[scene] = chosen / total
+        example = write_masks(spool_for(args.spools, "box", "paper", 1), 1, Path(tmp))[0][0]
+        size = next(iter(models.values())).size
+        baseline = [build_model(s, size, arch="paper").eval() for s in models]
+        latency = {"shipped_ms": latency_ms(list(models.values()), example, args.latency_repeats),
+                   "paper_arch_ms": latency_ms(baseline, example, args.latency_repeats)}
+    latency["ratio"] = latency["shipped_ms"] / latency["paper_arch_ms"]
+    result = {"command": " ".join(sys.argv), "models": {s: str(p) for s, p in zip(models, paths)},
+              "threads": args.threads, "rows": rows, "selection": selection, "latency": latency, "targets": TARGETS}
+    show(result)
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+
+
+def show(result: dict) -> None:
+    table = Table(title="Corner error in 256 px units, through infer (framing included) and eval")
+    for column in ("set", "shape", "samples", "infer mean", "infer median", "eval mean", "R IoU", "S peaks (DARK)",
+                   "T alone", "target"):
+        table.add_column(column)
+    for r in result["rows"]:
+        table.add_row(r["set"], r["shape"], str(r["samples"]), f"{r['infer_mean_256']:.2f}", f"{r['infer_median_256']:.2f}",
+                      *(f"{r[k]:.3f}" if k == "refiner_iou" else f"{r[k]:.2f}" if k in r else "-"
+                        for k in ("eval_mean_256", "refiner_iou", "s_peaks_dark_256", "t_alone_256")),
+                      f"<= {TARGETS[r['set']]}")
+    console = Console()
+    console.print(table)
+    for scene, accuracy in result["selection"].items():
+        console.print(f"shape selection on {scene}: {100 * accuracy:.1f}% (target >= 95%)")
+    lat = result["latency"]
+    console.print(f"infer per mask ({result['threads']} thread(s), both models): {lat['shipped_ms']:.1f} ms "
+                  f"(target <= 30); paper arch at the same size {lat['paper_arch_ms']:.1f} ms, ratio {lat['ratio']:.2f}")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
