@@ -1,0 +1,120 @@
+"""Model files and the shipped models (cuboidtrain.zoo): pack round trips, cards, defaults, errors."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from cuboidtrain.checkpoint import MODEL_FORMAT, load_checkpoint, load_model, save_checkpoint
+from cuboidtrain.cli import app
+from cuboidtrain.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
+from tests.conftest import SIZE, build_sample, tiny_model, train_config
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def zoo(tmp_path_factory):
+    """A folder of packed tiny models, one per shipped shape, and their training checkpoints."""
+    root = tmp_path_factory.mktemp("zoo")
+    checkpoints = {}
+    for k, shape in enumerate(SHIPPED_SHAPES):
+        model = tiny_model(shape, seed=k + 1).eval()
+        # BatchNorm statistics that are not the defaults, so a lost buffer would show
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+        config = train_config(shape=shape, size=SIZE, out=str(root / f"run-{shape}"))
+        checkpoints[shape] = save_checkpoint(root / f"run-{shape}" / "last.pt", model, config, step=40,
+                                             optimizer=torch.optim.Adam(model.parameters()))
+        pack(checkpoints[shape], root / "models" / f"{shape}.pt", ["paper", "street"], recipe="test")
+    return root / "models", checkpoints
+
+
+def test_a_packed_model_gives_the_checkpoints_outputs_to_float16_precision(zoo):
+    folder, checkpoints = zoo
+    original, _ = load_model(checkpoints["box"])
+    packed, payload = load_model(folder / "box.pt")
+    assert payload["format"] == MODEL_FORMAT and payload["arch"] == original.arch == packed.arch
+    assert "optimizer" not in payload and "rng" not in payload  # weights, config and card only
+    x = torch.from_numpy(np.where(build_sample(3).noisy, 1.0, -1.0).astype(np.float32))[None, None]
+    with torch.no_grad():
+        a, b = original(x), packed(x)
+    assert torch.allclose(a["heatmaps"], b["heatmaps"], atol=5e-3)
+    assert (a["keypoints"] - b["keypoints"]).abs().max() < 0.05  # px
+    assert all(v.dtype == torch.float16 for v in payload["model"].values() if v.is_floating_point())
+
+
+def test_the_card_says_how_the_model_was_made(zoo):
+    folder, _ = zoo
+    card = load_checkpoint(folder / "twobox.pt")["card"]
+    assert card["shape"] == "twobox" and card["arch"] == "tiny" and card["size"] == SIZE
+    assert card["scenes"] == ["paper", "street"] and card["recipe"] == "test"
+    assert card["steps"] == 40 and card["samples_seen"] == 40 * card["phases"][0]["batch_size"]
+
+
+def test_packing_a_model_file_again_is_refused(zoo, tmp_path):
+    folder, _ = zoo
+    with pytest.raises(ValueError, match="already a model file"):
+        pack(folder / "box.pt", tmp_path / "again.pt", [])
+
+
+def test_models_lists_the_cards(zoo):
+    folder, _ = zoo
+    result = runner.invoke(app, ["models", "--folder", str(folder), "--json"])
+    assert result.exit_code == 0, result.output
+    listed = json.loads(result.output)
+    assert [c["shape"] for c in listed] == ["box", "twobox"] and all(c["bytes"] > 0 for c in listed)
+    table = runner.invoke(app, ["models", "--folder", str(folder)], env={"COLUMNS": "160"})
+    assert table.exit_code == 0 and "paper+street" in table.output and "tiny" in table.output
+
+
+def test_infer_without_a_checkpoint_uses_the_shipped_models(zoo, tmp_path, monkeypatch):
+    import cv2
+
+    folder, _ = zoo
+    monkeypatch.setenv("CUBOID_MODELS", str(folder))
+    mask = tmp_path / "m.png"
+    cv2.imwrite(str(mask), build_sample(5, size=96).noisy.astype(np.uint8) * 255)
+    result = runner.invoke(app, ["infer", str(mask), "--json", "-"])
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.output)[0]
+    assert set(record["candidates"]) == {"box", "twobox"}  # both shipped models were tried
+    given = runner.invoke(app, ["infer", str(mask), "--checkpoint", str(folder / "box.pt"), "--json", "-"])
+    assert json.loads(given.output)[0]["keypoints"] == json.loads(
+        runner.invoke(app, ["infer", str(mask), "--shape", "box", "--json", "-"]).output)[0]["keypoints"]
+
+
+def test_a_missing_shipped_model_is_a_one_line_error(tmp_path, monkeypatch):
+    monkeypatch.setenv("CUBOID_MODELS", str(tmp_path))
+    with pytest.raises(ValueError, match="shipped model .*box.pt: no such file"):
+        shipped_path("box")
+    result = runner.invoke(app, ["infer", "anything.png", "--json", "-"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code != 0 and len(lines) == 1 and "no such file" in lines[0], result.output
+
+
+def test_a_corrupt_shipped_model_is_a_one_line_error(tmp_path, monkeypatch):
+    (tmp_path / "box.pt").write_bytes(b"not a model at all")
+    (tmp_path / "twobox.pt").write_bytes(b"")
+    monkeypatch.setenv("CUBOID_MODELS", str(tmp_path))
+    result = runner.invoke(app, ["infer", "anything.png", "--json", "-"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code != 0 and len(lines) == 1 and "box.pt" in lines[0], result.output
+    with pytest.raises(ValueError, match="box.pt"):
+        cards(tmp_path)
+
+
+def test_a_model_file_starts_a_training_run(zoo):
+    # --init takes a model file, so a recipe can continue the shipped weights
+    folder, _ = zoo
+    ckpt = load_checkpoint(folder / "box.pt", shape="box", size=SIZE, arch="tiny")
+    model = tiny_model("box", seed=9)
+    model.load_state_dict(ckpt["model"])  # float16 weights load into a float32 model
+    assert all(p.dtype == torch.float32 for p in model.parameters())
+    with pytest.raises(ValueError, match="'tiny' arch model, expected 'compact'"):
+        load_checkpoint(folder / "box.pt", arch="compact")
