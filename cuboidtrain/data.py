@@ -39,6 +39,9 @@ SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size", "cut_off")
 MAX_OUTSIDE = 0.125
 
 
+REFRAME_MODES = ("never", "always", "other-sizes")
+
+
 class CutOff(ValueError):
     """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
@@ -64,9 +67,14 @@ def reframe(record: dict, size: int) -> dict:
 class SpoolBatches(Dataset):
     """Index: a list of sample names. Item: one collated batch, masks still bit-packed.
 
-    With `reframe`, samples of any size are framed as `infer` frames a mask, at `size`."""
+    `reframe` (REFRAME_MODES): `always` frames every sample as `infer` frames a mask, at
+    `size` (training: train as you infer); `other-sizes` only those of another size (eval:
+    the generator's framing where it fits, so the paper's metric stays the paper's); `never`
+    skips samples of another size."""
 
-    def __init__(self, spool: str | Path, shape: str, size: int, reframe: bool = False):
+    def __init__(self, spool: str | Path, shape: str, size: int, reframe: str = "never"):
+        if reframe not in REFRAME_MODES:
+            raise ValueError(f"reframe {reframe!r}: expected one of {', '.join(REFRAME_MODES)}")
         self.spool, self.shape, self.size, self.reframe = Path(spool), shape, size, reframe
 
     def __getitem__(self, names: list[str]) -> dict:
@@ -99,7 +107,7 @@ class SpoolBatches(Dataset):
             return "corrupt", None
         if record["shape"] != self.shape:
             return "other_shape", None
-        if self.reframe:
+        if self.reframe == "always" or (self.reframe == "other-sizes" and record["size"] != self.size):
             try:
                 return None, reframe(record, self.size)
             except CutOff:
@@ -211,7 +219,7 @@ def spool_names(spool: Path) -> list[str]:
 
 def make_loader(spool: str | Path, shape: str, size: int, batch_size: int, seed: int, workers: int,
                 pin_memory: bool = False, timeout: float | None = None,
-                worker_init_fn=None, reframe: bool = False, **sampler_options) -> tuple[DataLoader, EpochSampler]:
+                worker_init_fn=None, reframe: str = "never", **sampler_options) -> tuple[DataLoader, EpochSampler]:
     """`sampler_options`: EpochSampler's rank, world, list_spool and interrupted (torchrun)."""
     sampler = EpochSampler(spool, batch_size, seed, timeout=timeout, **sampler_options)
     loader = DataLoader(

@@ -49,13 +49,13 @@ def mask_iou(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
 
 def load_batches(spool: Path, shape: str, size: int, batch_size: int,
                  max_samples: int | None) -> tuple[list[dict], dict[str, int]]:
-    """The first `max_samples` samples of this shape, in name order, framed at `size` as `infer`
-    frames a mask (so a spool of any size serves), as packed batches.
+    """The first `max_samples` samples of this shape, in name order, as packed batches; samples of
+    another size are framed at `size` as `infer` frames a mask (so a 256 px spool serves any model).
 
     Read once and kept, so two models can be evaluated on the very same samples
     even while a generator evicts from the spool. Returns the skip counts too.
     """
-    reader, names = SpoolBatches(spool, shape, size, reframe=True), enumerate_spool(spool)
+    reader, names = SpoolBatches(spool, shape, size, reframe="other-sizes"), enumerate_spool(spool)
     wanted = len(names) if max_samples is None else max_samples
     batches, skipped, kept, position = [], dict.fromkeys(SKIP_REASONS, 0), 0, 0
     while kept < wanted and position < len(names):

@@ -240,7 +240,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
                                   config.loader_workers, pin_memory=device.type == "cuda",
                                   timeout=loader_timeout if loader_timeout is not None else config.max_wait,
-                                  worker_init_fn=_leave_signals_to_main, reframe=config.reframe,
+                                  worker_init_fn=_leave_signals_to_main, reframe="always" if config.reframe else "never",
                                   **_sampler_options(ranks, stop))
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))

@@ -171,7 +171,7 @@ def emulated_ranks(spool: Path, steps: int, world: int = 2) -> list[dict]:
     model = tiny_model("box", SIZE, seed=config.seed, sigma=config.heatmap_sigma).train()
     params = list(model.parameters())
     optimizer = torch.optim.Adam(params, lr=config.lr, weight_decay=config.weight_decay)
-    data = SpoolBatches(spool, "box", SIZE, reframe=config.reframe)
+    data = SpoolBatches(spool, "box", SIZE, reframe="always" if config.reframe else "never")
     shares = [iter(EpochSampler(spool, BATCH, seed=config.seed, rank=r, world=world)) for r in range(world)]
     logged = []
     for _ in range(steps):  # the first epoch (5 global batches of 8) holds them all

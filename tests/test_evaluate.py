@@ -163,10 +163,11 @@ def test_evaluate_skips_and_counts_other_samples(tmp_path):
     (spool / "0000000000000000001-junk.cub").write_bytes(b"not a sample")  # sorts first
     model = tiny_model("box", SIZE)
     result = evaluate(model, spool, sigma=1.0, device=CPU)
-    assert result["samples"] == 3
-    assert result["skipped"] == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 1}
+    # the 64 px box is framed at the model's size as infer frames a mask: evaluated, not skipped
+    assert result["samples"] == 4
+    assert result["skipped"] == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 0, "cut_off": 0}
     first_two = evaluate(model, spool, sigma=1.0, device=CPU, batch_size=1, max_samples=2)
-    assert first_two["samples"] == 2  # the first two box 32 px samples, past the others
+    assert first_two["samples"] == 2  # the first two box samples, past the others
 
 
 def test_a_spool_without_the_models_samples_is_a_clear_error(tmp_path):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from cuboidgen.config import PAPER_CLEAN
 from cuboidtrain.data import SKIP_REASONS, EpochSampler, Freshness, LoaderState, SpoolBatches, make_loader
 from cuboidtrain.spoolwatch import SpoolWatcher
 from shared.sample import VERSION, encode
@@ -115,6 +116,67 @@ def test_other_shapes_and_sizes_are_skipped_and_counted(tmp_path):
     batch = SpoolBatches(tmp_path, "box", 32)[everything]
     assert batch["names"] == small
     assert batch["skipped"] == no_skips(other_shape=1, other_size=2)
+
+
+# ---- reframing: train as you infer ------------------------------------------------------
+
+
+def unpacked(batch: dict, key: str, k: int, size: int) -> np.ndarray:
+    return np.unpackbits(batch[key][k].numpy(), count=size * size).reshape(size, size).astype(bool)
+
+
+@pytest.mark.parametrize("seed", [0, 3, 7])
+def test_a_reframed_sample_is_what_infer_frames_from_its_noisy_mask(tmp_path, seed):
+    from cuboidtrain.masks import components, frame, warp
+
+    sample = build_sample(seed, size=96)
+    publish(tmp_path, [sample])
+    batch = SpoolBatches(tmp_path, "box", 32, reframe="always")[enumerate_spool(tmp_path)]
+    if batch["skipped"]["cut_off"]:
+        pytest.skip("this seed's visible part is a fragment")
+    framed, framing = frame(components(sample.noisy)[0], 32)  # infer's own framing
+    np.testing.assert_array_equal(unpacked(batch, "noisy", 0, 32), framed)
+    np.testing.assert_array_equal(unpacked(batch, "clean", 0, 32), warp(sample.clean, framing))
+    np.testing.assert_allclose(batch["keypoints"][0].numpy(), framing.to_model(sample.keypoints), atol=1e-4)
+
+
+def test_reframing_keeps_the_clean_silhouettes_corners_on_its_keypoints(tmp_path):
+    # Property: after reframing a clean sample, each keypoint still lies on the clean mask's hull.
+    sample = build_sample(2, size=128, scene=PAPER_CLEAN)
+    publish(tmp_path, [sample])
+    batch = SpoolBatches(tmp_path, "box", 64, reframe="always")[enumerate_spool(tmp_path)]
+    clean = unpacked(batch, "clean", 0, 64)
+    ys, xs = np.nonzero(clean)
+    kp = batch["keypoints"][0].numpy()
+    assert xs.min() - 1 <= kp[:, 0].min() and kp[:, 0].max() <= xs.max() + 1
+    assert ys.min() - 1 <= kp[:, 1].min() and kp[:, 1].max() <= ys.max() + 1
+
+
+def test_reframe_modes_choose_which_samples_are_framed(tmp_path):
+    small, large = build_sample(0, size=32), build_sample(1, size=64)
+    publish(tmp_path, [small, large])
+    names = enumerate_spool(tmp_path)
+    never = SpoolBatches(tmp_path, "box", 32, reframe="never")[names]
+    assert never["names"] == names[:1] and never["skipped"] == no_skips(other_size=1)
+    other = SpoolBatches(tmp_path, "box", 32, reframe="other-sizes")[names]
+    assert other["names"] == names  # the 32 px sample as the generator framed it, the 64 px one reframed
+    np.testing.assert_array_equal(unpacked(other, "noisy", 0, 32), small.noisy)
+    np.testing.assert_allclose(other["keypoints"][0].numpy(), small.keypoints, atol=1e-5)
+    always = SpoolBatches(tmp_path, "box", 32, reframe="always")[names]
+    assert not np.array_equal(unpacked(always, "noisy", 0, 32), small.noisy)  # framed again, 10% margin
+    with pytest.raises(ValueError, match="reframe 'sometimes'"):
+        SpoolBatches(tmp_path, "box", 32, reframe="sometimes")
+
+
+def test_a_sample_whose_visible_part_is_a_fragment_is_skipped_as_cut_off(tmp_path):
+    from dataclasses import replace
+
+    sample = build_sample(4, size=64)
+    fragment = np.zeros_like(sample.noisy)
+    fragment[10:14, 10:14] = True  # all that an occluder left visible: a 4 px corner of the wall
+    publish(tmp_path, [replace(sample, noisy=fragment)])
+    batch = SpoolBatches(tmp_path, "box", 32, reframe="always")[enumerate_spool(tmp_path)]
+    assert batch["names"] == [] and batch["skipped"] == no_skips(cut_off=1)
 
 
 def test_a_batch_with_nothing_usable_is_empty_not_an_error(tmp_path):
