@@ -30,6 +30,7 @@ from shared.shapes import Shape, get_shape
 log = logging.getLogger(__name__)
 
 MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
+DRIFT_IOU = 0.9  # "auto" distrusts a settled mask this far from the Refiner's first pass
 # A twobox can lay its two parts end to end and pass for a box, so it explains any box
 # silhouette about as well; it must beat the box by this much IoU to be chosen. On 240
 # mixed noisy 64 px samples (CPU recipe models), 0.02 gave 86% right against 82% at 0.
@@ -43,25 +44,39 @@ def binarise(refined: torch.Tensor) -> torch.Tensor:
 
 
 def refine(model: CuboidNet, mask_pm1: torch.Tensor, steps: int | None,
-           max_steps: int = MAX_REFINE_STEPS) -> tuple[torch.Tensor, int]:
-    """Iterative refinement (Figure 7): (1, 1, S, S) +-1 mask -> (refined tanh output, passes run).
+           max_steps: int = MAX_REFINE_STEPS) -> tuple[torch.Tensor, int, bool]:
+    """Iterative refinement (Figure 7): (1, 1, S, S) +-1 mask -> (refined tanh output, passes
+    run, whether it converged).
 
     `steps=K` runs R K times, each pass on the sign of the previous output (R was
     trained on binary inputs, not tanh values); K=0 hands the raw mask on. `None`
-    ("auto") repeats until a pass flips no pixel of the binarised mask, or
-    `max_steps`: a stationary R (paper 3.4) then costs two passes.
+    ("auto") repeats until a pass flips no pixel of the binarised mask. A Refiner
+    that never settles within `max_steps` passes, or settles on a mask that has
+    drifted from its first pass (IoU below DRIFT_IOU: grown into a square, eaten
+    away), is not trusted: auto then keeps its first pass (one pass is what R was
+    trained to do) and reports no convergence. A fixed K always counts as converged.
     """
     if steps is not None and steps < 0:
         raise ValueError(f"refine steps {steps}: expected 0 or more, or auto")
-    refined, previous = mask_pm1, None
+    refined, previous, first = mask_pm1, None, None
     limit = max_steps if steps is None else steps
     for step in range(1, limit + 1):
         refined = model.refiner(binarise(refined))
+        first = refined if first is None else first
         current = refined > 0
         if steps is None and previous is not None and torch.equal(current, previous):
-            return refined, step
+            if mask_iou(current, first > 0) >= DRIFT_IOU:
+                return refined, step, True
+            break
         previous = current
-    return refined, limit
+    if steps is None:  # auto did not settle, or drifted: keep pass one
+        return first, 1, False
+    return refined, limit, True
+
+
+def mask_iou(a: torch.Tensor, b: torch.Tensor) -> float:
+    union = (a | b).sum().item()
+    return (a & b).sum().item() / union if union else 1.0
 
 
 def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> dict:
@@ -69,12 +84,12 @@ def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> d
     Refiner passes (None: until settled). Returns refined, heatmaps, keypoints (T's), ratios
     and the passes run."""
     if refine_steps == 1:  # one pass on a binary mask is the model's own forward
-        return model(x1) | {"refine_steps": 1}
-    refined, steps_run = refine(model, x1, refine_steps)
+        return model(x1) | {"refine_steps": 1, "refine_converged": True}
+    refined, steps_run, converged = refine(model, x1, refine_steps)
     heatmaps = model.estimator(refined)  # S sees R's tanh output, as in CuboidNet.forward and training
     keypoints, ratios = model.tabulator(heatmaps)
     return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios,
-            "refine_steps": steps_run}
+            "refine_steps": steps_run, "refine_converged": converged}
 
 
 def silhouette(shape: str | Shape, keypoints: np.ndarray, size: int) -> np.ndarray:
@@ -126,6 +141,7 @@ def fit(model: CuboidNet, framed_mask: np.ndarray, refine_steps: int | None,
         "ratios": geometry.ratio_dict(out["ratios"][0].cpu().tolist()),
         "confidence": confidence(geometry, keypoints, framed_mask),
         "refine_steps": out["refine_steps"],
+        "refine_converged": out["refine_converged"],
         "refined": out["refined"][0, 0].float().cpu().numpy(),
         "heatmaps": out["heatmaps"][0].float().cpu().numpy(),
     }
@@ -168,6 +184,38 @@ def border_warnings(mask: np.ndarray) -> list[str]:
             f"there, and keypoints beyond the border are extrapolated"]
 
 
+def border_cut(mask: np.ndarray) -> float:
+    """The share of the silhouette's bounding box outline that lies on the image's edge, in [0, 1]:
+    0 for a building seen whole, 1 for a mask that fills the frame (nothing of its outline is seen)."""
+    x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))
+    on_edge = (mask[0].sum() + mask[-1].sum()) + (mask[:, 0].sum() + mask[:, -1].sum())
+    return float(min(on_edge / (2 * (w + h)), 1.0))
+
+
+def outside_keypoints(keypoints: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Indices of the (N, 2) keypoints that lie outside the (H, W) image (pixel centres 0 .. W-1)."""
+    height, width = shape
+    x, y = keypoints[:, 0], keypoints[:, 1]
+    return np.flatnonzero((x < -0.5) | (x > width - 0.5) | (y < -0.5) | (y > height - 0.5))
+
+
+def trust(record: dict, mask: np.ndarray, keypoints: np.ndarray, shape: str) -> None:
+    """Lower the record's confidence, and say why, where the fit explains less than its IoU claims:
+    corners outside the input are guessed, a silhouette cut by the image's edge hides its outline
+    (a mask filling the frame shows none of it), and a Refiner that did not settle was not used."""
+    outside = outside_keypoints(keypoints, mask.shape)
+    if outside.size:
+        names = get_shape(shape).keypoint_names
+        record["warnings"].append(f"{outside.size} of {len(keypoints)} keypoints lie outside the input image "
+                                  f"({', '.join(names[i] for i in outside)}): guessed, not seen")
+        record["confidence"] *= 1 - outside.size / len(keypoints)
+    cut = border_cut(mask)
+    record["confidence"] *= 1 - cut
+    if cut >= 0.5:
+        record["warnings"].append(f"{100 * cut:.0f}% of the silhouette's outline lies on the image's edge: "
+                                  f"the mask may not show a building's outline at all")
+
+
 def fit_component(mask: np.ndarray, models: list[CuboidNet], extractors: dict, refine_steps: int | None,
                   margin: float, device: torch.device) -> tuple[dict, dict]:
     """Frame one component for every candidate and keep the best-explained fit.
@@ -181,16 +229,22 @@ def fit_component(mask: np.ndarray, models: list[CuboidNet], extractors: dict, r
         result = fit(model, framed, refine_steps, device, extractors[model.shape])
         fits.append((result, framed, framing))
     best, framed, framing = choose(fits)
+    keypoints = framing.to_input(best["keypoints"])
     record = {
         "shape": best["shape"],
         "confidence": best["confidence"],
-        "keypoints": framing.to_input(best["keypoints"]).tolist(),
+        "keypoints": keypoints.tolist(),
         "ratios": best["ratios"],
         "refine_steps": best["refine_steps"],
+        "refine_converged": best["refine_converged"],
         "error": None,
         "warnings": border_warnings(mask),
         "candidates": {r["shape"]: r["confidence"] for r, _, _ in fits},
     }
+    if not best["refine_converged"]:
+        record["warnings"].append(f"refinement did not settle within {MAX_REFINE_STEPS} passes, or drifted "
+                                  f"from its first pass (IoU < {DRIFT_IOU}): its first pass was used")
+    trust(record, mask, keypoints, best["shape"])
     return record, {"fit": best, "framed": framed, "framing": framing, "mask": mask}
 
 
@@ -207,7 +261,7 @@ def choose(fits: list[tuple]) -> tuple:
 
 def error_record(path: str, reason: str, all_components: bool) -> dict:
     record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
-              "refine_steps": None, "error": reason, "warnings": [], "candidates": {}}
+              "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
     return record | ({"component": None} if all_components else {})
 
 

@@ -59,7 +59,7 @@ def masks(shape: str, kind: str, batch: int) -> np.ndarray:
 def eager(model, mask: np.ndarray, steps: int) -> dict[str, np.ndarray]:
     """infer's own chain in torch: refine (K passes), then S on R's output, then T."""
     with torch.inference_mode():
-        refined, _ = refine(model, torch.from_numpy(mask), steps)
+        refined, _, _ = refine(model, torch.from_numpy(mask), steps)
         heatmaps = model.estimator(refined)
         keypoints, ratios = model.tabulator(heatmaps)
     return {"refined": refined.numpy(), "heatmaps": heatmaps.numpy(), "keypoints": keypoints.numpy(),
