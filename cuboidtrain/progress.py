@@ -67,7 +67,8 @@ class Progress:
         self.skipped = Counter(dict.fromkeys(SKIP_REASONS, 0))
         self.freshness = {"mean_age_s": None, "mean_reuse": None}
         self.last_end = time.perf_counter()
-        self.last_publish = 0.0
+        self.last_publish = 0.0  # the loop's last publish: throttles the loop alone
+        self.last_shown = 0.0  # the last status written by anyone: the heartbeat fills the gaps after it
         self._status = {
             "phase": config.phase, "phase_meaning": PHASES[config.phase], "shape": config.shape, "size": config.size,
             "device": str(device), "out": str(self.out), "spool": config.spool, "state": "starting",
@@ -249,6 +250,7 @@ class Progress:
     def _show(self, status: dict) -> None:
         with self._lock:
             self._published = status
+            self.last_shown = time.monotonic()
             write_status(self.out, status)
             if self.dashboard is not None:
                 self.dashboard.update(status)
@@ -262,9 +264,10 @@ class Progress:
         stopping = self.stop is not None and self.stop.asked() and last["state"] in ("training", "waiting for samples")
         if stopping:
             self._status["state"] = STOPPING
-        elif time.monotonic() - self.last_publish < PUBLISH_EVERY:
+        elif time.monotonic() - self.last_shown < PUBLISH_EVERY:
             return
-        self.last_publish = time.monotonic()
+        # The loop's own throttle (last_publish) is left alone: a beat between two slow steps
+        # must not make the loop skip publishing the step that follows it.
         self._show({**last, "state": self._status["state"], "updated": time.time()})
 
     def _heartbeat(self) -> None:

@@ -247,3 +247,33 @@ def test_status_stays_fresh_through_a_long_step_and_says_when_a_stop_waits_for_i
     assert third["state"] == "stopping after this step" and third["step"] == 0
     assert final["state"] == "stopped" and final["step"] == 1  # the step in hand was finished
     assert "stopping after this step" in as_text(render(third, now=third["updated"]))
+
+
+class _NoWatcher:
+    count = 0
+
+    def arrivals_per_s(self):
+        return 0.0
+
+
+def test_status_follows_steps_slower_than_the_publish_interval(tmp_path, monkeypatch):
+    # The heartbeat refreshes status.json between steps; it must not reset the loop's own
+    # throttle, or a step that ends just after a beat is never published (status stuck at step 0).
+    import time
+
+    import torch
+
+    from cuboidtrain import progress as progress_module
+    from cuboidtrain.config import TrainConfig
+
+    monkeypatch.setattr(progress_module, "PUBLISH_EVERY", 0.05)
+    monkeypatch.setattr(progress_module, "HEARTBEAT_EVERY", 0.01)
+    config = TrainConfig(out=str(tmp_path), steps=4, arch="tiny")
+    sampler = type("Sampler", (), {"state": type("S", (), {"epoch": 0, "position": 0})(), "__len__": lambda s: 4})()
+    losses = {"D_R": 1.0, "D_S": 1.0, "D_T": 1.0, "total": 3.0}
+    with progress_module.Progress(config, torch.device("cpu"), _NoWatcher()) as progress:
+        progress.begin(0, sampler)
+        for step in range(1, 5):
+            time.sleep(0.12)  # a step longer than the publish interval, beats in between
+            progress.step(step, losses, 2, 0.0, 0.0, 0.0, {})
+            assert read_status(tmp_path)["step"] == step
