@@ -356,7 +356,7 @@ def test_another_checkpoint_version_is_refused_naming_both(tmp_path):
 
 
 def stub_model(value: float):
-    """save_checkpoint only needs shape, size and state_dict: enough to test the file handling."""
+    """save_checkpoint only needs shape, size, arch and state_dict: enough to test the file handling."""
     return SimpleNamespace(shape="box", size=SIZE, arch="tiny", state_dict=lambda: {"w": torch.full((3,), value)})
 
 
