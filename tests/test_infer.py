@@ -205,6 +205,23 @@ def test_auto_refinement_that_never_settles_keeps_the_first_pass_and_says_so(tmp
     assert infer_paths([path], [model], refine_steps=1)[0]["refine_converged"] is True
 
 
+class FirstStillRestEroding(nn.Module):
+    """A Refiner that leaves the batch's first mask as it is and erodes the others."""
+
+    def forward(self, mask):
+        return torch.cat([mask[:1], Erode()(mask[1:])])
+
+
+def test_auto_refinement_decides_per_mask_in_a_batch():
+    # eval refines batches: one mask that never settles must not hold back (or throw away)
+    # the passes of one that did
+    full = torch.ones(2, 1, SIZE, SIZE)
+    refined, steps, converged = refine(stub_model("box", refiner=FirstStillRestEroding()), full, None, max_steps=5)
+    assert steps == 2 and not converged
+    assert torch.equal(refined[0], full[0])  # settled after its second pass
+    assert int((refined[1] > 0).sum()) == (SIZE - 2) ** 2  # never settled: its first pass
+
+
 # --- confidence ----------------------------------------------------------------
 
 def test_confidence_is_high_for_the_true_keypoints_and_lower_when_perturbed():
