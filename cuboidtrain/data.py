@@ -46,7 +46,7 @@ class CutOff(ValueError):
     """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
 
-def reframe(record: dict, size: int) -> dict:
+def frame_as_infer(record: dict, size: int) -> dict:
     """The sample as `infer` would see it (train as you infer): the noisy mask's largest
     component framed at `size` by `cuboidtrain.masks.frame`, the clean mask and the
     keypoints carried by the same map. A generated sample is framed by its clean
@@ -109,7 +109,7 @@ class SpoolBatches(Dataset):
             return "other_shape", None
         if self.reframe == "always" or (self.reframe == "other-sizes" and record["size"] != self.size):
             try:
-                return None, reframe(record, self.size)
+                return None, frame_as_infer(record, self.size)
             except CutOff:
                 return "cut_off", None
         if record["size"] != self.size:
