@@ -10,8 +10,8 @@ What makes it cheap:
 
 * Plain 3x3 convolutions at a fraction of ResNet-18's width (on a CPU they
   train faster than depthwise ones of the same accuracy), with the work done at
-  stride 2 and below. Only a thin 8-channel stage runs at full resolution, so
-  R's edges and S's peaks stay pixel-sharp.
+  stride 2 and below. Only R has a full-resolution stage (8 channels, on the
+  input itself), so its edges stay pixel-sharp.
 * S's maps are computed at stride 2 and upsampled: a Gaussian of std 2 px is
   smooth enough for that to lose nothing.
 * T is fully convolutional (CoordConv input, U-Net context) and ends in one

@@ -21,7 +21,7 @@ from cuboidtrain.data import SKIP_REASONS, SpoolBatches
 from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.infer import chain
+from cuboidtrain.infer import chain, mask_iou
 from cuboidtrain.pdm import parse_components
 from cuboidtrain.networks import CuboidNet, build_model
 from shared.sample import decode_record
@@ -38,13 +38,6 @@ def keypoint_errors(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     if pred.shape != true.shape:
         raise ValueError(f"keypoints {tuple(pred.shape)} and {tuple(true.shape)}: expected equal (B, N, 2) shapes")
     return torch.linalg.vector_norm(pred.float() - true.float(), dim=-1)
-
-
-def mask_iou(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
-    """(B, 1, H, W) masks in +-1 (object > 0) -> (B,) IoU; two empty masks agree fully (1)."""
-    a, b = (refined > 0).flatten(1), (clean > 0).flatten(1)
-    inter, union = (a & b).sum(1).float(), (a | b).sum(1).float()
-    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
 
 
 def load_batches(spool: Path, shape: str, size: int, batch_size: int,

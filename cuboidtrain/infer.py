@@ -81,16 +81,16 @@ def refine(model: CuboidNet, mask_pm1: torch.Tensor, steps: int | None,
             if (settled_at > 0).all():
                 break
         previous = current
-    trusted = (settled_at > 0) & (iou_per_mask(result > 0, first > 0) >= DRIFT_IOU)
+    trusted = (settled_at > 0) & (mask_iou(result, first) >= DRIFT_IOU)
     result[~trusted], settled_at[~trusted] = first[~trusted], 1
     return result, int(settled_at.max()), bool(trusted.all())
 
 
-def iou_per_mask(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(B, ...) bool masks -> (B,) IoU; two empty masks agree fully (1)."""
-    a, b = a.flatten(1), b.flatten(1)
-    union = (a | b).sum(1)
-    return torch.where(union > 0, (a & b).sum(1) / union.clamp(min=1), torch.ones(len(a)))
+def mask_iou(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) masks in +-1 (object > 0) -> (B,) IoU; two empty masks agree fully (1)."""
+    a, b = (refined > 0).flatten(1), (clean > 0).flatten(1)
+    inter, union = (a & b).sum(1).float(), (a | b).sum(1).float()
+    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
 
 
 def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> dict:
