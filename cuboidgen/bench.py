@@ -74,7 +74,7 @@ def bench_stages(size: int, samples: int, library, where: str = ".") -> dict:
     its cap, over `2 * samples` samples."""
     from cuboidgen.noise import roughen
     from cuboidgen.occlusion import occlude
-    from cuboidgen.raster import rasterize
+    from shared.raster import rasterize
     from cuboidgen.scene import draw_view, uniform
     from cuboidgen.synth import seeded, silhouette_box
     from shared.shapes import get_shape

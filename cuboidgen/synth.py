@@ -13,7 +13,7 @@ import numpy as np
 from cuboidgen.config import SceneConfig
 from cuboidgen.noise import roughen
 from cuboidgen.occlusion import occlude
-from cuboidgen.raster import rasterize
+from shared.raster import rasterize
 from cuboidgen.scene import draw_view, uniform
 from shared.sample import Sample
 from shared.shapes import get_shape

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import torch
 
-from cuboidgen.raster import rasterize
+from shared.raster import rasterize
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor

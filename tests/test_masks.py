@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cuboidgen.raster import fill_convex
+from shared.raster import fill_convex
 from cuboidtrain.masks import Framing, components, frame, load_mask
 
 # A projected box's silhouette (six hull vertices), in units of its bounding square.

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from cuboidgen.raster import fill_convex, rasterize
+from shared.raster import fill_convex, rasterize
 from shared.shapes import BOX, TWOBOX
 
 

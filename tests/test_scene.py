@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cuboidgen.config import PAPER, STREET, load_scene, scene_from_dict
-from cuboidgen.raster import rasterize
+from shared.raster import rasterize
 from cuboidgen.scene import frame, object_points, to_camera, viewer_order
 from shared.sample import encode
 from shared.shapes import BOX, TWOBOX

@@ -1,4 +1,5 @@
-"""Rasterisation of silhouettes under the pixel-centre rule.
+"""Rasterisation of silhouettes under the pixel-centre rule: the silhouette of a shape is part of the
+shape convention, so the generator draws training masks and inference scores fits with this one module.
 
 A pixel belongs to a part when its centre lies inside (or on) the part's convex
 hull; integer coordinates are pixel centres (DESIGN.md). OpenCV's polygon fill
