@@ -1,33 +1,21 @@
-"""Occluder silhouettes for the synthetic-sample generator.
+"""Urban elements drawn procedurally: the built-in occluders (paper 3.3.1, Figure 15).
 
-The paper (sec. 3.3.1, Fig. 15) imitates partial occlusion by subtracting cut-outs of
-urban objects (trees, cars, pedestrians, poles, signs; taken from Cityscapes) from clean
-building silhouettes.  ``OccluderLibrary.builtin()`` draws such silhouettes procedurally
-so no dataset is needed; ``OccluderLibrary.from_dir()`` loads RGBA/binary PNG cut-outs;
-``extract_cityscapes()`` makes such a folder from a Cityscapes ``gtFine`` tree.  Every
-mask is a tight-cropped, upright 0/1 uint8 array whose bottom row is the ground contact,
-so the generator can scale, flip and place it freely.
+The paper cuts trees, cars, pedestrians and signs out of Cityscapes; these are drawn
+instead, so no dataset is needed. Each is drawn on a canvas in object coordinates
+(x from the object's axis, y up from the ground) and returned tight-cropped, upright,
+with its ground contact on the bottom row.
 """
 from __future__ import annotations
-
-import logging
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-log = logging.getLogger(__name__)
-
 KINDS = ("tree", "car", "pedestrian", "pole", "sign")
-# Official Cityscapes labelIds of the classes that typically stand in front of buildings.
-DEFAULT_CLASSES: dict[str, int] = {
-    "pole": 17, "traffic light": 19, "traffic sign": 20, "vegetation": 21, "person": 24, "rider": 25,
-    "car": 26, "truck": 27, "bus": 28, "caravan": 29, "trailer": 30, "motorcycle": 32, "bicycle": 33,
-}
-_LABEL_SUFFIX, _INST_SUFFIX = "_gtFine_labelIds.png", "_gtFine_instanceIds.png"
 
 
-def _crop(mask: np.ndarray) -> np.ndarray | None:
+def tight_crop(mask: np.ndarray) -> np.ndarray | None:
+    """The foreground's bounding box as a 0/1 uint8 array (the form every occluder mask has);
+    None when there is no foreground."""
     ys, xs = np.nonzero(mask)
     if ys.size == 0:
         return None
@@ -70,7 +58,7 @@ class _Canvas:
         if smooth > 0:  # real outlines have no sharp polygon corners
             img = (cv2.GaussianBlur(img.astype(np.float32), (0, 0), smooth) > 0.5).astype(np.uint8)
         img[self.GROUND + 1:] = 0  # nothing below the ground line: contact is the bottom row
-        return _crop(img[:, ::-1] if rng.random() < 0.5 else img)  # objects face either way
+        return tight_crop(img[:, ::-1] if rng.random() < 0.5 else img)  # objects face either way
 
 
 def _cycle(i, options):
@@ -288,147 +276,7 @@ def _sign(rng, h, i):
 _DRAW = {"tree": _tree, "car": _car, "pedestrian": _pedestrian, "pole": _pole, "sign": _sign}
 
 
-def _foreground(img: np.ndarray) -> np.ndarray:
-    """Binary mask of a cut-out: alpha where there is one, else brightness."""
-    if img.ndim == 3 and img.shape[2] in (2, 4):
-        plane = img[..., -1]
-    elif img.ndim == 3 and img.shape[2] == 3:
-        plane = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    else:
-        plane = img.reshape(img.shape[:2])
-    thr = np.iinfo(plane.dtype).max / 2 if plane.dtype.kind in "ui" else 0.5  # 127 for 8 bit
-    return (plane > thr).astype(np.uint8)
-
-
-def _read_cutout(p: Path) -> np.ndarray | None:
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    mask = None if img is None or img.size == 0 else _crop(_foreground(img))
-    if mask is None:  # one bad file should not cost the whole library
-        why = "not readable as an image" if img is None else "no foreground (alpha or gray > 127)"
-        log.warning("occluder %s: %s; skipped", p, why)
-    return mask
-
-
-class OccluderLibrary:
-    """Tight-cropped upright 0/1 occluder masks with one name (kind) each."""
-
-    def __init__(self, masks: list[np.ndarray], names: list[str], source: str):
-        self.masks, self.names, self.source = masks, names, source
-
-    def __len__(self) -> int:
-        return len(self.masks)
-
-    @classmethod
-    def builtin(cls, variants_per_kind: int = 16, seed: int = 0) -> "OccluderLibrary":
-        rng = np.random.default_rng(seed)
-        masks = [_DRAW[k](rng, rng.uniform(96, 160), i) for k in KINDS for i in range(variants_per_kind)]
-        return cls(masks, [k for k in KINDS for _ in range(variants_per_kind)], "builtin")
-
-    @classmethod
-    def from_dir(cls, path) -> "OccluderLibrary":
-        folder = Path(path)
-        if not folder.is_dir():
-            raise ValueError(f"occluders folder {folder}: no such folder")
-        files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".png"),
-                       key=lambda p: p.name)
-        if not files:
-            raise ValueError(f"occluders folder {folder}: no PNG files (expected RGBA or binary PNG cutouts)")
-        loaded = [(p.stem, m) for p in files if (m := _read_cutout(p)) is not None]
-        if not loaded:
-            raise ValueError(f"occluders folder {folder}: none of its {len(files)} PNG files is usable "
-                             "(expected RGBA or binary PNG cutouts with some foreground)")
-        log.info("loaded %d occluders from %s", len(loaded), folder)
-        return cls([m for _, m in loaded], [n for n, _ in loaded], str(folder))
-
-    @classmethod
-    def load(cls, path=None) -> "OccluderLibrary":
-        return cls.builtin() if path is None else cls.from_dir(path)
-
-
-def _resolve_classes(classes) -> dict[str, int]:
-    names = list(DEFAULT_CLASSES) if classes is None else [classes] if isinstance(classes, str) else list(classes)
-    for name in names:
-        if name not in DEFAULT_CLASSES:
-            raise ValueError(f"occluder class {name!r}: unknown (expected one of {', '.join(DEFAULT_CLASSES)})")
-    return {n: DEFAULT_CLASSES[n] for n in names}
-
-
-def _label_files(root: Path, splits) -> list[Path]:
-    gt, layout = root / "gtFine", f"expected ROOT/gtFine/<split>/<city>/*{_LABEL_SUFFIX}"
-    if not gt.is_dir():
-        raise ValueError(f"cityscapes root {root}: no gtFine folder ({layout})")
-    missing = [s for s in splits if not (gt / s).is_dir()]
-    if missing:
-        log.info("cityscapes: splits %s not under %s; skipped", missing, gt)
-    files = [p for s in splits if s not in missing for p in sorted((gt / s).glob(f"*/*{_LABEL_SUFFIX}"))]
-    if not files:
-        raise ValueError(f"cityscapes root {root}: no labelIds files for splits {list(splits)} ({layout})")
-    return files
-
-
-def _pieces(label: np.ndarray, inst: np.ndarray | None, class_id: int):
-    """(cropped mask, bbox) per object: instance ids where Cityscapes has them, else connected
-    components, since stuff classes and crowd regions merge many objects under one id."""
-    loose = label == class_id
-    if inst is not None:
-        ids = np.unique(inst[loose])
-        for iid in ids[ids >= 1000]:
-            ys, xs = np.nonzero(inst == iid)
-            x, y, w, h = xs.min(), ys.min(), xs.max() + 1 - xs.min(), ys.max() + 1 - ys.min()
-            yield inst[y:y + h, x:x + w] == iid, (x, y, w, h)
-        loose = loose & (inst < 1000)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(loose.astype(np.uint8), connectivity=8)
-    for i in range(1, n):
-        x, y, w, h = (int(v) for v in stats[i, :4])
-        yield lab[y:y + h, x:x + w] == i, (x, y, w, h)
-
-
-def _read_frame(label_path: Path):
-    label = cv2.imread(str(label_path), cv2.IMREAD_UNCHANGED)
-    if label is None:
-        log.warning("cityscapes: %s is not readable; skipped", label_path)
-        return None, None
-    label = label if label.ndim == 2 else label[..., 0]
-    inst_path = label_path.with_name(label_path.name[:-len(_LABEL_SUFFIX)] + _INST_SUFFIX)
-    inst = cv2.imread(str(inst_path), cv2.IMREAD_UNCHANGED) if inst_path.is_file() else None
-    if inst is None or inst.shape[:2] != label.shape:
-        log.info("cityscapes: no usable %s; using connected components", inst_path.name)
-        inst = None
-    return label, inst
-
-
-def _extract_frame(label_path: Path, classes: dict[str, int], out: Path, min_pixels: int, counts):
-    label, inst = _read_frame(label_path)
-    if label is None:
-        return
-    rows, cols = label.shape
-    stem = label_path.name[:-len(_LABEL_SUFFIX)]
-    for name, class_id in classes.items():
-        n = 0
-        for crop, (x, y, w, h) in _pieces(label, inst, class_id):
-            # pieces cut by the frame border are truncated and would make implausible cut-outs
-            if crop.sum() < min_pixels or x == 0 or y == 0 or x + w == cols or y + h == rows:
-                continue
-            dest = out / f"{name.replace(' ', '-')}_{stem}_{n}.png"
-            if not cv2.imwrite(str(dest), crop.astype(np.uint8) * 255):
-                raise OSError(f"cannot write occluder {dest}")
-            n += 1
-        counts[name] = counts.get(name, 0) + n
-
-
-def extract_cityscapes(root, out, classes=None, min_pixels: int = 400,
-                       splits=("train", "val", "test")) -> dict[str, int]:
-    """Cut occluder instances out of a Cityscapes-format tree; returns counts per class.
-
-    Files are named ``<class>_<city>_<seq>_<frame>_<n>.png`` (spaces in class names
-    become '-') and hold single-channel 0/255 cut-outs ready for ``from_dir``."""
-    chosen = _resolve_classes(classes)
-    root, out = Path(root), Path(out)
-    files = _label_files(root, splits)
-    out.mkdir(parents=True, exist_ok=True)
-    counts: dict[str, int] = {}
-    for i, label_path in enumerate(files, 1):
-        _extract_frame(label_path, chosen, out, min_pixels, counts)
-        if i % 100 == 0 or i == len(files):
-            log.info("cityscapes: %d/%d frames, %d occluders so far", i, len(files), sum(counts.values()))
-    return {n: k for n, k in counts.items() if k}
+def draw_element(kind: str, rng: np.random.Generator, height: float, variant: int) -> np.ndarray:
+    """One urban element of `kind` (one of KINDS), about `height` px tall, as a tight-cropped
+    upright 0/1 mask; `variant` cycles through the kind's sub-types (sedan, van, bus, ...)."""
+    return _DRAW[kind](rng, height, variant)
