@@ -184,6 +184,8 @@ class Progress:
             freshness=dict(self.freshness),
             skipped=dict(self.skipped),
             spool_samples=self.watcher.count,
+            # samples the generator evicted before this trainer read them (cuboidtrain.spoolwatch)
+            spool_evicted_unread=getattr(self.watcher, "evicted_unread_total", None),
             foreign_files=self.foreign,
             eta_s=self._eta(rates["step_time_s"]),
             notes=self._notes(rates),
