@@ -22,6 +22,7 @@ from pathlib import Path
 
 from cuboidgen.config import GenConfig
 from cuboidgen.dashboard import Dashboard, GenSnapshot, WorkerView
+from shared.files import atomic_path
 from shared.sample import encode
 from shared.spool import META_NAME, SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, name_time
 
@@ -262,9 +263,8 @@ def write_metadata(config: GenConfig) -> None:
     from shared.sample import FORMAT, VERSION
 
     meta = {"format": FORMAT, "version": VERSION, "generator": config.to_dict(), "written": time.time()}
-    tmp = config.spool / f".tmp-meta-{os.getpid()}"
-    tmp.write_text(json.dumps(meta, indent=2, default=str))
-    os.replace(tmp, config.spool / META_NAME)
+    with atomic_path(config.spool / META_NAME) as tmp:
+        tmp.write_text(json.dumps(meta, indent=2, default=str))
 
 
 def _install_stop_handlers(stop: threading.Event) -> dict:

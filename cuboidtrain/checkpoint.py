@@ -16,8 +16,8 @@ import torch
 
 from cuboidtrain.config import TrainConfig
 from cuboidtrain.data import LoaderState
-from cuboidtrain.files import atomic_path
 from cuboidtrain.networks import CuboidNet
+from shared.files import atomic_path
 
 FORMAT = "cuboid-fit/checkpoint"  # a training run's state: weights, optimizer, loader, RNG (cuboidtrain run)
 MODEL_FORMAT = "cuboid-fit/model"  # weights, config and model card only (cuboidtrain.zoo.pack)

@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
+from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -255,11 +256,9 @@ class Explainer:
             return None
 
     def _save(self, fig, path: Path, dpi: int) -> None:
-        tmp = path.with_name(f".tmp-{path.name}")
         try:
-            fig.savefig(tmp, dpi=dpi, format="png")
-            tmp.replace(path)  # a reader never sees half a picture
+            with atomic_path(path) as tmp:  # a reader never sees half a picture
+                fig.savefig(tmp, dpi=dpi, format="png")
         finally:
             plt.close(fig)
-            tmp.unlink(missing_ok=True)
         self.written.append(path)

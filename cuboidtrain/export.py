@@ -19,9 +19,9 @@ import torch
 from torch import nn
 
 from cuboidtrain.checkpoint import load_model
-from cuboidtrain.files import atomic_path
 from cuboidtrain.infer import binarise
 from cuboidtrain.networks import CuboidNet
+from shared.files import atomic_path
 from shared.shapes import get_shape
 
 FORMAT = "cuboid-fit/onnx"

@@ -1,32 +1,13 @@
 """Files that other processes read while we write them: replaced atomically, never half-written."""
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import time
 from pathlib import Path
 
-from shared.spool import process_alive, remove_orphans
+from shared import files
+from shared.files import atomic_path
 
 ORPHAN_AGE = 600.0  # s: a temporary file this old is no live writer's (a checkpoint takes seconds)
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | Path):
-    """Yields a temporary path beside `path` to write; on success it replaces `path` (os.replace in
-    one folder is atomic), on failure it is removed. Readers see the old file or the new one.
-
-    The name `.tmp-<pid>-<name>` is what `sweep_orphans` parses to find a killed writer's leftovers.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
@@ -36,20 +17,8 @@ def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
 
 
 def sweep_orphans(folder: Path, max_age: float = ORPHAN_AGE) -> int:
-    """Delete `.tmp-<pid>-*` files that a killed writer left in `folder`; returns how many.
-
-    One is an orphan when its pid is gone, or when it is older than `max_age`.
-    """
-    now = time.time()
-
-    def orphan(entry: os.DirEntry) -> bool:
-        try:
-            pid = int(entry.name.split("-")[1])
-        except (IndexError, ValueError):
-            return True  # not a name we write: a stray from an older version
-        return not process_alive(pid) or now - entry.stat().st_mtime > max_age
-
-    return remove_orphans(folder, ".tmp-", orphan)
+    """Delete the temporary files a killed writer left in the run folder `folder`; returns how many."""
+    return files.sweep_orphans(folder, max_age)
 
 
 def repair_jsonl(path: Path) -> bool:

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
-from cuboidtrain.files import atomic_path
+from shared.files import atomic_path
 
 SHIPPED_SHAPES = ("box", "twobox")
 

@@ -6,8 +6,9 @@ The spool folder is the only link between the generator and the trainer. Its rul
   by age and never collides: pid and a random token tell apart writers on one
   host, the host name tells apart hosts, and the sequence number orders one
   writer's samples.
-* Publishing writes `.tmp-<name>` (or rewrites a spare, below) and renames it in
-  the same folder, so readers see a whole file or none. Nothing is fsynced unless
+* Publishing writes `.tmp-0-<host>-<pid>-<name>` (shared.files.temporary_name; or
+  rewrites a spare, below) and renames it in the same folder, so readers see a
+  whole file or none. Nothing is fsynced unless
   asked: a killed process leaves at most three temporary files (one being written,
   two spares), which are swept when a writer next starts; only a power cut could
   lose data that was not synced.
@@ -22,7 +23,8 @@ The spool folder is the only link between the generator and the trainer. Its rul
   journal it grows with the files the spool itself has just deleted (the inode
   allocator passes over recently freed inodes one by one). Before a publish that
   will evict, the writer hard-links the sample to be evicted to a hidden spare
-  `.tmp-0-<host>-<pid>-<token>-spare<k>.cub` (k = 0, 1, alternately); eviction
+  `.tmp-0-<host>-<pid>-<token>-spare<k>.cub` (k = 0, 1, alternately: a temporary
+  name of the same rule, which the sweep reads); eviction
   deletes its sample name as ever (readers and watchers see an ordinary
   deletion); the next publish rewrites that spare and renames it to its new
   sample name. It rewrites only while it holds a write lease (`F_SETLEASE`),
@@ -41,19 +43,19 @@ import errno
 import fcntl
 import logging
 import os
-import re
 import secrets
 import signal
-import socket
 import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
+# TMP_PREFIX is the spool's too: inspect counts the temporary files by it.
+from shared.files import TMP_PREFIX, host_tag, sweep_orphans, temporary_name  # noqa: F401
+
 log = logging.getLogger(__name__)
 
 SUFFIX = ".cub"
-TMP_PREFIX = ".tmp-"
 META_NAME = "SPOOL.json"
 EVICT_EVERY = 64  # publishes between listings; the spool bound is limit + writers * EVICT_EVERY
 ORPHAN_AGE = 60.0  # s: a temporary file this old belongs to no live writer on any host
@@ -73,10 +75,6 @@ class SpoolError(ValueError):
 
 class SpoolFull(OSError):
     """The disk under the spool is full; nothing was published."""
-
-
-def host_tag() -> str:
-    return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:24] or "host"
 
 
 def check_spool(spool: Path, writable: bool = False, create: bool = False, readable: bool = False) -> Path:
@@ -137,43 +135,6 @@ def read_sample_bytes(spool: Path, name: str) -> bytes | None:
         os.close(fd)
 
 
-def sweep_orphans(spool: Path, max_age: float = ORPHAN_AGE) -> int:
-    """Delete temporary files left by killed writers; returns how many.
-
-    A temporary file is an orphan when its writer ran on this host and is gone,
-    or when it is older than `max_age` (a live writer keeps one for microseconds).
-    """
-    here, now = host_tag(), time.time()
-
-    def orphan(entry: os.DirEntry) -> bool:
-        parts = entry.name[len(TMP_PREFIX) :].split("-")
-        try:
-            dead = parts[1] == here and not process_alive(int(parts[2]))
-        except (IndexError, ValueError):
-            return True  # not a name we write: a stray
-        return dead or now - entry.stat().st_mtime > max_age
-
-    return remove_orphans(spool, TMP_PREFIX, orphan)
-
-
-def remove_orphans(folder: Path, prefix: str, orphan) -> int:
-    """Delete the files in `folder` named `prefix...` for which `orphan(entry)` is true; returns how many.
-
-    One that vanishes meanwhile (its writer renamed or removed it) is skipped.
-    """
-    swept = 0
-    for entry in os.scandir(folder):
-        if not entry.name.startswith(prefix):
-            continue
-        try:
-            if orphan(entry):
-                os.unlink(entry.path)
-                swept += 1
-        except FileNotFoundError:
-            continue
-    return swept
-
-
 def filesystem_type(path: Path) -> str | None:
     """The type (`ext4`, `nfs`, ...) of the filesystem holding `path`, from
     /proc/self/mountinfo; None where that cannot be told."""
@@ -188,24 +149,6 @@ def filesystem_type(path: Path) -> str | None:
     except (OSError, ValueError, IndexError):
         pass
     return None
-
-
-def process_alive(pid: int) -> bool:
-    """Whether `pid` runs on this host. A zombie is dead: a killed daemon's workers stay
-    zombies for as long as an init without reaping (a container's PID 1) leaves them."""
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return True
 
 
 @dataclass
@@ -234,12 +177,13 @@ class SpoolWriter:
         self.spool = Path(spool)
         self.limit, self.evict_every, self.fsync = limit, evict_every, fsync
         self.counts = WriterCounts()
-        self._prefix = f"{host_tag()}-{os.getpid()}-{secrets.token_hex(3)}"
+        self._host, self._pid, token = host_tag(), os.getpid(), secrets.token_hex(3)
+        self._prefix = f"{self._host}-{self._pid}-{token}"
         self._dir = os.fspath(self.spool)
         self._recycle = recycle
         # Two spare slots: the file to rewrite now, and the one this publish will evict.
         self._spare_paths = [
-            os.path.join(self._dir, f"{TMP_PREFIX}0-{self._prefix}-spare{k}{SUFFIX}") for k in (0, 1)
+            os.path.join(self._dir, self._temporary(f"{token}-spare{k}{SUFFIX}")) for k in (0, 1)
         ]
         self._spare: str | None = None  # the slot holding an evicted sample's file to rewrite
         self._seq = 0
@@ -249,7 +193,7 @@ class SpoolWriter:
 
     def __enter__(self) -> "SpoolWriter":
         check_spool(self.spool, writable=True, create=True)
-        swept = sweep_orphans(self.spool)
+        swept = sweep_orphans(self.spool, ORPHAN_AGE)
         if swept:
             log.info("swept %d orphaned temporary files from %s", swept, self.spool)
         if not hasattr(fcntl, "F_SETLEASE"):  # leases are Linux's
@@ -295,7 +239,7 @@ class SpoolWriter:
         return name
 
     def _write_atomically(self, name: str, data: bytes) -> None:
-        tmp = os.path.join(self._dir, TMP_PREFIX + name)
+        tmp = os.path.join(self._dir, self._temporary(name))
         try:
             fd = os.open(tmp, _CREATE, 0o666)  # open(..., 'xb')'s mode, less the umask
             try:
@@ -310,6 +254,9 @@ class SpoolWriter:
             if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
                 raise SpoolFull(exc.errno, f"no space left under {self.spool}") from None
             raise
+
+    def _temporary(self, name: str) -> str:
+        return temporary_name(name, self._host, self._pid)  # host and pid looked up once, not per publish
 
     def _keep_as_spare(self, busy: str | None) -> str | None:
         """Hard-link the oldest known sample (the next to be evicted) to a free spare

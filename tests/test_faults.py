@@ -27,7 +27,9 @@ from cuboidtrain.checkpoint import load_checkpoint
 from cuboidtrain.cli import app as train_app
 from cuboidtrain.config import TrainConfig
 from cuboidtrain.dashboard import render
+from cuboidtrain.files import sweep_orphans as sweep_run_folder
 from cuboidtrain.train import NoUsableSamples, StopRequest, run
+from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
@@ -344,7 +346,7 @@ def test_a_restart_sweeps_a_killed_trainers_temporary_files_and_torn_metrics_lin
     out = tmp_path / "run"
     run(config(tmp_path / "spool", out, steps=1))
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    (out / f".tmp-{int(dead.stdout)}-last.pt").write_bytes(b"half a checkpoint")  # killed mid-save
+    (out / temporary_name("last.pt", pid=int(dead.stdout))).write_bytes(b"half a checkpoint")  # killed mid-save
     with open(out / "metrics.jsonl", "a") as f:  # steps 2 and 3 ran after the checkpoint at 1, then a kill
         f.write('{"step": 2, "D_R": 0.5}\n{"step": 3, "D_R": 0.4}\n{"step": 4, "D_R": 0.')  # mid-record
     run(config(tmp_path / "spool", out, steps=2, resume=True))
@@ -415,8 +417,6 @@ def test_a_checkpoint_that_cannot_be_written_is_a_one_line_error_and_the_last_on
 def test_a_zombie_writer_is_dead_so_its_temporary_files_are_swept(tmp_path):
     # A killed daemon's workers can stay zombies (an init that does not reap them): their
     # spares and temporary files must go at the next start, not 60 s later.
-    from shared.spool import process_alive, sweep_orphans
-
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     deadline = time.monotonic() + 10
     while open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":  # exited, not reaped
@@ -424,13 +424,10 @@ def test_a_zombie_writer_is_dead_so_its_temporary_files_are_swept(tmp_path):
         time.sleep(0.05)
     try:
         assert not process_alive(child.pid) and process_alive(os.getpid())
-        from shared.spool import host_tag
-
-        (tmp_path / f".tmp-0-{host_tag()}-{child.pid}-abcdef-spare1.cub").write_bytes(b"x")
-        (tmp_path / f".tmp-{child.pid}-last.pt").write_bytes(b"x")
-        assert sweep_orphans(tmp_path) == 1
-        from cuboidtrain.files import sweep_orphans as sweep_run_folder
-
+        (tmp_path / temporary_name("abcdef-spare1.cub", pid=child.pid)).write_bytes(b"x")
+        with SpoolWriter(tmp_path, limit=10):  # a writer starting sweeps the spool
+            assert os.listdir(tmp_path) == []
+        (tmp_path / temporary_name("last.pt", pid=child.pid)).write_bytes(b"x")
         assert sweep_run_folder(tmp_path) == 1 and os.listdir(tmp_path) == []
     finally:
         child.wait()

@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shared.files import host_tag, sweep_orphans, temporary_name
 from shared.sample import decode, encode
 from shared.spool import (
-    LOCAL_FILESYSTEMS, SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, filesystem_type,
-    read_sample_bytes, sweep_orphans,
+    LOCAL_FILESYSTEMS, ORPHAN_AGE, SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, filesystem_type,
+    read_sample_bytes,
 )
 from tests.conftest import build_sample, fill_spool
 
@@ -110,16 +111,25 @@ def test_reader_survives_eviction_during_enumeration(tmp_path):
 
 
 def test_sweep_removes_orphans_of_dead_writers_only(tmp_path):
-    from shared.spool import host_tag
-
-    dead = tmp_path / f".tmp-1-{host_tag()}-999999-abc-000000001.cub"
-    live = tmp_path / f".tmp-1-{host_tag()}-{os.getpid()}-abc-000000001.cub"
-    stale = tmp_path / ".tmp-1-otherhost-12-abc-000000001.cub"
-    for path in (dead, live, stale):
+    sample = "0000000000000000001-somehost-12-abc-000000001.cub"
+    dead = tmp_path / temporary_name(sample, pid=999999)
+    live = tmp_path / temporary_name(sample)
+    stale = tmp_path / temporary_name(sample, host="otherhost", pid=12)  # another host's: only age tells
+    fresh = tmp_path / temporary_name("abc-spare0.cub", host="otherhost", pid=12)
+    older_version = tmp_path / f".tmp-1-{host_tag()}-999999-abc-000000001.cub"  # a time in the first field
+    for path in (dead, live, stale, fresh, older_version):
         path.write_bytes(b"partial")
-    os.utime(stale, (time.time() - 3600, time.time() - 3600))
-    assert sweep_orphans(tmp_path) == 2
-    assert live.exists() and not dead.exists() and not stale.exists()
+    os.utime(stale, (time.time() - ORPHAN_AGE - 1, time.time() - ORPHAN_AGE - 1))
+    assert sweep_orphans(tmp_path, ORPHAN_AGE) == 3
+    assert sorted(os.listdir(tmp_path)) == sorted([live.name, fresh.name])
+
+
+def test_a_writer_starting_sweeps_a_dead_writers_temporaries_and_spares(tmp_path):
+    for name in ("0000000000000000001-x-1-abc-000000001.cub", "abc-spare1.cub"):
+        (tmp_path / temporary_name(name, pid=999999)).write_bytes(b"partial")
+    with SpoolWriter(tmp_path, limit=10) as writer:
+        name = writer.publish(b"sample")
+    assert os.listdir(tmp_path) == [name]
 
 
 @pytest.mark.parametrize("recycle", [False, True])
