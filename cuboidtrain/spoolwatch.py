@@ -1,84 +1,141 @@
-"""A live view of the spool for the dashboard: how many samples, how fast they arrive.
+"""The spool as the trainer's dashboard shows it: how many samples, how fast they arrive,
+and how many were evicted before the trainer read them. From listings alone, no watcher.
 
-watchdog's inotify observer hears every publish (the rename of a `.tmp-` file to
-its sample name) and every eviction, so the trainer knows whether its generator
-keeps up without listing 10,000 names every second. The count is re-anchored
-to a real listing at every epoch's start, so a missed event cannot drift far.
+Why no watcher (issue 14): watchdog's inotify observer ran a thread in the trainer's
+process that took the GIL for every publish and every eviction. Beside a generator at
+full speed that thread held the GIL in every profiler sample, the trainer fell to one
+step per 1.5-2 minutes, and the kernel's event queue still overflowed. The trainer lists
+the spool at every epoch's start anyway, and a sample's name says which writer published
+it and that writer's sequence number (`<time_ns>-<host>-<pid>-<token>-<seq>.cub`), so two
+listings tell how many samples each writer published between them, including those
+published and evicted before either listing saw them. Between epochs `arrivals_per_s`
+lists again at most every `refresh_every` seconds: a few milliseconds of the main thread
+for 10,000 names (benchmarks/bench_spool_live.py measures both).
+
+Evicted unread, the samples the paper says the trainer never misses:
+* never listed: published and evicted between two epoch listings (sequence numbers);
+* vanished: listed at an epoch's start, gone when the loader read it (the loader's skip count);
+* abandoned: listed, left unread when a stale epoch ended early, gone by the next listing.
 """
 from __future__ import annotations
 
 import logging
-import os
-import threading
 import time
 from pathlib import Path
 
-from watchdog.events import FileSystemEventHandler
-from watchdog.observers import Observer
-
-from shared.spool import enumerate_spool, is_sample_name
+from shared.spool import SUFFIX, enumerate_spool
 
 log = logging.getLogger(__name__)
 
+REFRESH_EVERY = 30.0  # s: the longest the dashboard's count and rate go without a listing
+MIN_WINDOW = 5.0  # s: a rate over a shorter span than this is noise; keep counting
 
-class SpoolWatcher(FileSystemEventHandler):
-    def __init__(self, spool: str | Path):
-        super().__init__()
-        self.spool = Path(spool)
-        self._lock = threading.Lock()
-        self._count = len(enumerate_spool(self.spool))
-        self._arrivals = 0
-        self._since = time.monotonic()
-        self._observer = Observer()
-        try:
-            self._observer.schedule(self, str(self.spool), recursive=False)
-            self._observer.start()
-        except OSError as exc:  # e.g. inotify watches exhausted: the count then comes from listings only
-            log.warning("spool %s: cannot watch it (%s); counts refresh once per epoch", self.spool, exc)
-            self._observer = None
 
-    # watchdog callbacks, on its thread
-    def on_moved(self, event) -> None:
-        if is_sample_name(os.path.basename(event.dest_path)):
-            self._add(1, arrived=True)
+def parse_name(name: str) -> tuple[str, int] | None:
+    """(writer, sequence number) of a sample's name; None for a name of another form (copied in)."""
+    head, _, seq = name[: -len(SUFFIX)].rpartition("-")
+    _, _, writer = head.partition("-")
+    if not writer or not seq.isdigit():
+        return None
+    return writer, int(seq)
 
-    def on_created(self, event) -> None:  # a writer that does not rename (foreign, or copied in)
-        if is_sample_name(os.path.basename(event.src_path)):
-            self._add(1, arrived=True)
 
-    def on_deleted(self, event) -> None:
-        if is_sample_name(os.path.basename(event.src_path)):
-            self._add(-1)
+def highest_sequences(names: list[str]) -> dict[str, int]:
+    """Each writer's highest sequence number among `names`."""
+    highest: dict[str, int] = {}
+    for name in names:
+        parsed = parse_name(name)
+        if parsed is not None and parsed[1] > highest.get(parsed[0], 0):
+            highest[parsed[0]] = parsed[1]
+    return highest
 
-    def _add(self, delta: int, arrived: bool = False) -> None:
-        with self._lock:
-            self._count = max(0, self._count + delta)
-            self._arrivals += arrived
+
+def published_between(before: dict[str, int], after: dict[str, int]) -> int:
+    """Samples published between two listings, from each writer's highest sequence number.
+    A writer that `before` does not know counts from its first sample (it started since)."""
+    return sum(seq - before.get(writer, 0) for writer, seq in after.items() if seq > before.get(writer, 0))
+
+
+class SpoolCensus:
+    """The trainer's view of the spool, fed by its epoch listings (`listed`); `count` and
+    `arrivals_per_s()` are what `Progress` shows. Single-threaded: the training loop's."""
+
+    def __init__(self, spool: str | Path, refresh_every: float = REFRESH_EVERY, clock=time.monotonic,
+                 list_spool=enumerate_spool):
+        if refresh_every <= 0:
+            raise ValueError(f"refresh_every {refresh_every}: expected a positive number of seconds")
+        self.spool, self.refresh_every, self.clock, self.list_spool = Path(spool), refresh_every, clock, list_spool
+        self.count = 0
+        self.rate: float | None = None  # samples published per second over the latest window
+        self.evicted_unread = {"never_listed": 0, "vanished": 0, "abandoned": 0}
+        self._window: tuple[float, dict[str, int]] | None = None  # start of the rate's window
+        self._looked = -float("inf")
+        self._known: dict[str, int] = {}  # highest sequence per writer at the last epoch listing
+        self._abandoned: set[str] = set()
+        self._last_names: list[str] = []
+        self._vanished_at_listing = 0
+        self._look(self._safe_listing())
+        self._known = highest_sequences(self._last_names)
+
+    # ---- events from the training loop
+
+    def listed(self, names: list[str]) -> dict[str, int]:
+        """An epoch's listing: re-anchor the count and rate, and count the samples evicted
+        unread since the last one. Returns those counts (never listed, vanished, abandoned)."""
+        self._look(names)
+        now = highest_sequences(names)
+        new = 0
+        for name in names:
+            parsed = parse_name(name)
+            if parsed is not None and parsed[1] > self._known.get(parsed[0], 0):
+                new += 1
+        merged = {**self._known, **now}  # a writer whose samples all went keeps its last number
+        fresh = {"never_listed": max(0, published_between(self._known, merged) - new),
+                 "abandoned": len(self._abandoned.difference(names))}
+        self._known, self._abandoned = merged, set()
+        self.evicted_unread["never_listed"] += fresh["never_listed"]
+        self.evicted_unread["abandoned"] += fresh["abandoned"]
+        fresh["vanished"] = self.evicted_unread["vanished"] - self._vanished_at_listing
+        self._vanished_at_listing = self.evicted_unread["vanished"]
+        return fresh
+
+    def vanished(self, count: int) -> None:
+        """Listed samples the loader found gone (the batch's `vanished` skips)."""
+        self.evicted_unread["vanished"] += count
+
+    def abandon(self, names: list[str]) -> None:
+        """The rest of an epoch left unread (a stale listing): those evicted before the next listing count."""
+        self._abandoned.update(names)
 
     @property
-    def count(self) -> int:
-        return self._count
+    def evicted_unread_total(self) -> int:
+        return sum(self.evicted_unread.values())
 
-    def anchor(self, count: int) -> None:
-        """Set the count from a real listing (the sampler lists the spool every epoch)."""
-        with self._lock:
-            self._count = count
+    # ---- what the dashboard reads
 
-    def arrivals_per_s(self) -> float:
-        """Samples published per second since the last call."""
-        with self._lock:
-            now = time.monotonic()
-            rate = self._arrivals / max(now - self._since, 1e-9)
-            self._arrivals, self._since = 0, now
-        return rate
+    def arrivals_per_s(self) -> float | None:
+        """Samples published per second (all writers), over at least MIN_WINDOW seconds
+        ending at the latest listing; lists the spool when the latest is `refresh_every` old."""
+        if self.clock() - self._looked >= self.refresh_every:
+            self._look(self._safe_listing())
+        return self.rate
 
-    def stop(self) -> None:
-        if self._observer is not None:
-            self._observer.stop()
-            self._observer.join(timeout=5)
+    # ----
 
-    def __enter__(self) -> "SpoolWatcher":
-        return self
+    def _safe_listing(self) -> list[str]:
+        try:
+            return self.list_spool(self.spool)
+        except OSError:  # gone for now (the sampler says so): keep the last figures
+            return self._last_names
 
-    def __exit__(self, *exc) -> None:
-        self.stop()
+    def _look(self, names: list[str]) -> None:
+        now = self.clock()
+        self._looked, self._last_names, self.count = now, names, len(names)
+        highest = highest_sequences(names)
+        if self._window is None:
+            self._window = (now, highest)
+            return
+        since, before = self._window
+        if now - since >= MIN_WINDOW:
+            self.rate = published_between(before, highest) / (now - since)
+            self._window = (now, {**before, **highest})

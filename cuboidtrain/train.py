@@ -31,7 +31,7 @@ from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.losses import combine, phase_losses
 from cuboidtrain.networks import CuboidNet, build_model
 from cuboidtrain.progress import Progress
-from cuboidtrain.spoolwatch import SpoolWatcher
+from cuboidtrain.spoolwatch import SpoolCensus
 from shared.spool import check_spool
 
 log = logging.getLogger(__name__)
@@ -247,13 +247,15 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     freshness = Freshness()
     started, sigma, first_step = time.monotonic(), config.heatmap_sigma, step
     wait, idle_since = IDLE_WAIT[0], None  # the next pause between unusable listings; since when none was usable
-    with SpoolWatcher(config.spool) as watcher, \
-            Progress(config, device, watcher, dashboard, ranks.rank, ranks.world, stop=stop) as progress:
-        sampler.on_listing = lambda names: (watcher.anchor(len(names)), freshness.forget_except(names),
+    # The spool's count, arrival rate and evictions come from the listings the sampler makes
+    # anyway: an inotify watcher's thread took the GIL for every publish (issue 14).
+    census = SpoolCensus(config.spool)
+    with Progress(config, device, census, dashboard, ranks.rank, ranks.world, stop=stop) as progress:
+        sampler.on_listing = lambda names: (_account_listing(census, names, ranks.main), freshness.forget_except(names),
                                             progress.listed(config.spool))
         progress.begin(step, sampler)
         while not ranks.any(bool(stop) or finished(config, step, sampler.epochs_done(), started)):
-            progress.state("waiting for samples" if watcher.count < config.batch_size else "training")
+            progress.state("waiting for samples" if census.count < config.batch_size else "training")
             stepped = went_stale = False
             unusable = {}  # this listing's skipped samples, by reason
             try:
@@ -262,11 +264,13 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                     waited = progress.fetched()
                     sampler.state.position += 1
                     skipped, too_small = batch_facts(ranks, batch)
+                    census.vanished(skipped["vanished"])
                     unusable = {k: unusable.get(k, 0) + n for k, n in skipped.items()}
                     if stale(skipped, config.batch_size * ranks.world):
                         # The generator evicted most of this listing (it outruns the trainer):
                         # end the epoch and list the spool afresh rather than skip through it.
                         progress.skip(skipped)
+                        census.abandon(sampler.state.order[sampler.state.position * config.batch_size * ranks.world:])
                         sampler.state.position = len(sampler)
                         went_stale = True
                         break
@@ -322,6 +326,17 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         return progress.status()
 
 
+def _account_listing(census: SpoolCensus, names: list[str], speaks: bool) -> None:
+    """An epoch's listing: the census counts what was evicted unread since the last one,
+    and the log says so when anything was (the generator outruns the trainer)."""
+    fresh = census.listed(names)
+    if any(fresh.values()) and speaks:
+        log.warning("%d samples evicted before the trainer read them since the last listing (%d never listed, "
+                    "%d listed but gone when read, %d left by a stale epoch), %d in all: the generator outruns "
+                    "the trainer (cuboidgen run --max-rate)", sum(fresh.values()), fresh["never_listed"],
+                    fresh["vanished"], fresh["abandoned"], census.evicted_unread_total)
+
+
 def _unusable_reason(config: TrainConfig, skipped: dict) -> str:
     """Why the last listing gave nothing to train on, with what would fix it."""
     counts = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in skipped.items() if n) or "none read"
@@ -356,5 +371,7 @@ def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, 
 
 def validate(model: CuboidNet, config: TrainConfig, device: torch.device) -> dict:
     from cuboidtrain.evaluate import evaluate  # evaluation pulls in nothing the loop needs otherwise
+    from cuboidtrain.options import FitOptions
 
-    return evaluate(model, Path(config.val_spool), config.heatmap_sigma, device, max_samples=config.val_samples)
+    return evaluate(model, Path(config.val_spool), config.heatmap_sigma, FitOptions(device=device),
+                    max_samples=config.val_samples)

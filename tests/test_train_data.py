@@ -1,4 +1,4 @@
-"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, Freshness, SpoolWatcher."""
+"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, Freshness, SpoolCensus."""
 from __future__ import annotations
 
 import os
@@ -14,7 +14,7 @@ import torch
 
 from cuboidgen.config import PAPER_CLEAN
 from cuboidtrain.data import SKIP_REASONS, EpochSampler, Freshness, LoaderState, SpoolBatches, make_loader
-from cuboidtrain.spoolwatch import SpoolWatcher
+from cuboidtrain.spoolwatch import SpoolCensus, parse_name, published_between
 from shared.sample import VERSION, encode
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter, enumerate_spool
@@ -333,39 +333,87 @@ def test_freshness_counts_earlier_uses_and_ages_from_names():
     assert fresh.observe([b], now=t0 + 20)[1] == 2.0
 
 
-# ---- SpoolWatcher ---------------------------------------------------------------------
+# ---- SpoolCensus ----------------------------------------------------------------------
 
 
-def settles_at(read, expected, deadline: float = 5.0, hold: float = 0.2) -> bool:
-    """True once read() == expected and stays so for `hold` s (inotify is asynchronous)."""
-    end, since = time.monotonic() + deadline, None
-    while time.monotonic() < end:
-        if read() == expected:
-            since = since or time.monotonic()
-            if time.monotonic() - since >= hold:
-                return True
-        else:
-            since = None
-        time.sleep(0.02)
-    return False
+class Clock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
 
 
-def test_spool_watcher_follows_publishes_and_evictions(tmp_path):
-    names = fill_spool(tmp_path, 3)
-    with SpoolWatcher(tmp_path) as watcher:
-        assert watcher.count == 3
-        watcher.arrivals_per_s()  # start the rate's window now
-        publish(tmp_path, [build_sample(s) for s in range(10, 15)])
-        assert settles_at(lambda: watcher.count, 8), watcher.count
-        assert watcher.arrivals_per_s() > 0
-        for name in names[:2]:
-            os.unlink(tmp_path / name)
-        assert settles_at(lambda: watcher.count, 6), watcher.count
-        assert watcher.arrivals_per_s() == 0.0  # deletions are not arrivals
-        (tmp_path / "notes.txt").write_text("not a sample")  # ignored
-        (tmp_path / ".tmp-x.cub").write_bytes(b"")  # a writer's temporary file: ignored
-        publish(tmp_path, [build_sample(s) for s in range(20, 26)], limit=4)  # evicts down to 4
-        assert settles_at(lambda: watcher.count, 4), (watcher.count, len(enumerate_spool(tmp_path)))
-        assert len(enumerate_spool(tmp_path)) == 4
-        watcher.anchor(11)
-        assert watcher.count == 11
+def names_of(writer: str, seqs, t0: int = 1_700_000_000_000_000_000) -> list[str]:
+    return [f"{t0 + s:019d}-{writer}-{s:09d}.cub" for s in seqs]
+
+
+def test_parse_name_reads_writer_and_sequence_and_refuses_other_forms():
+    assert parse_name("1700000000000000000-host-12-ab12cd-000000042.cub") == ("host-12-ab12cd", 42)
+    assert parse_name("copied.cub") is None
+    assert parse_name("1700000000000000000-host-12-ab12cd-x.cub") is None
+    assert published_between({"a": 5, "b": 3}, {"a": 9, "b": 3, "c": 2}) == 4 + 0 + 2  # c started since
+
+
+def test_census_counts_rate_and_evictions_from_listings_alone():
+    clock, spool = Clock(), {"names": names_of("h-1-aa", range(1, 11))}  # 1..10 present
+    census = SpoolCensus("unused", refresh_every=30, clock=clock, list_spool=lambda _: spool["names"])
+    assert census.count == 10 and census.arrivals_per_s() is None  # one look: no rate yet
+    # 10 s later the writer is at 60; the spool (limit 10) holds 51..60: 50 published,
+    # of which 40 (11..50) were evicted before any listing saw them
+    clock.now += 10
+    spool["names"] = names_of("h-1-aa", range(51, 61))
+    fresh = census.listed(spool["names"])
+    assert fresh == {"never_listed": 40, "vanished": 0, "abandoned": 0}
+    assert census.count == 10 and census.arrivals_per_s() == pytest.approx(5.0)
+    # the loader found 3 listed samples gone; a stale epoch left 4 unread, 2 of them evicted since
+    census.vanished(3)
+    census.abandon(spool["names"][6:])
+    clock.now += 10
+    spool["names"] = names_of("h-1-aa", range(59, 69))  # 61..68 new, 51..58 gone; 59, 60 still there
+    assert census.listed(spool["names"]) == {"never_listed": 0, "vanished": 3, "abandoned": 2}
+    assert census.evicted_unread == {"never_listed": 40, "vanished": 3, "abandoned": 2}
+    assert census.evicted_unread_total == 45
+    assert census.arrivals_per_s() == pytest.approx(0.8)
+
+
+def test_census_refreshes_between_epochs_at_most_every_refresh_every_seconds():
+    clock, looks = Clock(), []
+
+    def listing(_):
+        looks.append(clock.now)
+        return names_of("h-1-aa", range(1, int(clock.now) - 99 + 1))  # one sample a second
+
+    census = SpoolCensus("unused", refresh_every=30, clock=clock, list_spool=listing)
+    for _ in range(90):  # the dashboard asks once a second
+        clock.now += 1
+        census.arrivals_per_s()
+    assert looks == [100, 130, 160, 190]
+    assert census.arrivals_per_s() == pytest.approx(1.0) and census.count == 91
+    assert census.listed(listing(None)) == {"never_listed": 0, "vanished": 0, "abandoned": 0}  # nothing evicted
+
+
+def test_census_survives_a_spool_that_goes_away_and_names_of_another_form():
+    clock, spool = Clock(), {"names": ["copied.cub", *names_of("h-1-aa", [1, 2])]}
+
+    def listing(_):
+        if spool["names"] is None:
+            raise FileNotFoundError("gone")
+        return spool["names"]
+
+    census = SpoolCensus("unused", clock=clock, list_spool=listing)
+    spool["names"] = None
+    clock.now += 60
+    census.arrivals_per_s()
+    assert census.count == 3  # the last figures stay
+    with pytest.raises(ValueError, match="refresh_every 0"):
+        SpoolCensus("unused", refresh_every=0, list_spool=listing)
+
+
+def test_census_on_a_real_spool_counts_samples_a_writer_evicted_unlisted(tmp_path):
+    fill_spool(tmp_path, 3)
+    census = SpoolCensus(tmp_path)
+    assert census.count == 3
+    publish(tmp_path, [build_sample(s) for s in range(10, 20)], limit=4)  # a new writer: 10 published, 4 kept
+    assert census.listed(enumerate_spool(tmp_path))["never_listed"] == 6
+    assert census.count == 4
