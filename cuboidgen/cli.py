@@ -46,6 +46,9 @@ def run(
                                help="Sync every sample to disk before publishing it (survives power loss)."),
     evict_every: int = typer.Option(64, envvar="CUBOIDGEN_EVICT_EVERY",
                                     help="Publishes between spool listings; bounds overshoot per worker."),
+    max_rate: Optional[float] = typer.Option(None, envvar="CUBOIDGEN_MAX_RATE",
+                                             help="At most this many samples a second, all workers together "
+                                                  "(default: as fast as they go)."),
 ) -> None:
     """Generate samples into the spool until Ctrl-C/SIGTERM (or --max-samples)."""
     from cuboidgen.config import GenConfig, load_scene
@@ -56,7 +59,7 @@ def run(
         config = GenConfig(
             spool=spool, limit=limit, max_samples=max_samples, workers=workers, size=size, shape=shape.value,
             seed=seed, scene=load_scene(scene), occluders=occluders, dashboard=dashboard, fsync=fsync,
-            evict_every=evict_every,
+            evict_every=evict_every, max_rate=max_rate,
         ).validate()
         if occluders is not None:
             from cuboidgen.occluders import OccluderLibrary

@@ -146,6 +146,9 @@ class GenConfig:
     dashboard: bool = True
     fsync: bool = False  # sync each sample before publishing (survives power loss; slower)
     evict_every: int = 64  # publishes between spool listings (the bound on overshoot per writer)
+    # samples a second, all workers together (each takes its share); None: as fast as they go.
+    # A trainer that reads slower than this rate misses samples (README: the generator's throttle).
+    max_rate: float | None = None
 
     def validate(self) -> "GenConfig":
         if self.limit < 0:
@@ -160,6 +163,8 @@ class GenConfig:
             raise ValueError(f"--shape {self.shape!r}: expected one of {', '.join(SHAPE_CHOICES)}")
         if self.evict_every < 1:
             raise ValueError(f"--evict-every {self.evict_every}: expected at least 1")
+        if self.max_rate is not None and not self.max_rate > 0:  # `not >` also refuses NaN
+            raise ValueError(f"--max-rate {self.max_rate}: expected a positive number of samples a second")
         self.scene.validate()
         return self
 

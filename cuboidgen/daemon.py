@@ -104,6 +104,27 @@ def run(config: GenConfig) -> int:
     return published
 
 
+class TokenBucket:
+    """At most `rate` takes a second on average, in bursts of at most `burst`: --max-rate's
+    throttle. `take` reserves a token and says how long to wait for it, so a worker sleeps
+    before drawing (no CPU spent on samples it may not publish yet). `clock` is injectable:
+    the tests check the arithmetic without sleeping."""
+
+    def __init__(self, rate: float, burst: float = 1.0, clock=time.monotonic):
+        if not rate > 0:
+            raise ValueError(f"rate {rate}: expected a positive number of samples a second")
+        self.rate, self.burst, self.clock = rate, burst, clock
+        self.tokens, self.last = burst, clock()
+
+    def take(self) -> float:
+        """Seconds to wait before the next sample (0 while a token is there)."""
+        now = self.clock()
+        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        self.tokens -= 1  # below zero: a reservation, repaid by waiting
+        return 0.0 if self.tokens >= 0 else -self.tokens / self.rate
+
+
 def work(index: int, config: GenConfig, run_seed: int, shared: Shared, parent: int) -> None:
     """One worker: draw, encode, publish, repeat. Runs in its own process.
 
@@ -121,10 +142,16 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared, parent: i
     library = OccluderLibrary.load(config.occluders)
     if os.getppid() != parent:
         return  # the daemon died while we started: touch nothing (not even an eviction)
+    # Each worker takes an equal share of --max-rate: no lock between processes on the hot path.
+    bucket = TokenBucket(config.max_rate / config.workers) if config.max_rate else None
     with SpoolWriter(config.spool, config.limit, config.evict_every, config.fsync) as writer:
         count = 0
         # A SIGKILLed main process cannot tell us to stop: being re-parented is the sign.
         while not shared.stopping() and os.getppid() == parent and shared.take_ticket():
+            if bucket is not None:
+                pause(bucket.take(), shared)
+                if shared.stopping():
+                    break
             seed = sample_seed(run_seed, index, count)
             count += 1
             try:

@@ -9,6 +9,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 import cuboidgen.daemon as daemon
 from cuboidgen.daemon import run
 from shared.inspect import inspect_spool
@@ -169,3 +171,70 @@ def test_after_a_stop_the_last_frame_shows_the_workers_stopped_with_their_final_
     assert [w.state for w in last.workers] == ["done", "done"] and not last.notes
     assert [w.published for w in last.workers] == [8, 10] and last.published == 18  # counted after the join
     assert shared.stopping()
+
+
+# ---- --max-rate: the throttle ---------------------------------------------------------
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 50.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_token_bucket_spaces_takes_at_the_rate_and_refills_at_most_a_burst():
+    clock = FakeClock()
+    bucket = daemon.TokenBucket(rate=4.0, burst=1.0, clock=clock)
+    assert bucket.take() == 0.0  # the first token is there
+    assert bucket.take() == 0.25  # the next one a quarter second on
+    clock.now += 0.25  # the worker waited it out
+    assert bucket.take() == 0.25
+    clock.now += 0.25
+    clock.now += 10.0  # a slow draw: the bucket refills, but to one token only
+    assert bucket.take() == 0.0
+    assert bucket.take() == 0.25
+    clock.now += 0.25
+    # over many takes, the waits add up to the rate exactly
+    waited = 0.0
+    for _ in range(400):
+        wait = bucket.take()
+        clock.now += wait
+        waited += wait
+    assert waited == pytest.approx(400 / 4.0)
+
+
+def test_token_bucket_refuses_a_rate_that_is_not_positive():
+    with pytest.raises(ValueError, match="rate 0"):
+        daemon.TokenBucket(rate=0)
+
+
+@pytest.mark.parametrize("rate", [0, -1.0, float("nan")])
+def test_max_rate_must_be_positive(tmp_path, rate):
+    with pytest.raises(ValueError, match=r"--max-rate .*: expected a positive number of samples a second"):
+        tiny_config(tmp_path, max_rate=rate).validate()
+
+
+def test_max_rate_spaces_the_publishes_of_a_running_daemon(tmp_path):
+    # 10 a second, one worker: 6 samples take at least 5 tenths from the first draw to the
+    # last publish (a lower bound only; a busy machine may be slower, never faster)
+    run(tiny_config(tmp_path, limit=0, max_samples=6, workers=1, max_rate=10.0))
+    times = [int(n.split("-", 1)[0]) / 1e9 for n in enumerate_spool(tmp_path)]
+    assert len(times) == 6 and times[-1] - times[0] >= 0.4
+
+
+def test_max_rate_option_and_its_environment_variable_reach_the_config(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from cuboidgen.cli import app
+
+    seen = []
+    monkeypatch.setattr(daemon, "run", lambda config: seen.append(config.max_rate))
+    spool = ["--spool", str(tmp_path / "s"), "--no-dashboard"]
+    assert CliRunner().invoke(app, ["run", *spool, "--max-rate", "2.5"]).exit_code == 0
+    assert CliRunner().invoke(app, ["run", *spool], env={"CUBOIDGEN_MAX_RATE": "7"}).exit_code == 0
+    assert seen == [2.5, 7.0]
+    result = CliRunner().invoke(app, ["run", *spool, "--max-rate", "0"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "--max-rate 0" in lines[0], result.output
