@@ -6,7 +6,7 @@ and translation, then a perspective projection. Frames are:
 * object: x toward the box's RIGHT, y down (BOTTOM), z away (BACK); centre at 0;
 * camera: OpenCV's, x right, y down, z forward; the image is x/z, y/z before framing.
 
-Names are decided after projection (DESIGN.md: FRONT faces the camera, LEFT is
+Names are decided after projection (docs/contract.md, "Viewer terms": FRONT faces the camera, LEFT is
 image-left), so a mirror flip or a yaw past a side keeps every label's meaning.
 """
 from __future__ import annotations
