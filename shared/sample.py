@@ -31,7 +31,7 @@ class Sample:
     size: int  # px, masks are size x size
     seed: int
     keypoints: np.ndarray  # (N, 2) float64
-    ratios: dict  # DESIGN.md's nested ratio record
+    ratios: dict  # the nested ratio record (docs/contract.md, "Ratios")
     noisy: np.ndarray  # (size, size) bool: occluded and contour-noised, the Refiner's input x1
     clean: np.ndarray  # (size, size) bool: the silhouette, the Refiner's target x2
     params: dict = field(default_factory=dict)  # everything drawn: scene, occlusion, noise
