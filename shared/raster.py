@@ -2,7 +2,7 @@
 shape convention, so the generator draws training masks and inference scores fits with this one module.
 
 A pixel belongs to a part when its centre lies inside (or on) the part's convex
-hull; integer coordinates are pixel centres (DESIGN.md). OpenCV's polygon fill
+hull; integer coordinates are pixel centres (docs/contract.md, "Coordinates: pixel centres"). OpenCV's polygon fill
 covers every pixel an edge touches, which biases masks outward by up to a pixel,
 so spans are computed here exactly and filled with vectorised comparisons.
 """
