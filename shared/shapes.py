@@ -1,6 +1,6 @@
 """Shape definitions: keypoint tables, parts, wireframe edges and ratios.
 
-Keypoints are named in viewer terms (DESIGN.md): FRONT faces the camera, LEFT is
+Keypoints are named in viewer terms (docs/contract.md, "Viewer terms"): FRONT faces the camera, LEFT is
 image-left, TOP is up. Every part of a shape is a box whose eight corners are
 listed in Table 1 order, so one set of box rules (edges, extents) serves both
 shapes; `twobox` only maps its parts' corners onto Table 2 indices.
@@ -96,7 +96,7 @@ class Shape:
         return np.array([ratios[p][k] for p in self.part_names for k in RATIO_KEYS], dtype=np.float64)
 
     def ratio_dict(self, vector) -> dict:
-        """Inverse of `ratio_vector`: the nested record DESIGN.md's output uses."""
+        """Inverse of `ratio_vector`: the nested record samples and infer records use (docs/contract.md, "Ratios")."""
         values = [float(v) for v in vector]
         if len(self.parts) == 1:
             return dict(zip(RATIO_KEYS, values))
