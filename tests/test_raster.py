@@ -1,4 +1,4 @@
-"""The rasteriser's convention: a pixel is inside when its centre is (DESIGN.md)."""
+"""The rasteriser's convention: a pixel is inside when its centre is (docs/contract.md, "Coordinates: pixel centres")."""
 import numpy as np
 import pytest
 
