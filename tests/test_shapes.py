@@ -1,4 +1,4 @@
-"""Keypoint tables, parts, edges and ratios against DESIGN.md and the paper's Tables 1 and 2."""
+"""Keypoint tables, parts, edges and ratios against docs/contract.md ("Keypoints") and the paper's Tables 1 and 2."""
 import numpy as np
 import pytest
 
