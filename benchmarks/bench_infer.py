@@ -41,7 +41,7 @@ from cuboidtrain.infer import infer_paths
 from cuboidtrain.networks import build_model
 from shared.sample import signed
 
-TARGET_MS = 150.0  # DESIGN.md: R+S+T at 256x256, batch 1, 2-core CPU
+TARGET_MS = 150.0  # docs/contract.md, "Targets": R+S+T at 256x256, batch 1, 2-core CPU
 
 
 def median_ms(call, repeats: int, warmup: int) -> float:
