@@ -14,7 +14,7 @@ _BIT_SHIFTS = torch.arange(7, -1, -1, dtype=torch.uint8)  # np.packbits is big-e
 def render_heatmaps(keypoints: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
     """(B, N, 2) px -> (B, N, size, size): exp(-d^2 / 2 sigma^2), 1 at the keypoint.
 
-    Pixel (row i, column j) has its centre at x = j, y = i (DESIGN.md), so the
+    Pixel (row i, column j) has its centre at x = j, y = i (docs/contract.md, "Coordinates: pixel centres"), so the
     peak sits at the keypoint to sub-pixel accuracy. The Gaussian is separable:
     an outer product of a row and a column profile, cheap even at 256 px.
     """
