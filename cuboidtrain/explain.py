@@ -13,7 +13,7 @@ resolution, or a whole multiple of it up to at least MIN_OVERLAY px on the long 
 (a 70 x 49 px crop would be a postage stamp). Where a tile shows more than its image
 (a keypoint outside the input), the area outside is hatched grey, named in a legend:
 white is the foreground's colour. Images are shown with imshow's default extent, which puts pixel
-(row i, column j) at (x = j, y = i): DESIGN.md's pixel-centre convention, so
+(row i, column j) at (x = j, y = i): docs/contract.md's pixel-centre convention, so
 keypoints are plotted as they are, with no half-pixel shift.
 """
 from __future__ import annotations
