@@ -1,18 +1,17 @@
 """The trainer's dashboard: a rich panel when stdout is a terminal, log lines otherwise.
 
-The trainer builds a JSON-able `status` dict about once a second, hands it to
-`Dashboard.update` and writes it to OUT/status.json with `write_status`.
-Rendering is a pure function of that dict, so it can be tested as text and
-`watch` can show a run from another terminal by re-reading the file. Any value
-may be None (or missing) while it is not known yet; it then shows as "—".
+The trainer builds a `TrainerStatus` (cuboidtrain.status) about once a second,
+hands it to `Dashboard.update` and writes it to OUT/status.json. Rendering is a
+pure function of that status, so it can be tested as text and `watch` can show a
+run from another terminal by re-reading the file. Any value may be None while it
+is not known yet; it then shows as "—".
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
-import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from rich.console import Console, Group, RenderableType
@@ -22,13 +21,11 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from cuboidtrain.files import write_json_atomically
+from cuboidtrain.status import FINISHED, Checkpoint, Freshness, TrainerStatus, Validation, read_status, trainer_died
 from shared.console import ECHO_ROOM
 
 log = logging.getLogger(__name__)
 
-STATUS_FILE = "status.json"
-FINISHED = ("done", "stopped", "gave up")
 DASH = "—"
 SPARK = "▁▂▃▄▅▆▇█"
 SPARK_POINTS = 30  # points of loss_history drawn as the trend
@@ -118,32 +115,31 @@ def _skipped(skipped: dict | None) -> str:
 
 # --- the panel ----------------------------------------------------------------------------
 
-def _title(s: dict) -> Text:
-    phase, size, state = s.get("phase"), s.get("size"), s.get("state") or DASH
+def _title(s: TrainerStatus) -> Text:
+    phase, size, state = s.phase, s.size, s.state or DASH
     meaning = PHASE_MEANING.get(str(phase))
     text = Text(f"phase {phase or DASH}" + (f" ({meaning})" if meaning else ""), style="bold")
-    sample = " ".join(part for part in (s.get("shape"), f"{size}x{size} px" if size else None) if part)
-    text.append(f" · {sample or DASH} · {s.get('device') or DASH} · ")
+    sample = " ".join(part for part in (s.shape, f"{size}x{size} px" if size else None) if part)
+    text.append(f" · {sample or DASH} · {s.device or DASH} · ")
     text.append(state, style=STATE_STYLE.get(state, ""))
     return text
 
 
-def _progress(s: dict) -> Table:
-    step, total = s.get("step"), s.get("steps_total")
+def _progress(s: TrainerStatus) -> Table:
+    step, total = s.step, s.steps_total
     grid = Table.grid(padding=(0, 2))
     row: list[RenderableType] = [f"step {_of(step, total)}"]
     if step is not None and total:  # a bar only when the end is known in steps
         row += [ProgressBar(total=total, completed=min(step, total), width=30), f"{step / total:.1%}"]
-    row += [f"epoch {_of(s.get('epoch'), s.get('epochs_total'))}",
-            f"batch {_of(s.get('batch_in_epoch'), s.get('batches_in_epoch'))}",
-            f"ETA {fmt_duration(s.get('eta_s'))}"]
+    row += [f"epoch {_of(s.epoch, s.epochs_total)}",
+            f"batch {_of(s.batch_in_epoch, s.batches_in_epoch)}",
+            f"ETA {fmt_duration(s.eta_s)}"]
     grid.add_row(*row)
     return grid
 
 
-def _losses(s: dict) -> Table:
-    losses, history = s.get("losses") or {}, s.get("loss_history") or {}
-    weights = list(s.get("loss_weights") or [])
+def _losses(s: TrainerStatus) -> Table:
+    losses, history, weights = s.losses, s.loss_history, s.loss_weights
     table = Table("loss", "", "value", "weight", f"trend (last {SPARK_POINTS})", "change", box=None)
     for i, (name, network) in enumerate(LOSSES):
         weight = _num(weights[i] if i < len(weights) else None, "g")
@@ -153,66 +149,65 @@ def _losses(s: dict) -> Table:
     return table
 
 
-def _checkpoint(ckpt: dict | None, now: float) -> str:
+def _checkpoint(ckpt: Checkpoint | None, now: float) -> str:
     if not ckpt:
         return DASH
-    age = f", {fmt_duration(now - ckpt['time'])} ago" if ckpt.get("time") is not None else ""
-    return f"step {_num(ckpt.get('step'), ',')}{age}"
+    age = f", {fmt_duration(now - ckpt.time)} ago" if ckpt.time is not None else ""
+    return f"step {_num(ckpt.step, ',')}{age}"
 
 
-def _validation(val: dict | None) -> str:
+def _validation(val: Validation | None) -> str:
     if not val:
         return DASH
-    return (f"mean {_num(val.get('mean_px_error'), '.2f', ' px')}, median "
-            f"{_num(val.get('median_px_error'), '.2f', ' px')} (step {_num(val.get('step'), ',')})")
+    return (f"mean {_num(val.mean_px_error, '.2f', ' px')}, median "
+            f"{_num(val.median_px_error, '.2f', ' px')} (step {_num(val.step, ',')})")
 
 
-def _facts(s: dict, now: float) -> Table:
-    fresh, skipped = s.get("freshness") or {}, s.get("skipped") or {}
-    updated = fmt_duration(now - s["updated"]) if s.get("updated") is not None else DASH
+def _facts(s: TrainerStatus, now: float) -> Table:
+    fresh, skipped = s.freshness or Freshness(), s.skipped
+    updated = fmt_duration(now - s.updated) if s.updated is not None else DASH
     grid = Table.grid(padding=(0, 2))
-    grid.add_row("throughput", f"{_num(s.get('samples_per_s'), ',.1f')} samples/s, "
-                 f"{_num(s.get('step_time_s'), '.2f', ' s')}/step",
-                 "data wait", wait_cell(s.get("data_wait_fraction")))
-    grid.add_row("spool", f"{s.get('spool') or DASH}: {_num(s.get('spool_samples'), ',')} samples, "
-                 f"{_num(s.get('spool_arrivals_per_s'), ',.0f')} arriving/s",
-                 "freshness", f"mean age {fmt_duration(fresh.get('mean_age_s'))}, "
-                 f"mean reuse {_num(fresh.get('mean_reuse'), '.1f')}")
+    grid.add_row("throughput", f"{_num(s.samples_per_s, ',.1f')} samples/s, "
+                 f"{_num(s.step_time_s, '.2f', ' s')}/step",
+                 "data wait", wait_cell(s.data_wait_fraction))
+    grid.add_row("spool", f"{s.spool or DASH}: {_num(s.spool_samples, ',')} samples, "
+                 f"{_num(s.spool_arrivals_per_s, ',.0f')} arriving/s",
+                 "freshness", f"mean age {fmt_duration(fresh.mean_age_s)}, "
+                 f"mean reuse {_num(fresh.mean_reuse, '.1f')}")
     grid.add_row("skipped", Text(_skipped(skipped), style="yellow" if any(skipped.values()) else ""),
-                 "checkpoint", _checkpoint(s.get("last_checkpoint"), now))
-    grid.add_row("validation", _validation(s.get("val")),
-                 "run", f"{s.get('out') or DASH}, pid {_num(s.get('pid'), 'd')}, updated {updated} ago")
+                 "checkpoint", _checkpoint(s.last_checkpoint, now))
+    grid.add_row("validation", _validation(s.val),
+                 "run", f"{s.out or DASH}, pid {_num(s.pid, 'd')}, updated {updated} ago")
     return grid
 
 
-def render(status: dict, now: float | None = None, width: int | None = None) -> Panel:
-    """The dashboard for one status dict; `now` (unix s) dates the checkpoint and the update;
+def render(status: TrainerStatus, now: float | None = None, width: int | None = None) -> Panel:
+    """The dashboard for one status; `now` (unix s) dates the checkpoint and the update;
     `width` in columns (None: the console's)."""
     now = time.time() if now is None else now
     parts: list[RenderableType] = [_title(status), _progress(status), _losses(status), _facts(status, now)]
-    parts += [Text(note, style="yellow") for note in status.get("notes") or []]
+    parts += [Text(note, style="yellow") for note in status.notes]
     return Panel(Group(*parts), title="cuboidtrain", title_align="left", width=width)
 
 
-def log_line(status: dict) -> str:
+def log_line(status: TrainerStatus) -> str:
     """The main figures as one plain line, for log files and non-terminals."""
-    s, losses, fresh = status, status.get("losses") or {}, status.get("freshness") or {}
-    total = f"/{s['steps_total']}" if s.get("steps_total") else ""
-    progress = f"step {_num(s.get('step'), 'd')}{total} epoch {_num(s.get('epoch'), 'd')}"
-    if s.get("eta_s") is not None:
-        progress += f" eta {fmt_duration(s['eta_s'])}"
-    wait = s.get("data_wait_fraction")
+    s, fresh, ckpt = status, status.freshness or Freshness(), status.last_checkpoint or Checkpoint()
+    total = f"/{s.steps_total}" if s.steps_total else ""
+    progress = f"step {_num(s.step, 'd')}{total} epoch {_num(s.epoch, 'd')}"
+    if s.eta_s is not None:
+        progress += f" eta {fmt_duration(s.eta_s)}"
     parts = [progress,
-             " ".join(f"{name} {fmt_loss(losses.get(name))}" for name, _ in LOSSES),
-             f"{_num(s.get('samples_per_s'), '.1f')} samples/s wait {_num(wait, '.1%')}",
-             f"age {fmt_duration(fresh.get('mean_age_s'))} reuse {_num(fresh.get('mean_reuse'), '.1f')}",
-             f"skipped {sum(n or 0 for n in (s.get('skipped') or {}).values())}",
-             f"ckpt step {_num((s.get('last_checkpoint') or {}).get('step'), 'd')}"]
-    if s.get("val"):
-        parts.append(f"val {_num(s['val'].get('mean_px_error'), '.2f')} px")
-    if s.get("state") not in (None, "training"):  # the usual state goes without saying
-        parts.insert(0, str(s["state"]))
-    return " | ".join(parts + list(s.get("notes") or []))
+             " ".join(f"{name} {fmt_loss(s.losses.get(name))}" for name, _ in LOSSES),
+             f"{_num(s.samples_per_s, '.1f')} samples/s wait {_num(s.data_wait_fraction, '.1%')}",
+             f"age {fmt_duration(fresh.mean_age_s)} reuse {_num(fresh.mean_reuse, '.1f')}",
+             f"skipped {sum(n or 0 for n in s.skipped.values())}",
+             f"ckpt step {_num(ckpt.step, 'd')}"]
+    if s.val:
+        parts.append(f"val {_num(s.val.mean_px_error, '.2f')} px")
+    if s.state not in (None, "training"):  # the usual state goes without saying
+        parts.insert(0, str(s.state))
+    return " | ".join(parts + list(s.notes))
 
 
 class Dashboard:
@@ -228,7 +223,7 @@ class Dashboard:
         self._started = False
         self._last_log: float | None = None  # nothing logged yet: the first update logs
         self._last_state: str | None = None
-        self._unlogged: dict | None = None  # the newest status not yet logged: close() logs it
+        self._unlogged: TrainerStatus | None = None  # the newest status not yet logged: close() logs it
 
     def __enter__(self) -> "Dashboard":
         return self
@@ -236,7 +231,7 @@ class Dashboard:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def update(self, status: dict) -> None:
+    def update(self, status: TrainerStatus) -> None:
         if self._live is not None:
             if not self._started:  # started on first use so the panel never shows empty
                 self._live.start()
@@ -244,7 +239,7 @@ class Dashboard:
             # Narrower than the terminal: an echoed "^C" must not wrap (shared.console.ECHO_ROOM).
             self._live.update(render(status, width=max(self.console.width - ECHO_ROOM, 40)), refresh=True)
             return
-        state = status.get("state")
+        state = status.state
         if (self._last_log is None or state != self._last_state
                 or time.monotonic() - self._last_log >= self.log_interval):
             self._last_log, self._last_state, self._unlogged = time.monotonic(), state, None
@@ -262,54 +257,13 @@ class Dashboard:
             self._unlogged = None
 
 
-# --- status.json: written by the trainer, read by `watch` ---------------------------------
+# --- watch: the dashboard of a run, from its status.json --------------------------------
 
-def write_status(out: Path, status: dict) -> None:
-    """Replace OUT/status.json atomically, so a reader sees the old file or the new, never half."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json_atomically(out / STATUS_FILE, status)
-
-
-def read_status(out: Path) -> dict:
-    path = Path(out) / STATUS_FILE
-    try:
-        try:
-            status = json.loads(path.read_text())
-        except json.JSONDecodeError:  # replaces are atomic, but copies and network filesystems may tear
-            time.sleep(0.05)
-            status = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{out}: no status.json — is it a cuboidtrain run folder?") from None
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
-    if not isinstance(status, dict):
-        raise ValueError(f"{path}: expected a JSON object, found {type(status).__name__}")
-    return status
-
-
-def pid_alive(pid: int | None) -> bool:
-    """Whether process `pid` exists on this machine; unknown pids count as alive."""
-    if not isinstance(pid, int) or pid <= 0:  # os.kill(0 or -n) would signal a process group
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # it exists, owned by someone else
-        pass
-    return True
-
-
-def _trainer_gone(status: dict) -> bool:
-    return status.get("state") not in FINISHED and not pid_alive(status.get("pid"))
-
-
-def _annotated(status: dict) -> dict:
-    if not _trainer_gone(status):
+def _annotated(status: TrainerStatus) -> TrainerStatus:
+    if not trainer_died(status):
         return status
-    note = f"trainer (pid {status['pid']}) is not running; showing its last status"
-    return {**status, "notes": [note, *(status.get("notes") or [])]}
+    note = f"trainer (pid {status.pid}) is not running; showing its last status"
+    return replace(status, notes=[note, *status.notes])
 
 
 def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console | None = None) -> int:
@@ -322,7 +276,7 @@ def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console
         return _exit_code(status)
     try:
         with Live(render(_annotated(status)), console=console, auto_refresh=False, transient=False) as live:
-            while status.get("state") not in FINISHED and not _trainer_gone(status):
+            while status.state not in FINISHED and not trainer_died(status):
                 time.sleep(interval)
                 try:
                     status = read_status(out)
@@ -334,6 +288,6 @@ def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console
     return _exit_code(status)
 
 
-def _exit_code(status: dict) -> int:
+def _exit_code(status: TrainerStatus) -> int:
     """1 when the trainer died before finishing or gave up waiting for samples, else 0."""
-    return int(_trainer_gone(status) or status.get("state") == "gave up")
+    return int(trainer_died(status) or status.state == "gave up")

@@ -15,13 +15,14 @@ import os
 import threading
 import time
 from collections import Counter, deque
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
 
 from cuboidtrain.config import PHASES, TrainConfig
 from cuboidtrain.data import SKIP_REASONS
-from cuboidtrain.dashboard import write_status
+from cuboidtrain.status import Checkpoint, Freshness, TrainerStatus, Validation, write_status
 from shared.spool import foreign_names
 
 log = logging.getLogger(__name__)
@@ -53,7 +54,7 @@ class Progress:
         self.config, self.out, self.watcher, self.dashboard = config, Path(config.out), watcher, dashboard
         self.stop = stop
         self._lock = threading.Lock()  # one writer of status.json and the dashboard at a time
-        self._published: dict | None = None  # the last status written, which the heartbeat refreshes
+        self._published: TrainerStatus | None = None  # the last status written, which the heartbeat refreshes
         self._beating = threading.Event()
         self._heart: threading.Thread | None = None
         self.writes = rank == 0
@@ -69,27 +70,26 @@ class Progress:
         self.last_end = time.perf_counter()
         self.last_publish = 0.0  # the loop's last publish: throttles the loop alone
         self.last_shown = 0.0  # the last status written by anyone: the heartbeat fills the gaps after it
-        self._status = {
-            "phase": config.phase, "phase_meaning": PHASES[config.phase], "shape": config.shape, "size": config.size,
-            "device": str(device), "out": str(self.out), "spool": config.spool, "state": "starting",
-            "pid": os.getpid(), "rank": rank, "world_size": world, "started": time.time(), "updated": time.time(),
-            "step": 0, "steps_total": config.steps, "epoch": 0, "epochs_total": config.epochs,
-            "batch_in_epoch": 0, "batches_in_epoch": 0, "loss_weights": list(config.loss_weights),
-            "last_checkpoint": None, "val": None, "notes": [], "idle": None,
-        }
+        self._status = TrainerStatus(
+            phase=config.phase, phase_meaning=PHASES[config.phase], shape=config.shape, size=config.size,
+            device=str(device), out=str(self.out), spool=config.spool, state="starting",
+            pid=os.getpid(), rank=rank, world_size=world, started=time.time(), updated=time.time(),
+            step=0, steps_total=config.steps, epoch=0, epochs_total=config.epochs,
+            batch_in_epoch=0, batches_in_epoch=0, loss_weights=list(config.loss_weights),
+        )
 
     # ---- events from the loop
 
     def begin(self, step: int, sampler) -> None:
         self.sampler = sampler
-        self._status["step"] = step
+        self._status.step = step
         self._publish(force=True)
 
     def state(self, state: str) -> None:
-        if self._status["state"] == STOPPING and state in ("training", "waiting for samples"):
+        if self._status.state == STOPPING and state in ("training", "waiting for samples"):
             return  # a stop was asked for: the step in hand is the last
-        if state != self._status["state"]:
-            self._status["state"] = state
+        if state != self._status.state:
+            self._status.state = state
             self._publish(force=True)
 
     def fetched(self) -> float:
@@ -111,7 +111,7 @@ class Progress:
     def idle(self, reason: str, wait: float | None) -> None:
         """Nothing to train on: say why on the dashboard, and in the log when the reason
         changes or once a minute. `wait`: seconds until the next listing (None: giving up)."""
-        self._status["idle"] = reason
+        self._status.idle = reason
         self.state("waiting for samples")
         self._publish(force=True)
         said, when = self.idle_said
@@ -122,7 +122,7 @@ class Progress:
 
     def replicas(self, ranks: list[dict]) -> None:
         """Each torchrun rank's final step and weights hash: equal while the replicas agree."""
-        self._status["replicas"] = ranks
+        self._status.replicas = ranks
         if self.writes and len({(r["step"], r["weights"]) for r in ranks}) > 1:
             log.error("torchrun ranks disagree at the end: %s", ranks)
 
@@ -131,7 +131,7 @@ class Progress:
         self.recent.append((samples, waited, now - self.last_end))
         self.last_end = now
         self.skipped.update(skipped)
-        self._status["idle"] = None  # training again
+        self._status.idle = None  # training again
         self.freshness = {"mean_age_s": age, "mean_reuse": reuse}
         for key, value in losses.items():
             previous = self.smoothed.get(key, value)
@@ -139,18 +139,18 @@ class Progress:
             self.history[key].append(value)
         self.logged["losses"].update(losses)
         self.logged["steps"] += 1
-        self._status["step"] = step
+        self._status.step = step
         if step % self.config.log_every == 0:
             self._record(step)
         self._publish()
 
     def checkpointed(self, path: Path, step: int) -> None:
-        self._status["last_checkpoint"] = {"path": str(path), "step": step, "time": time.time()}
+        self._status.last_checkpoint = Checkpoint(str(path), step, time.time())
         self._publish(force=True)
 
     def validated(self, step: int, result: dict) -> None:
-        self._status["val"] = {"step": step, **{k: result[k] for k in ("mean_px_error", "median_px_error")}}
-        self._write_metrics({"step": step, "time": time.time(), "val": self._status["val"]})
+        self._status.val = Validation(step, result["mean_px_error"], result["median_px_error"])
+        self._write_metrics({"step": step, "time": time.time(), "val": asdict(self._status.val)})
         if self.tensorboard is not None:
             self.tensorboard.add_scalar("val/mean_px_error", result["mean_px_error"], step)
         self._publish(force=True)
@@ -170,18 +170,19 @@ class Progress:
     def metrics(self) -> dict:
         return {**self.smoothed, **self.rates()}
 
-    def status(self) -> dict:
+    def snapshot(self) -> TrainerStatus:
+        """The status now (a copy: later events do not change it)."""
         s = self.sampler.state
         rates = self.rates()
         self._status.update(
-            rates,
+            **rates,
             updated=time.time(),
             epoch=s.epoch,
             batch_in_epoch=s.position,
             batches_in_epoch=len(self.sampler),
             losses=dict(self.smoothed),
             loss_history={k: list(v) for k, v in self.history.items()},
-            freshness=dict(self.freshness),
+            freshness=Freshness(**self.freshness),
             skipped=dict(self.skipped),
             spool_samples=self.watcher.count,
             # samples the generator evicted before this trainer read them (cuboidtrain.spoolwatch)
@@ -190,19 +191,23 @@ class Progress:
             eta_s=self._eta(rates["step_time_s"]),
             notes=self._notes(rates),
         )
-        return dict(self._status)
+        return replace(self._status)
+
+    def status(self) -> dict:
+        """The status now, as status.json holds it."""
+        return self.snapshot().to_json()
 
     def _eta(self, step_time: float | None) -> float | None:
         if step_time is None or (self.config.steps is None and self.config.epochs is None):
             return None
         if self.config.steps is not None:
-            return max(0, self.config.steps - self._status["step"]) * step_time
+            return max(0, self.config.steps - self._status.step) * step_time
         s, per_epoch = self.sampler.state, len(self.sampler)
         remaining = (self.config.epochs - s.epoch - 1) * per_epoch + (per_epoch - s.position)
         return max(0, remaining) * step_time
 
     def _notes(self, rates: dict) -> list[str]:
-        notes = [self._status["idle"]] if self._status.get("idle") else []
+        notes = [self._status.idle] if self._status.idle else []
         wait = rates["data_wait_fraction"]
         if wait is not None and wait > STARVING and len(self.recent) == WINDOW:
             notes.append(f"data wait {wait:.0%} of step time: the loader is starving (more --loader-workers, or a faster spool disk)")
@@ -244,12 +249,10 @@ class Progress:
         self.last_publish = now
         if not self.writes:
             return
-        status = self.status()
-        status["spool_arrivals_per_s"] = self.watcher.arrivals_per_s()
-        self._status["spool_arrivals_per_s"] = status["spool_arrivals_per_s"]
-        self._show(status)
+        self._status.spool_arrivals_per_s = self.watcher.arrivals_per_s()
+        self._show(self.snapshot())
 
-    def _show(self, status: dict) -> None:
+    def _show(self, status: TrainerStatus) -> None:
         with self._lock:
             self._published = status
             self.last_shown = time.monotonic()
@@ -263,14 +266,14 @@ class Progress:
         last = self._published
         if last is None:
             return
-        stopping = self.stop is not None and self.stop.asked() and last["state"] in ("training", "waiting for samples")
+        stopping = self.stop is not None and self.stop.asked() and last.state in ("training", "waiting for samples")
         if stopping:
-            self._status["state"] = STOPPING
+            self._status.state = STOPPING
         elif time.monotonic() - self.last_shown < PUBLISH_EVERY:
             return
         # The loop's own throttle (last_publish) is left alone: a beat between two slow steps
         # must not make the loop skip publishing the step that follows it.
-        self._show({**last, "state": self._status["state"], "updated": time.time()})
+        self._show(last.refreshed(state=self._status.state))
 
     def _heartbeat(self) -> None:
         while not self._beating.wait(HEARTBEAT_EVERY):

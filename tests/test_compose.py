@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 import cuboidgen.cli
 import cuboidtrain.cli
-from cuboidtrain.dashboard import write_status
+from cuboidtrain.status import TrainerStatus, write_status
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import build_sample
@@ -331,13 +331,13 @@ def test_trainer_healthcheck_reads_the_run_status(clean_env, volumes):
         return subprocess.run(["sh", "-c", test[1]], env=env, capture_output=True, timeout=60).returncode
 
     assert check() == 1  # no status.json yet: watch's 2 is mapped to Docker's "unhealthy"
-    write_status(out, {"state": "training", "pid": os.getpid(), "updated": time.time()})
+    write_status(out, TrainerStatus(state="training", pid=os.getpid(), updated=time.time()))
     assert check() == 0
     dead = subprocess.Popen(["true"])
     dead.wait()
-    write_status(out, {"state": "training", "pid": dead.pid, "updated": time.time()})
+    write_status(out, TrainerStatus(state="training", pid=dead.pid, updated=time.time()))
     assert check() == 1  # the trainer died mid-run
-    write_status(out, {"state": "done", "pid": dead.pid, "updated": time.time()})
+    write_status(out, TrainerStatus(state="done", pid=dead.pid, updated=time.time()))
     assert check() == 0
 
 
@@ -345,16 +345,84 @@ def test_trainer_healthcheck_reads_the_run_status(clean_env, volumes):
 
 def test_compose_builds_what_the_dockerfile_defines():
     dockerfile, services = parse_dockerfile(), load_compose()["services"]
-    variants = set(re.findall(r"(\w+)\) torch_index=", dockerfile["text"]))
+    variants = set(re.findall(r"(\w+)\) index=", dockerfile["text"]))
     assert variants == {"cpu", "cuda"}
     for name, service in services.items():
         build = service["build"]
         assert build["target"] in dockerfile["stages"], name
         assert set(build["args"]) <= dockerfile["args"], f"{name}: {set(build['args']) - dockerfile['args']}"
         assert build["args"]["TORCH_VARIANT"] in variants
+        # Every setting a build may need on another network passes through from the shell.
+        assert {"BASE_IMAGE", "TORCH_INDEX", "PYPI_INDEX", "BUILD_CA_CERTS", "BUILD_PIP_CONF"} <= set(build["args"]), name
     assert services["trainer-gpu"]["build"]["args"]["TORCH_VARIANT"] == "cuda"
     assert services["trainer"]["build"]["args"]["TORCH_VARIANT"] == "cpu"
     assert "-c constraints.txt" in dockerfile["text"]  # the tested pins
+    # TORCH_VARIANT=cuda builds both daemons' image as the CUDA one, under its own name.
+    services = load_compose({"TORCH_VARIANT": "cuda", "TORCH_INDEX": "https://mirror.example/cu",
+                             "BUILD_CA_CERTS": "-----BEGIN CERTIFICATE-----"})["services"]
+    for name in ("generator", "trainer"):
+        assert services[name]["image"] == "cuboid-fit:cuda", name
+        assert services[name]["build"]["args"]["TORCH_VARIANT"] == "cuda", name
+        assert services[name]["build"]["args"]["TORCH_INDEX"] == "https://mirror.example/cu", name
+        assert services[name]["build"]["args"]["BUILD_CA_CERTS"].startswith("-----BEGIN"), name
+
+
+def build_stage_instructions() -> list[str]:
+    text = parse_dockerfile()["text"]
+    stage = text.split(" AS build", 1)[1].split(" AS runtime", 1)[0]
+    return [line.strip() for line in stage.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+
+
+def test_dockerfile_pins_torch_as_constraints_txt_does():
+    pins = dict(line.split("==") for line in (ROOT / "constraints.txt").read_text().splitlines()
+                if "==" in line and not line.startswith("#"))
+    defaults = dict(re.findall(r"^ARG (TORCH\w*_VERSION)=(\S+)$", parse_dockerfile()["text"], re.M))
+    assert defaults == {"TORCH_VERSION": pins["torch"], "TORCHVISION_VERSION": pins["torchvision"]}
+
+
+def test_dockerfile_installs_torch_before_copying_anything():
+    # The torch layer's cache key must not hash a file of the context: docker-compose v1 (docker-py)
+    # and the docker CLI send differently made tars, so a COPY above it made every build redo torch.
+    lines = build_stage_instructions()
+    torch_layer = next(i for i, line in enumerate(lines) if line.startswith("RUN") and "torch==" in line)
+    first_copy = next(i for i, line in enumerate(lines) if line.startswith("COPY"))
+    assert torch_layer < first_copy
+    # torch and torchvision come from TORCH_INDEX alone (no --extra-index-url to fall back on,
+    # which brought PyPI's CUDA build into the cpu image), and the variant is checked after.
+    torch_run = lines[torch_layer]
+    assert "--extra-index-url" not in torch_run and "--no-deps --index-url \"$index\"" in torch_run
+    assert "torch.version.cuda" in torch_run and "download.pytorch.org/whl/cpu" in torch_run
+
+
+def test_dockerfile_and_compose_carry_nothing_of_a_particular_machine():
+    # Indexes, certificates and pip settings are build arguments, given at build time; their
+    # defaults name only public hosts, and the CA and pip configuration default to nothing.
+    text = (ROOT / "Dockerfile").read_text() + (ROOT / "docker-compose.yml").read_text()
+    hosts = set(re.findall(r"https?://([^/\s\"'}]+)", text))
+    assert hosts <= {"pypi.org", "download.pytorch.org"}, hosts
+    assert "file://" not in text and "BEGIN CERTIFICATE" not in text
+    assert re.search(r"^ARG BUILD_CA_CERTS=$", text, re.M) and re.search(r"^ARG BUILD_PIP_CONF=$", text, re.M)
+    runtime = parse_dockerfile()["text"].split(" AS runtime", 1)[1]
+    assert "BUILD_CA_CERTS" not in runtime and "/opt/build" not in runtime  # the build stage's alone
+
+
+def test_trainer_does_not_wait_for_a_healthy_generator():
+    # A generator with CUBOIDGEN_MAX_SAMPLES may exit 0 before its first healthcheck, and an
+    # exited container never turns healthy: the trainer starts beside it and waits for samples.
+    services = load_compose({"CUBOIDGEN_MAX_SAMPLES": "8"})["services"]
+    for name in ("trainer", "trainer-gpu"):
+        assert services[name]["depends_on"]["generator"]["condition"] == "service_started", name
+        assert "CUBOIDTRAIN_MAX_WAIT" in services[name]["environment"], name
+        assert services[name]["environment"]["CUBOIDTRAIN_MAX_WAIT"] == ""  # wait on, by default
+    assert services["generator"]["environment"]["CUBOIDGEN_MAX_SAMPLES"] == "8"
+    assert services["generator"]["restart"] == "on-failure"  # a finished generator stays down
+
+
+def test_healthcheck_interval_can_be_shortened():
+    for env, expected in (({}, {"generator": "30s", "trainer": "60s"}),
+                          ({"CUBOID_HEALTH_INTERVAL": "5s"}, {"generator": "5s", "trainer": "5s"})):
+        services = load_compose(env)["services"]
+        assert {name: services[name]["healthcheck"]["interval"] for name in expected} == expected
 
 
 def test_dockerfile_default_command_parses(clean_env):

@@ -26,8 +26,9 @@ from cuboidgen.cli import app as gen_app
 from cuboidtrain.checkpoint import load_checkpoint
 from cuboidtrain.cli import app as train_app
 from cuboidtrain.config import TrainConfig
-from cuboidtrain.dashboard import render
+from cuboidtrain.dashboard import render, watch
 from cuboidtrain.files import sweep_orphans as sweep_run_folder
+from cuboidtrain.status import TrainerStatus, read_status, trainer_died, write_status
 from cuboidtrain.train import NoUsableSamples, StopRequest, run
 from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
@@ -67,8 +68,9 @@ def stop_at_listing(monkeypatch, count: int) -> tuple[StopRequest, list[float]]:
 
 
 def shown(status: dict) -> str:
+    """The dashboard of the status that run() returns (status.json's form)."""
     console = Console(width=200, record=True, file=io.StringIO())
-    console.print(render(status))
+    console.print(render(TrainerStatus.from_json(status)))
     return console.export_text()
 
 
@@ -414,9 +416,10 @@ def test_a_checkpoint_that_cannot_be_written_is_a_one_line_error_and_the_last_on
     assert not [p for p in os.listdir(tmp_path / "run") if p.startswith(".tmp-")]
 
 
-def test_a_zombie_writer_is_dead_so_its_temporary_files_are_swept(tmp_path):
+def test_a_zombie_is_dead_to_the_sweep_and_to_watch(tmp_path):
     # A killed daemon's workers can stay zombies (an init that does not reap them): their
-    # spares and temporary files must go at the next start, not 60 s later.
+    # spares and temporary files must go at the next start, not 60 s later. A zombie trainer
+    # died mid-run: watch (and so the compose healthcheck) says so, by the same rule.
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     deadline = time.monotonic() + 10
     while open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":  # exited, not reaped
@@ -429,5 +432,8 @@ def test_a_zombie_writer_is_dead_so_its_temporary_files_are_swept(tmp_path):
             assert os.listdir(tmp_path) == []
         (tmp_path / temporary_name("last.pt", pid=child.pid)).write_bytes(b"x")
         assert sweep_run_folder(tmp_path) == 1 and os.listdir(tmp_path) == []
+        write_status(tmp_path / "run", TrainerStatus(state="training", pid=child.pid))
+        assert trainer_died(read_status(tmp_path / "run"))
+        assert watch(tmp_path / "run", once=True, console=Console(file=io.StringIO())) == 1
     finally:
         child.wait()

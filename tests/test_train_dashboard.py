@@ -1,4 +1,4 @@
-"""The trainer's dashboard renders a status dict as text, logs it as one line, and
+"""The trainer's dashboard renders a status as text, logs it as one line, and
 `watch` shows a run's status.json from another terminal."""
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ import threading
 import pytest
 from rich.console import Console
 
-from cuboidtrain.dashboard import (Dashboard, fmt_duration, log_line, read_status, render, sparkline,
-                                   trend, wait_cell, watch, write_status)
+from cuboidtrain.dashboard import Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
+from cuboidtrain.status import TrainerStatus, read_status, write_status
 
 NOW = 1_700_000_000.0
 
 
-def status(**changes) -> dict:
+def status(**changes) -> TrainerStatus:
     values = {
         "phase": "1", "shape": "box", "size": 64, "device": "cuda:0", "out": "runs/p1", "spool": "data_spool",
         "state": "training", "pid": os.getpid(), "started": NOW - 600, "updated": NOW - 1,
@@ -36,7 +36,7 @@ def status(**changes) -> dict:
         "notes": ["spool is small: samples are reused"],
     }
     values.update(changes)
-    return values
+    return TrainerStatus.from_json(values)
 
 
 def as_text(renderable) -> str:
@@ -76,11 +76,11 @@ def test_data_wait_over_five_percent_is_flagged():
 
 
 def test_unknown_values_render_as_dashes():
-    blank = {key: None for key in status()}
+    blank = TrainerStatus.from_json({key: None for key in status().to_json()})
     text = as_text(render(blank, now=NOW))
     assert "phase — · — · — · —" in text and "step —  epoch —" in text and "ETA —" in text
     assert re.search(r"data wait +—", text) and re.search(r"D_R +Refiner +— +— +— +—", text)
-    assert "total" in as_text(render({}, now=NOW))  # even an empty status draws the loss table
+    assert "total" in as_text(render(TrainerStatus(), now=NOW))  # even an empty status draws the loss table
     assert "step — epoch —" in log_line(blank)
 
 
@@ -111,7 +111,7 @@ def test_write_then_read_status_round_trips(tmp_path):
     out = tmp_path / "run"
     write_status(out, status())
     write_status(out, status(step=121))  # replaces, leaving no temp file behind
-    assert read_status(out) == json.loads(json.dumps(status(step=121)))
+    assert read_status(out) == status(step=121)
     assert [p.name for p in out.iterdir()] == ["status.json"]
 
 
@@ -246,7 +246,7 @@ def test_status_stays_fresh_through_a_long_step_and_says_when_a_stop_waits_for_i
     assert second["updated"] > first["updated"] and t1 - second["updated"] < 2.0  # rewritten during the step
     assert third["state"] == "stopping after this step" and third["step"] == 0
     assert final["state"] == "stopped" and final["step"] == 1  # the step in hand was finished
-    assert "stopping after this step" in as_text(render(third, now=third["updated"]))
+    assert "stopping after this step" in as_text(render(TrainerStatus.from_json(third), now=third["updated"]))
 
 
 class _NoWatcher:
@@ -276,4 +276,4 @@ def test_status_follows_steps_slower_than_the_publish_interval(tmp_path, monkeyp
         for step in range(1, 5):
             time.sleep(0.12)  # a step longer than the publish interval, beats in between
             progress.step(step, losses, 2, 0.0, 0.0, 0.0, {})
-            assert read_status(tmp_path)["step"] == step
+            assert read_status(tmp_path).step == step
