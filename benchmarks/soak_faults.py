@@ -43,7 +43,6 @@ class SpoolWatch(threading.Thread):
     def __init__(self, spool: Path, every: float = 0.1):
         super().__init__(daemon=True)
         self.spool, self.every = spool, every
-        self.seen: set[str] = set()
         self.last_seq: dict[str, int] = {}  # writer (host-pid-token) -> highest sequence number seen
         self.lost: list[str] = []
         self.halt = threading.Event()
@@ -59,7 +58,6 @@ class SpoolWatch(threading.Thread):
             for name in current - previous:
                 writer, seq = name[: name.rindex("-")].split("-", 1)[1], int(name.rsplit("-", 1)[1].split(".")[0])
                 self.last_seq[writer] = max(self.last_seq.get(writer, 0), seq)
-            self.seen |= current
             self._check_order(previous - current, names)
             previous = current
             time.sleep(self.every)

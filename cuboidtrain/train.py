@@ -251,7 +251,9 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     # anyway: an inotify watcher's thread took the GIL for every publish (issue 14).
     census = SpoolCensus(config.spool)
     with Progress(config, device, census, dashboard, ranks.rank, ranks.world, stop=stop) as progress:
-        sampler.on_listing = lambda names: (_account_listing(census, names, ranks.main), freshness.forget_except(names),
+        said = {"at": -math.inf, "total": 0}
+        sampler.on_listing = lambda names: (_account_listing(census, names, ranks.main, said),
+                                            freshness.forget_except(names),
                                             progress.listed(config.spool))
         progress.begin(step, sampler)
         while not ranks.any(bool(stop) or finished(config, step, sampler.epochs_done(), started)):
@@ -326,15 +328,20 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         return progress.status()
 
 
-def _account_listing(census: SpoolCensus, names: list[str], speaks: bool) -> None:
-    """An epoch's listing: the census counts what was evicted unread since the last one,
-    and the log says so when anything was (the generator outruns the trainer)."""
-    fresh = census.listed(names)
-    if any(fresh.values()) and speaks:
-        log.warning("%d samples evicted before the trainer read them since the last listing (%d never listed, "
-                    "%d listed but gone when read, %d left by a stale epoch), %d in all: the generator outruns "
-                    "the trainer (cuboidgen run --max-rate)", sum(fresh.values()), fresh["never_listed"],
-                    fresh["vanished"], fresh["abandoned"], census.evicted_unread_total)
+EVICTED_LOG_EVERY = 60.0  # s between warnings about samples evicted unread (a fast generator makes short epochs)
+
+
+def _account_listing(census: SpoolCensus, names: list[str], speaks: bool, said: dict) -> None:
+    """An epoch's listing: the census counts what was evicted unread since the last one, and
+    the log says so, at most once a minute (`said`: when it last did, and the total then)."""
+    census.listed(names)
+    total, unread = census.evicted_unread_total, census.evicted_unread
+    if speaks and total > said["total"] and time.monotonic() - said["at"] >= EVICTED_LOG_EVERY:
+        log.warning("%d samples evicted before the trainer read them since the last warning, %d in all (%d never "
+                    "listed, %d listed but gone when read, %d left by a stale epoch): the generator outruns the "
+                    "trainer (cuboidgen run --max-rate)", total - said["total"], total, unread["never_listed"],
+                    unread["vanished"], unread["abandoned"])
+        said.update(at=time.monotonic(), total=total)
 
 
 def _unusable_reason(config: TrainConfig, skipped: dict) -> str:
