@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 
 import pytest
 
 from cuboidtrain.status import (
     FINISHED, Checkpoint, Freshness, TrainerStatus, Validation, read_status, trainer_died, write_status,
 )
+from tests.test_files import dead_pid
 
 # status.json as the trainer wrote it before the status was typed (every key it held then).
 WRITTEN_BEFORE = {
@@ -27,12 +27,6 @@ WRITTEN_BEFORE = {
     "spool_samples": 10_000, "spool_evicted_unread": 5, "foreign_files": 0, "eta_s": 1234.0,
     "spool_arrivals_per_s": 850.0, "replicas": [{"rank": 0, "step": 120, "weights": "ab12"}],
 }
-
-
-def dead_pid() -> int:
-    proc = subprocess.Popen(["true"])
-    proc.wait()  # reaped: the pid no longer exists
-    return proc.pid
 
 
 def test_status_json_keys_and_values_survive_a_round_trip():
