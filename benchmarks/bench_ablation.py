@@ -28,6 +28,7 @@ from rich.table import Table
 
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.evaluate import evaluate
+from cuboidtrain.options import FitOptions
 
 VARIANTS = {
     "compact": ["--arch", "compact", "--reframe"],
@@ -49,9 +50,9 @@ def train(variant: str, args) -> subprocess.Popen:
 
 def score(variant: str, args) -> dict:
     model, ckpt = load_model(args.runs / variant / "last.pt")
-    scale, cpu = 256 / model.size, torch.device("cpu")
-    chain = evaluate(model, args.val, model.sigma, cpu, max_samples=args.samples)
-    peaks = evaluate(model, args.val, model.sigma, cpu, max_samples=args.samples, extractor="dark")
+    scale = 256 / model.size
+    chain = evaluate(model, args.val, model.sigma, FitOptions(device="cpu"), max_samples=args.samples)
+    peaks = evaluate(model, args.val, model.sigma, FitOptions(device="cpu", extractor="dark"), max_samples=args.samples)
     return {"variant": variant, "steps": ckpt["step"], "samples_seen": ckpt["step"] * ckpt["config"]["batch_size"],
             "chain_256": chain["mean_px_error"] * scale, "median_256": chain["median_px_error"] * scale,
             "refiner_iou": chain["refiner_iou"], "s_peaks_dark_256": peaks["mean_px_error"] * scale,

@@ -2,7 +2,7 @@
 
 For each validation set (a spool of 256 px samples: `paper-clean`, noisy and
 occluded `paper`, `street`) and each shape class, every sample's noisy mask is
-written as a PNG and fitted by `cuboidtrain.infer.infer_paths`: reading, the
+written as a PNG and fitted by `cuboidtrain.Fitter` (as `cuboidtrain infer` fits it): reading, the
 largest component, framing, R, S, T, and the map back to the input's pixels. The
 mean corner error is then in 256 px units by construction. Beside it:
 
@@ -37,8 +37,9 @@ from rich.table import Table
 
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.evaluate import evaluate
-from cuboidtrain.infer import infer_paths
+from cuboidtrain.fitter import Fitter
 from cuboidtrain.networks import build_model
+from cuboidtrain.options import FitOptions
 from cuboidtrain.zoo import default_checkpoints
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
@@ -89,20 +90,21 @@ def corner_errors(records: list[dict], truths: list[np.ndarray]) -> list[float]:
 def eval_figures(model, spool: Path, samples: int) -> dict:
     """`eval` on the same spool, in 256 px units, with the error budget (S's peaks by DARK)."""
     scale = 256 / model.size
-    chain = evaluate(model, spool, model.sigma, torch.device("cpu"), max_samples=samples)
-    peaks = evaluate(model, spool, model.sigma, torch.device("cpu"), max_samples=samples, extractor="dark")
+    chain = evaluate(model, spool, model.sigma, FitOptions(device="cpu"), max_samples=samples)
+    peaks = evaluate(model, spool, model.sigma, FitOptions(device="cpu", extractor="dark"), max_samples=samples)
     return {"eval_mean_256": chain["mean_px_error"] * scale, "refiner_iou": chain["refiner_iou"],
             "s_peaks_dark_256": peaks["mean_px_error"] * scale,
             "t_alone_256": chain["tabulator_px_error_on_true_heatmaps"] * scale, "skipped": chain["skipped"]}
 
 
 def latency_ms(models: list, path: str, repeats: int) -> float:
-    """Median wall time of one whole `infer_paths` call on one mask file."""
-    infer_paths([path], models)  # warm-up: first-call allocations, lazy imports
+    """Median wall time of one whole `Fitter.records` call (`cuboidtrain infer`) on one mask file."""
+    fitter = Fitter(models, FitOptions(device="cpu"))
+    fitter.records([path])  # warm-up: first-call allocations, lazy imports
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        infer_paths([path], models)
+        fitter.records([path])
         times.append(time.perf_counter() - start)
     return 1000 * statistics.median(times)
 
@@ -127,7 +129,7 @@ def main() -> None:
             for shape, model in models.items():
                 spool = spool_for(args.spools, shape, scene, args.samples)
                 files, truths, _ = write_masks(spool, args.samples, Path(tmp))
-                errors = corner_errors(infer_paths(files, [model], shape=shape), truths)
+                errors = corner_errors(Fitter([model], FitOptions(shape=shape, device="cpu")).records(files), truths)
                 row = {"set": scene, "shape": shape, "samples": len(files), "size": model.size,
                        "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
                        "failed": int(np.isnan(errors).sum())}
@@ -135,7 +137,7 @@ def main() -> None:
                     row |= eval_figures(model, spool, args.samples)
                 rows.append(row)
                 if scene in NOISY_SETS and len(models) > 1:
-                    picked = infer_paths(files, list(models.values()), shape="auto")
+                    picked = Fitter(list(models.values()), FitOptions(device="cpu")).records(files)
                     chosen += sum(r["shape"] == shape for r in picked)
                     total += len(picked)
             if total:

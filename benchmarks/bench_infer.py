@@ -37,8 +37,9 @@ from cuboidgen.synth import make_sample
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.config import default_sigma
 from cuboidtrain.export import OnnxPipeline, Pipeline, export_model
-from cuboidtrain.infer import infer_paths
+from cuboidtrain.fitter import Fitter
 from cuboidtrain.networks import build_model
+from cuboidtrain.options import FitOptions
 from shared.sample import signed
 
 TARGET_MS = 150.0  # docs/contract.md, "Targets": R+S+T at 256x256, batch 1, 2-core CPU
@@ -132,7 +133,7 @@ def bench_size(model, size: int, threads: int, repeats: int, warmup: int, folder
     png = folder / f"mask-{size}.png"
     big = cv2.resize(mask.astype(np.uint8) * 255, (size * 3 // 2, size * 3 // 2), interpolation=cv2.INTER_NEAREST)
     cv2.imwrite(str(png), big)
-    end_to_end = median_ms(lambda: infer_paths([png], [model], shape=model.shape, refine_steps=1),
+    end_to_end = median_ms(lambda: Fitter([model], FitOptions(shape=model.shape, device="cpu")).records([png]),
                            max(3, repeats // 3), 1)
     return {"shape": model.shape, "size": size, "eager_ms": ms["eager"], "onnxruntime_ms": ms["onnxruntime"],
             "onnxruntime_vs_eager": ms["onnxruntime"] / ms["eager"], "infer_paths_eager_ms": end_to_end,

@@ -17,6 +17,7 @@ import torch
 from cuboidtrain.config import TrainConfig
 from cuboidtrain.data import LoaderState
 from cuboidtrain.networks import CuboidNet
+from cuboidtrain.pdm import PointDistributionModel
 from shared.files import atomic_path
 
 FORMAT = "cuboid-fit/checkpoint"  # a training run's state: weights, optimizer, loader, RNG (cuboidtrain run)
@@ -96,6 +97,8 @@ def load_model(path: str | Path, shape: str | None = None, size: int | None = No
     ckpt = load_checkpoint(path, shape, size)
     model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"], checkpoint_arch(ckpt))
     model.load_state_dict(ckpt["model"])
+    if ckpt.get("pdm") is not None:
+        model.pdm = PointDistributionModel.from_dict(ckpt["pdm"])
     return model.eval(), ckpt
 
 

@@ -9,29 +9,31 @@ from typing import Optional
 
 import typer
 
+from cuboidtrain.config import PHASES
+from cuboidtrain.options import DEFAULT_MARGIN, DEFAULT_PDM_COMPONENTS, EXTRACTORS, FIT_SHAPES, FitOptions
 from shared.console import Commands, console, fail, setup_logging
+from shared.shapes import SHAPES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
                   help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run; infer.")
 
 
-class PhaseChoice(str, Enum):
-    one = "1"
-    two = "2"
-    e2e = "e2e"
-    finetune = "finetune"
+def choices(name: str, values) -> type[Enum]:
+    """A click choice of the library's own list, so the two cannot drift apart."""
+    return Enum(name, {value: value for value in values}, type=str)
 
 
-class ShapeChoice(str, Enum):
-    box = "box"
-    twobox = "twobox"
+PhaseChoice = choices("PhaseChoice", PHASES)
+ShapeChoice = choices("ShapeChoice", SHAPES)
+FitShape = choices("FitShape", FIT_SHAPES)
+ExtractorChoice = choices("ExtractorChoice", EXTRACTORS)
 
 
 @app.command()
 def run(
-    phase: PhaseChoice = typer.Option(PhaseChoice.one, envvar="CUBOIDTRAIN_PHASE", help="1: each network alone; 2: chained with all losses; e2e / finetune: the paper's ablations (final loss only)."),
+    phase: PhaseChoice = typer.Option(PhaseChoice["1"], envvar="CUBOIDTRAIN_PHASE", help="1: each network alone; 2: chained with all losses; e2e / finetune: the paper's ablations (final loss only)."),
     spool: Path = typer.Option(Path("data_spool"), envvar="CUBOIDTRAIN_SPOOL", help="Spool folder, enumerated afresh every epoch."),
-    shape: ShapeChoice = typer.Option(ShapeChoice.box, envvar="CUBOIDTRAIN_SHAPE", help="Shape class of the model."),
+    shape: ShapeChoice = typer.Option(ShapeChoice["box"], envvar="CUBOIDTRAIN_SHAPE", help="Shape class of the model."),
     size: int = typer.Option(256, envvar="CUBOIDTRAIN_SIZE", help="Model input size in px (a multiple of 32)."),
     arch: str = typer.Option("compact", envvar="CUBOIDTRAIN_ARCH", help="Architecture of R, S and T: compact (the shipped models'), paper (three ResNet-18s, Table 3), tiny (tests)."),
     reframe: bool = typer.Option(True, "--reframe/--no-reframe", envvar="CUBOIDTRAIN_REFRAME", help="Frame each sample as infer frames a mask (its largest visible component), from a spool of any size; --no-reframe: train on the spool's own framing, whose size must be --size."),
@@ -96,12 +98,6 @@ def run(
                       highlight=False)
 
 
-# cuboidtrain.extractors' names, spelled out so that --help does not import torch (a test keeps them equal).
-EXTRACTOR_NAMES = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")
-DEFAULT_PDM_COMPONENTS = "0.999"
-ExtractorChoice = Enum("ExtractorChoice", {name: name for name in EXTRACTOR_NAMES}, type=str)
-
-
 EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the paper's T), argmax, centre-of-mass, "
                   "dark (sub-pixel Taylor step), pdm (argmax made valid by a PCA shape model). Ratios are always T's.")
 PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape variance to keep (e.g. 0.999)."
@@ -111,12 +107,12 @@ PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape var
 def evaluate(
     checkpoint: Optional[Path] = typer.Option(None, help="Checkpoint or model file to evaluate (default: the shipped model of --shape)."),
     spool: Path = typer.Option(..., help="Validation spool (e.g. `cuboidgen run --scene paper-clean --limit 0 --max-samples 1000`); any size: samples are framed as infer frames a mask."),
-    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Without --checkpoint: which shipped model."),
+    shape: ShapeChoice = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model."),
     batch_size: int = typer.Option(32, help="Samples per forward pass."),
     max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
     extractor: ExtractorChoice = typer.Option(ExtractorChoice["tabulator"], help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option(DEFAULT_PDM_COMPONENTS, metavar="N|FRACTION", help=PDM_HELP),
+    pdm_components: str = typer.Option(str(DEFAULT_PDM_COMPONENTS), metavar="N|FRACTION", help=PDM_HELP),
     refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes before S (as in infer)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
@@ -126,10 +122,10 @@ def evaluate(
 
     setup_logging()
     try:
+        options = FitOptions(refine_steps=refine_steps, extractor=extractor.value, pdm_components=pdm_components,
+                             device=device).validate()
         checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
-        result = evaluate_checkpoint(checkpoint, spool, device=device, batch_size=batch_size, max_samples=max_samples,
-                                     extractor=extractor.value, pdm_components=pdm_components,
-                                     refine_steps=parse_refine_steps(refine_steps))
+        result = evaluate_checkpoint(checkpoint, spool, options, batch_size=batch_size, max_samples=max_samples)
     except ValueError as exc:
         fail(str(exc))
     typer.echo(json.dumps(result, indent=2) if as_json else format_report(result))
@@ -153,37 +149,18 @@ def watch(
     raise typer.Exit(code)
 
 
-class InferShape(str, Enum):
-    auto = "auto"
-    box = "box"
-    twobox = "twobox"
-
-
-def parse_refine_steps(value: str) -> int | None:
-    """`auto` -> None (until the Refiner settles); otherwise a count of Refiner passes."""
-    if value == "auto":
-        return None
-    try:
-        steps = int(value)
-    except ValueError:
-        steps = -1
-    if steps < 0:
-        raise ValueError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more) or auto")
-    return steps
-
-
 @app.command()
 def infer(
     paths: list[str] = typer.Argument(..., metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id."),
     checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
     json_out: str = typer.Option("-", "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout."),
-    shape: InferShape = typer.Option(InferShape.auto, help="auto: every given model, the best-explained fit wins."),
+    shape: FitShape = typer.Option(FitShape["auto"], help="auto: every given model, the best-explained fit wins."),
     refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, each on the last one's binary output; auto: until nothing changes (at most 16)."),
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else the largest only."),
     label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
-    margin: float = typer.Option(0.1, help="Empty border around the framed object, as a fraction of the model size per side."),
+    margin: float = typer.Option(DEFAULT_MARGIN, help="Empty border around the framed object, as a fraction of the model size per side."),
     extractor: ExtractorChoice = typer.Option(ExtractorChoice["tabulator"], help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option(DEFAULT_PDM_COMPONENTS, metavar="N|FRACTION", help=PDM_HELP),
+    pdm_components: str = typer.Option(str(DEFAULT_PDM_COMPONENTS), metavar="N|FRACTION", help=PDM_HELP),
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
@@ -192,17 +169,18 @@ def infer(
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.infer import infer_paths, load_models, write_records
+    from cuboidtrain.fitter import Fitter
+    from cuboidtrain.infer import write_records
     from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
     try:
-        steps = parse_refine_steps(refine_steps)
+        options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
+                             pdm_components=pdm_components, all_components=all_components, label_id=label_id,
+                             device=device).validate()
         explainer = make_explainer(explain, overlay, len(paths))
-        shapes = ("box", "twobox") if shape.value == "auto" else (shape.value,)
-        records = infer_paths(paths, load_models(default_checkpoints(checkpoint, shapes)), shape=shape.value, refine_steps=steps,
-                              all_components=all_components, label_id=label_id, margin=margin, device=device,
-                              extractor=extractor.value, pdm_components=pdm_components, explain=explainer)
+        fitter = Fitter.from_files(default_checkpoints(checkpoint, options.shapes), options)
+        records = fitter.records(paths, explain=explainer)
         if json_out == "-":
             typer.echo(json.dumps(records, indent=2))
         else:
@@ -235,7 +213,7 @@ def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
 @app.command()
 def export(
     checkpoint: Optional[Path] = typer.Option(None, metavar="CKPT", help="A trained model (cuboidtrain run's last.pt, or a model file); default: the shipped model of --shape."),
-    shape: ShapeChoice = typer.Option(ShapeChoice.box, help="Without --checkpoint: which shipped model."),
+    shape: ShapeChoice = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model."),
     onnx: Path = typer.Option(..., metavar="OUT.onnx", help="Where the ONNX model goes (replaced atomically)."),
     refine_steps: int = typer.Option(1, metavar="K", help="Refiner passes in the graph, each on the last one's binary output."),
     opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
@@ -273,7 +251,7 @@ def localize(
     example_start: Optional[int] = typer.Option(None, help="Experiment: Figure 12's true start, 1-based (default the middle)."),
     temperature: float = typer.Option(1.0, help="Probabilities are softmax(-distance / temperature)."),
     refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, as infer."),
-    margin: float = typer.Option(0.1, help="Framing margin, as infer."),
+    margin: float = typer.Option(DEFAULT_MARGIN, help="Framing margin, as infer."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="Experiment: acc(m, l), one row per m."),
     heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Experiment: Figures 10-11's heat map of acc(m, l)."),
@@ -286,7 +264,8 @@ def localize(
     from rich.console import Console
 
     from cuboidtrain import localize as loc
-    from cuboidtrain import localize_report as report
+    from cuboidtrain.experiments import localisation as experiment
+    from cuboidtrain.experiments import localisation_figures as report
     from cuboidtrain.infer import load_models
     from cuboidtrain.zoo import default_checkpoints
 
@@ -297,23 +276,24 @@ def localize(
             checkpoint = default_checkpoints(checkpoint, ("box",))
         if threads is not None:
             torch.set_num_threads(max(threads, 1))
-        steps, paths = parse_refine_steps(refine_steps), loc.mask_sequence(masks, mask_args)
+        options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
+        paths = loc.mask_sequence(masks, mask_args)
         if street is not None:
             if oracle or not paths:
                 raise ValueError("--street: expected masks (--masks A B C), and no --oracle")
-            result = loc.localize_masks(loc.read_street(street), paths, load_models(checkpoint), refine_steps=steps,
-                                        margin=margin, device=device, temperature=temperature)
+            result = loc.localize_masks(loc.read_street(street), paths, load_models(checkpoint), options,
+                                        temperature=temperature)
             out.print(report.ranking_table(result))
         else:
             if paths:
                 raise ValueError(f"masks {paths}: expected --street STREET.json to locate them in")
-            config = loc.ExperimentConfig(
+            config = experiment.ExperimentConfig(
                 buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
-                mask_size=mask_size, refine_steps=steps, margin=margin, oracle=oracle, oracle_noise=oracle_noise,
+                mask_size=mask_size, oracle=oracle, oracle_noise=oracle_noise,
                 example_m=example_m, example_start=example_start, temperature=temperature).validate()
             models = [] if oracle else load_models(checkpoint)
-            result = loc.run_experiment(config, models=models, checkpoints=[str(c) for c in checkpoint or []],
-                                        device=device)
+            result = experiment.run_experiment(config, models=models, checkpoints=[str(c) for c in checkpoint or []],
+                                               options=options)
             out.print(report.accuracy_table(result))
             if csv_out:
                 report.write_csv(csv_out, result)
@@ -345,8 +325,8 @@ def report(
 
     import torch
 
-    from cuboidtrain.report import ReportConfig, run_report
-    from cuboidtrain.report_figures import write_report
+    from cuboidtrain.experiments.report import ReportConfig, run_report
+    from cuboidtrain.experiments.report_figures import write_report
     from cuboidtrain.zoo import default_checkpoints
 
     setup_logging()
@@ -413,19 +393,20 @@ def _cards_table(found: list[dict]):
 
 @models_app.command("pack")
 def models_pack(
-    checkpoint: Path = typer.Option(..., metavar="CKPT", help="A training checkpoint (cuboidtrain run's last.pt)."),
+    checkpoint: Path = typer.Option(..., metavar="CKPT", help="A training checkpoint (cuboidtrain run's last.pt), or a model file with --pdm-spool."),
     out: Path = typer.Option(..., metavar="OUT.pt", help="The model file to write (replaced atomically)."),
     scene: list[str] = typer.Option([], metavar="NAME", help="A scene the training spool was drawn from, for the card (repeat)."),
     validation: Optional[Path] = typer.Option(None, metavar="JSON", help="Validation figures for the card (benchmarks/bench_accuracy.py --json output)."),
     recipe: Optional[str] = typer.Option(None, help="The command that trained it, for the card."),
     half: bool = typer.Option(True, "--half/--float32", help="Store the weights as float16 (half the size)."),
+    pdm_spool: Optional[Path] = typer.Option(None, metavar="DIR", help="Fit --extractor pdm's shape model on this spool's keypoints (the one it trained on) and save it in the file; with a model file as CKPT, only that is redone."),
 ) -> None:
     """Write a model file (weights, config, card; no optimizer state) from a training checkpoint."""
     from cuboidtrain.zoo import pack, validation_for
 
     try:
         figures = validation_for(validation, checkpoint) if validation else None
-        card = pack(checkpoint, out, scene, figures, recipe, half)
+        card = pack(checkpoint, out, scene, figures, recipe, half, pdm_spool)
     except (ValueError, OSError) as exc:
         fail(str(exc))
     console.print(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "

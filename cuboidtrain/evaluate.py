@@ -18,12 +18,11 @@ import torch
 
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.data import SKIP_REASONS, SpoolBatches
-from cuboidtrain.device import resolve_device
-from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
+from cuboidtrain.fitter import Fitter
 from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.infer import chain, mask_iou
-from cuboidtrain.pdm import parse_components
+from cuboidtrain.infer import mask_iou
 from cuboidtrain.networks import CuboidNet, build_model
+from cuboidtrain.options import FitOptions
 from shared.sample import decode_record
 from shared.shapes import get_shape
 from shared.spool import check_spool, enumerate_spool, read_sample_bytes
@@ -83,33 +82,30 @@ def _nothing_to_evaluate(spool: Path, shape: str, size: int, names: list[str]) -
 
 
 @torch.inference_mode()
-def _measure_batch(model: CuboidNet, batch: dict, sigma: float, device: torch.device,
-                   extractor=None, refine_steps: int | None = 1) -> dict[str, torch.Tensor]:
-    """Per-sample errors of one batch, on the CPU. `extractor` (cuboidtrain.extractors) reads the
-    keypoints off S's heat maps instead of T."""
-    x = prepare_batch(batch, device, sigma, model.size)
-    out = chain(model, x["x1"], refine_steps)
+def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float) -> dict[str, torch.Tensor]:
+    """Per-sample errors of one batch, on the CPU, the keypoints read as the Fitter reads them
+    (T's, or its extractor's off S's heat maps)."""
+    x = prepare_batch(batch, fitter.device, sigma, model.size)
+    out = fitter.run_chain(model, x["x1"])
     t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
-    keypoints, decoded_alone = out["keypoints"], t_alone
-    if extractor is not None:
-        keypoints, decoded_alone = extractor(out["heatmaps"], out["keypoints"]), extractor(x["x3"], t_alone)
+    decoded_alone = fitter.extractors[model.shape](x["x3"], t_alone)  # the extractor on perfect maps
     return {
-        "keypoint": keypoint_errors(keypoints, x["x4"]).cpu(),  # (B, N)
+        "keypoint": keypoint_errors(out["keypoints"], x["x4"]).cpu(),  # (B, N)
         "ratio": (out["ratios"].float() - x["ratios"]).abs().cpu(),  # (B, R)
         "iou": mask_iou(out["refined"], x["x2"]).cpu(),  # (B,)
         "tabulator": keypoint_errors(t_alone, x["x4"]).cpu(),  # (B, N)
-        "extractor": keypoint_errors(decoded_alone, x["x4"]).cpu(),  # (B, N): the decoder on perfect maps
+        "extractor": keypoint_errors(decoded_alone, x["x4"]).cpu(),  # (B, N)
     }
 
 
-def measure(model: CuboidNet, batches: list[dict], sigma: float, device: torch.device,
-            extractor=None, refine_steps: int | None = 1) -> dict[str, torch.Tensor]:
+def measure(model: CuboidNet, batches: list[dict], sigma: float,
+            options: FitOptions | None = None) -> dict[str, torch.Tensor]:
     """Per-sample errors over all batches (keypoint (S, N) px, ratio (S, R), iou (S,), ...), in
     the batches' order; the model's train/eval mode is restored afterwards."""
     was_training = model.training
-    model.to(device).eval()  # BatchNorm on running statistics, as at inference
+    fitter = Fitter([model], options)  # on the options' device, in eval mode: BatchNorm on running statistics
     try:
-        parts = [_measure_batch(model, batch, sigma, device, extractor, refine_steps) for batch in batches]
+        parts = [_measure_batch(fitter, model, batch, sigma) for batch in batches]
     finally:
         model.train(was_training)  # a trainer that validates mid-run keeps training in train mode
     return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
@@ -131,29 +127,27 @@ def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict:
     }
 
 
-def evaluate(model: CuboidNet, spool: Path, sigma: float, device: torch.device, batch_size: int = 32,
-             max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS, extractor: str = "tabulator",
-             pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS, refine_steps: int | None = 1) -> dict:
+def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | None = None,
+             batch_size: int = 32, max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS) -> dict:
     """Metrics of `model` on the first `max_samples` samples of its shape and size in `spool`.
 
     Samples of another shape or size, corrupt or vanished ones are skipped and
     counted. ValueError when none is left, naming what the spool holds instead.
     """
+    options = (options or FitOptions()).validate()
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
-    return report(model, batches, skipped, sigma, resolve_device(device), pck_thresholds,
-                  extractor, pdm_components, refine_steps)
+    return report(model, batches, skipped, sigma, options, pck_thresholds)
 
 
-def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, device: torch.device,
-           thresholds=PCK_THRESHOLDS, extractor: str = "tabulator", pdm_components=DEFAULT_PDM_COMPONENTS,
-           refine_steps: int | None = 1) -> dict:
+def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, options: FitOptions | None = None,
+           thresholds=PCK_THRESHOLDS) -> dict:
     """The metrics of `model` on batches already read (`load_batches`)."""
-    decoder = None if extractor == "tabulator" else make_extractor(extractor, model, pdm_components)
-    errors = measure(model, batches, sigma, device, decoder, refine_steps)
+    options = (options or FitOptions()).validate()
+    errors = measure(model, batches, sigma, options)
     result = {"shape": model.shape, "size": model.size, "sigma": sigma, "samples": len(errors["iou"]),
-              "extractor": extractor, "refine_steps": refine_steps, "skipped": skipped}
+              "extractor": options.extractor, "refine_steps": options.refine_steps, "skipped": skipped}
     result.update(_summarise(errors, model.shape, thresholds))
     return result
 
@@ -165,20 +159,18 @@ def _check_counts(batch_size: int, max_samples: int | None) -> None:
         raise ValueError(f"max samples {max_samples}: expected a positive integer or None (all)")
 
 
-def evaluate_checkpoint(checkpoint: Path, spool: Path, device: str | torch.device = "auto", batch_size: int = 32,
-                        max_samples: int | None = None, random_init_seed: int = 0, extractor: str = "tabulator",
-                        pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS,
-                        refine_steps: int | None = 1) -> dict:
+def evaluate_checkpoint(checkpoint: Path, spool: Path, options: FitOptions | None = None, batch_size: int = 32,
+                        max_samples: int | None = None, random_init_seed: int = 0) -> dict:
     """`evaluate` for a saved model, plus Table 3's reference row: random weights on the same samples."""
+    options = (options or FitOptions()).validate()  # before the model and the spool are read
     model, ckpt = load_model(checkpoint)
-    spool, device = check_spool(spool), resolve_device(device)
+    spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
-    parse_components(pdm_components)  # before the spool is read, and even when the PDM is not used
     batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
-    options = (PCK_THRESHOLDS, extractor, pdm_components, refine_steps)
-    result = report(model, batches, skipped, ckpt["sigma"], device, *options)
+    result = report(model, batches, skipped, ckpt["sigma"], options)
     random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"], arch=model.arch)
-    baseline = report(random_model, batches, skipped, ckpt["sigma"], device, *options)
+    random_model.pdm = model.pdm  # the same shape model: only the networks' weights differ
+    baseline = report(random_model, batches, skipped, ckpt["sigma"], options)
     result.update({
         "random_init_mean_px_error": baseline["mean_px_error"],
         "random_init_median_px_error": baseline["median_px_error"],

@@ -27,9 +27,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from cuboidtrain.pdm import PointDistributionModel, parse_components
-
-EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")
+from cuboidtrain.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, parse_components
+from cuboidtrain.pdm import PointDistributionModel
 
 
 def tabulator(heatmaps: torch.Tensor, tabulated: torch.Tensor) -> torch.Tensor:
@@ -125,22 +124,20 @@ class PdmExtractor:
         return torch.from_numpy(projected).to(device=heatmaps.device, dtype=torch.float32)
 
 
-DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px
-
-
-def make_extractor(name: str, model, pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS,
-                   pdm_samples: int = 2000, seed: int = 0):
-    """The extractor `name` for `model` (its shape class, size and heat-map sigma).
+def make_extractor(name: str, model, pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS):
+    """The extractor `name` for `model` (its shape class, size, heat-map sigma and PDM).
 
     `pdm_components` is a count of active components (an integer >= 1) or the
-    fraction of shape variance to keep (in (0, 1)); the PDM is fitted on
-    `pdm_samples` keypoint sets drawn by the generator (the paper uses 1,000).
+    fraction of shape variance to keep (in (0, 1)); the PDM is the one saved in
+    the model file (`model.pdm`), fitted on the keypoints it was trained on.
     """
     if name not in EXTRACTORS:
         raise ValueError(f"--extractor {name!r}: expected one of {', '.join(EXTRACTORS)}")
     if name == "dark":
         return lambda heatmaps, tabulated=None: dark(heatmaps, tabulated, model.sigma)
     if name == "pdm":
-        pdm = PointDistributionModel.from_generator(model.shape, model.size, pdm_samples, seed)
-        return PdmExtractor(pdm, parse_components(pdm_components))
+        if getattr(model, "pdm", None) is None:
+            raise ValueError(f"--extractor pdm: this {model.shape} model carries no point distribution model; "
+                             f"pack it with `cuboidtrain models pack --pdm-spool SPOOL` (the spool it trained on)")
+        return PdmExtractor(model.pdm, parse_components(pdm_components))
     return {"tabulator": tabulator, "argmax": argmax, "centre-of-mass": centre_of_mass}[name]

@@ -1,6 +1,7 @@
 """Inference (paper 3.4): binary mask -> Refiner -> Estimator -> Tabulator -> keypoints.
 
-Each input image is read, split into components and framed at the model's
+The pieces of the fit path (`cuboidtrain.fitter.Fitter` puts them together):
+each input image is read, split into components and framed at the model's
 resolution (`cuboidtrain.masks`); the chain runs there and the keypoints go back
 to the input's own pixels through the same Framing. The Refiner may be re-entered
 on its own binarised output (Figure 7: each pass removes more occlusion). With
@@ -19,17 +20,13 @@ import torch
 
 from shared.raster import rasterize
 from cuboidtrain.checkpoint import load_model
-from cuboidtrain.device import resolve_device
-from cuboidtrain.extractors import DEFAULT_PDM_COMPONENTS, make_extractor
 from cuboidtrain.files import write_json_atomically
-from cuboidtrain.masks import components, frame, load_mask
-from cuboidtrain.pdm import parse_components
 from cuboidtrain.networks import CuboidNet
+from cuboidtrain.options import MAX_REFINE_STEPS
 from shared.shapes import Shape, get_shape
 
 log = logging.getLogger(__name__)
 
-MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
 # "auto" distrusts a settled mask this far from the Refiner's first pass. On 300 noisy `paper`
 # masks the shipped models' later passes only hurt (box: 10.16 px at one pass, 11.09 at two;
 # auto 12.38 at 0.9, 10.43 at 0.99, 10.19 at 0.995; twobox 11.56, 11.89, 11.59, 11.56):
@@ -39,7 +36,6 @@ DRIFT_IOU = 0.995
 # silhouette about as well; it must beat the box by this much IoU to be chosen. On 240
 # mixed noisy 64 px samples (CPU recipe models), 0.02 gave 86% right against 82% at 0.
 RICHER_SHAPE_MARGIN = 0.02
-SHAPE_CHOICES = ("auto", "box", "twobox")
 
 
 def binarise(refined: torch.Tensor) -> torch.Tensor:
@@ -60,9 +56,7 @@ def refine(model: CuboidNet, mask_pm1: torch.Tensor, steps: int | None,
     auto then keeps its first pass (one pass is what R was trained to do). A fixed K
     always counts as converged. Passes run is the most any mask of the batch took.
     """
-    if steps is not None and steps < 0:
-        raise ValueError(f"refine steps {steps}: expected 0 or more, or auto")
-    if steps is not None:
+    if steps is not None:  # a count FitOptions has checked
         refined = mask_pm1
         for _ in range(steps):
             refined = model.refiner(binarise(refined))
@@ -131,50 +125,6 @@ def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
     return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
 
 
-@torch.inference_mode()
-def fit(model: CuboidNet, framed_mask: np.ndarray, refine_steps: int | None,
-        device: str | torch.device = "cpu", extractor=None) -> dict:
-    """One framed bool (S, S) mask through R (iterated), S and T, at model resolution.
-
-    Returns keypoints (N, 2) model px, ratios (DESIGN.md's record), confidence,
-    refine_steps run, and the intermediates for explanations: refined (S, S) tanh
-    output and heatmaps (N, S, S). `extractor` (cuboidtrain.extractors) reads the
-    keypoints off the heat maps instead of T; the ratios are T's either way.
-    """
-    if framed_mask.shape != (model.size, model.size):
-        raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
-    device = resolve_device(device)
-    mask = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None].to(device)
-    out = chain(model, mask, refine_steps)
-    keypoints = out["keypoints"] if extractor is None else extractor(out["heatmaps"], out["keypoints"])
-    keypoints = keypoints[0].double().cpu().numpy()
-    geometry = get_shape(model.shape)
-    return {
-        "shape": model.shape,
-        "keypoints": keypoints,
-        "ratios": geometry.ratio_dict(out["ratios"][0].cpu().tolist()),
-        "confidence": confidence(geometry, keypoints, framed_mask),
-        "refine_steps": out["refine_steps"],
-        "refine_converged": out["refine_converged"],
-        "refined": out["refined"][0, 0].float().cpu().numpy(),
-        "heatmaps": out["heatmaps"][0].float().cpu().numpy(),
-    }
-
-
-def candidate_models(models: list[CuboidNet], shape: str) -> list[CuboidNet]:
-    """The models to try for `shape`: all of them for auto, else the one of that class."""
-    if shape not in SHAPE_CHOICES:
-        raise ValueError(f"--shape {shape!r}: expected one of {', '.join(SHAPE_CHOICES)}")
-    given = [m.shape for m in models]
-    if len(set(given)) != len(given):
-        raise ValueError(f"two models of the same shape class ({', '.join(given)}): give one per shape")
-    chosen = [m for m in models if shape == "auto" or m.shape == shape]
-    if not chosen:
-        raise ValueError(f"--shape {shape}: no {shape} model among the checkpoints given "
-                         f"({', '.join(given) or 'none'})")
-    return chosen
-
-
 def load_models(paths: list[Path]) -> list[CuboidNet]:
     """One model per checkpoint, at most one per shape class (the error names both files)."""
     models, seen = [], {}
@@ -230,38 +180,6 @@ def trust(record: dict, mask: np.ndarray, keypoints: np.ndarray, shape: str) -> 
                                   f"the mask may not show a building's outline at all")
 
 
-def fit_component(mask: np.ndarray, models: list[CuboidNet], extractors: dict, refine_steps: int | None,
-                  margin: float, device: torch.device) -> tuple[dict, dict]:
-    """Frame one component for every candidate and keep the best-explained fit.
-
-    Returns the record's fields (keypoints mapped back to the input image's pixels)
-    and what an explanation draws: the winning fit, its framed input and Framing.
-    """
-    fits = []
-    for model in models:
-        framed, framing = frame(mask, model.size, margin)  # each model at its own size
-        result = fit(model, framed, refine_steps, device, extractors[model.shape])
-        fits.append((result, framed, framing))
-    best, framed, framing = choose(fits)
-    keypoints = framing.to_input(best["keypoints"])
-    record = {
-        "shape": best["shape"],
-        "confidence": best["confidence"],
-        "keypoints": keypoints.tolist(),
-        "ratios": best["ratios"],
-        "refine_steps": best["refine_steps"],
-        "refine_converged": best["refine_converged"],
-        "error": None,
-        "warnings": border_warnings(mask),
-        "candidates": {r["shape"]: r["confidence"] for r, _, _ in fits},
-    }
-    if not best["refine_converged"]:
-        record["warnings"].append(f"refinement did not settle within {MAX_REFINE_STEPS} passes, or drifted "
-                                  f"from its first pass (IoU < {DRIFT_IOU}): its first pass was used")
-    trust(record, mask, keypoints, best["shape"])
-    return record, {"fit": best, "framed": framed, "framing": framing, "mask": mask}
-
-
 def choose(fits: list[tuple]) -> tuple:
     """The best-explained fit: simplest class first (fewest keypoints), replaced by a richer one
     only when its confidence is higher by more than RICHER_SHAPE_MARGIN."""
@@ -277,64 +195,6 @@ def error_record(path: str, reason: str, all_components: bool) -> dict:
     record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
               "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
     return record | ({"component": None} if all_components else {})
-
-
-def check_options(shape: str, refine_steps: int | None, margin: float, models: list[CuboidNet],
-                  pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> list[CuboidNet]:
-    """The candidate models; ValueError for a bad option, before any input is read."""
-    chosen = candidate_models(models, shape)
-    parse_components(pdm_components)  # checked even when the PDM is not used: a typo is never silent
-    if refine_steps is not None and refine_steps < 0:
-        raise ValueError(f"--refine-steps {refine_steps}: expected 0 or more, or auto")
-    if not 0 <= margin < 0.5:
-        raise ValueError(f"--margin {margin}: expected a fraction in [0, 0.5)")
-    return chosen
-
-
-def infer_paths(paths: list[str | Path], models: list[CuboidNet], shape: str = "auto",
-                refine_steps: int | None = 1, all_components: bool = False, label_id: int | None = None,
-                margin: float = 0.1, device: str | torch.device = "cpu", extractor: str = "tabulator",
-                pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS, explain=None) -> list[dict]:
-    """DESIGN.md's records, one per input (per component with `all_components`), in input order.
-
-    An input that cannot be processed gets a record with `error` and no keypoints;
-    bad options (shape, steps, margin, extractor) raise ValueError before any input
-    is read. `explain(index, path, record, explanation)` is called for each fitted
-    component (cuboidtrain.explain draws the pictures).
-    """
-    chosen, device = check_options(shape, refine_steps, margin, models, pdm_components), resolve_device(device)
-    extractors = {m.shape: make_extractor(extractor, m, pdm_components) for m in chosen}
-    for model in chosen:
-        model.to(device).eval()
-    records = []
-    for index, path in enumerate(paths):
-        try:
-            parts = components(load_mask(Path(path), label_id), all_components)
-            if not parts:
-                raise ValueError(f"{path}: no component of at least 16 px")
-            fits = [fit_component(part, chosen, extractors, refine_steps, margin, device) for part in parts]
-        except (ValueError, OSError, cv2.error) as exc:  # bad data: this input only
-            reason = " ".join(str(exc).split())  # one line, whatever cv2 put in it
-            log.warning("%s", reason)
-            records.append(error_record(str(path), reason, all_components))
-            continue
-        for k, (result, explanation) in enumerate(fits):
-            record = {"input": str(path), **result} | ({"component": k} if all_components else {})
-            for warning in record["warnings"]:
-                log.warning("%s: %s", path, warning)
-            if explain is not None:
-                draw(explain, index, str(path), record, explanation)
-            records.append(record)
-    return records
-
-
-def draw(explain, index: int, path: str, record: dict, explanation: dict) -> None:
-    """Call the explanation writer; a picture that cannot be made is a warning, never a lost record."""
-    try:
-        explain(index, path, record, explanation)
-    except (OSError, ValueError, RuntimeError) as exc:  # a full disk, an unwritable folder, matplotlib
-        record["warnings"].append("no explanation: " + " ".join(str(exc).split()))
-        log.warning("%s: %s", path, record["warnings"][-1])
 
 
 def write_records(path: Path, records: list[dict]) -> None:

@@ -5,15 +5,11 @@ consecutive buildings give predicted ratios (depth/height, width/height) per
 building; the sub-sequence of the street whose true ratios are nearest in L2
 distance is where the photos were taken.
 
-Two uses:
-
-* the experiment (eq. 2): draw a street of N random buildings, a noisy, occluded
-  silhouette of each from the generator, predict every building's ratios with the
-  full inference chain (or an oracle: the true ratios with relative noise), and
-  score every predicted sub-sequence of length m against every true one;
-* the practical command: a street's JSON and the user's masks, in street order,
-  give the ranked start positions with probabilities (softmax of negative
-  distances, Figure 12).
+Here: the street (a JSON file), the matching (eq. 2's distances and Figure 12's
+probabilities), and the practical command: a street's JSON and the user's masks,
+in street order, give the ranked start positions with probabilities (softmax of
+negative distances). The experiment of section 5.1 (random streets drawn by the
+generator) is `cuboidtrain.experiments.localisation`.
 
 Positions are 0-based here and 1-based in what people read (tables, figures).
 """
@@ -26,17 +22,10 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from cuboidgen.config import SceneConfig, load_scene
-from cuboidgen.occluders import OccluderLibrary
-from cuboidgen.scene import uniform
-from cuboidgen.synth import make_sample, sample_seed
-from cuboidtrain.device import resolve_device
-from cuboidtrain.infer import fit, infer_paths
-from cuboidtrain.masks import components, frame
+from cuboidtrain.fitter import Fitter
 from cuboidtrain.networks import CuboidNet
-from shared.sample import Sample
+from cuboidtrain.options import FitOptions
 from shared.shapes import RATIO_KEYS
 
 log = logging.getLogger(__name__)
@@ -114,18 +103,6 @@ def building_from_dict(data, where: str, default_name: str) -> Building:
 
 def street_to_dict(street: list[Building]) -> dict:
     return {"format": STREET_FORMAT, "version": STREET_VERSION, "buildings": [asdict(b) for b in street]}
-
-
-def draw_street(count: int, scene: SceneConfig, rng: np.random.Generator) -> list[Building]:
-    """`count` buildings with extents drawn uniformly from the scene's ranges (Table 4's scales)."""
-    return [Building(f"#{k + 1}", *(uniform(rng, getattr(scene, e)) for e in EXTENTS)) for k in range(count)]
-
-
-def silhouette_of(building: Building, scene: SceneConfig, size: int, seed: int, library) -> Sample:
-    """A new random view of this very building: the generator's own sample (pose, framing,
-    occlusion, contour noise from `seed`), its extent ranges pinned to the building's."""
-    pinned = replace(scene, **{e: (getattr(building, e),) * 2 for e in EXTENTS})
-    return make_sample("box", pinned, size, seed, library)
 
 
 # --- matching: eq. (2) and Figure 12 -------------------------------------------------
@@ -216,39 +193,18 @@ def box_model(models: list[CuboidNet]) -> CuboidNet:
                      f"got {', '.join(m.shape for m in models) or 'none'}")
 
 
-def predict_ratios(masks: list[np.ndarray], model: CuboidNet, refine_steps: int | None, margin: float,
-                   device: str | torch.device = "cpu") -> np.ndarray:
-    """(N, 2) ratios predicted for bool masks as `infer` would: the largest component,
-    framed for the model, R (iterated), S, T (T's ratios whatever reads the keypoints)."""
-    device = resolve_device(device)
-    model.to(device).eval()
-    predicted = []
-    for k, mask in enumerate(masks):
-        parts = components(mask)
-        if not parts or not parts[0].any():
-            raise ValueError(f"building {k + 1}: its silhouette is empty (occluded away)")
-        framed, _ = frame(parts[0], model.size, margin)  # as infer frames a component
-        fitted = fit(model, framed, refine_steps=refine_steps, device=device)
-        predicted.append([fitted["ratios"][key] for key in RATIO_KEYS])
-    return np.array(predicted).reshape(len(masks), len(RATIO_KEYS))
-
-
-def oracle_ratios(true: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
-    """The true ratios times (1 + noise * N(0, 1)), each independently: checks the matching."""
-    return true * (1.0 + noise * rng.standard_normal(true.shape))
-
-
-def localize_masks(street: list[Building], masks: list[str], models: list[CuboidNet], refine_steps: int | None = 1,
-                   margin: float = 0.1, device: str | torch.device = "cpu", temperature: float = 1.0) -> dict:
+def localize_masks(street: list[Building], masks: list[str], models: list[CuboidNet],
+                   options: FitOptions | None = None, temperature: float = 1.0) -> dict:
     """The practical command: the user's masks of consecutive buildings (street order) ->
-    their predicted ratios and every start position ranked by probability."""
+    their predicted ratios (fitted by the box model, as `infer --shape box` fits them) and
+    every start position ranked by probability."""
     if len(masks) > len(street):
         raise ValueError(f"{len(masks)} masks for a street of {len(street)} buildings: "
                          f"expected at most as many masks as buildings")
     if not temperature > 0:
         raise ValueError(f"--temperature {temperature}: expected a positive number")
-    records = infer_paths(masks, [box_model(models)], shape="box", refine_steps=refine_steps,
-                          margin=margin, device=device)
+    options = replace(options or FitOptions(), shape="box")
+    records = Fitter([box_model(models)], options).records(masks)
     for record in records:
         if record["error"] is not None:
             raise ValueError(f"{record['error']} (every mask is needed: the sequence cannot have a gap)")
@@ -259,119 +215,6 @@ def localize_masks(street: list[Building], masks: list[str], models: list[Cuboid
         "street": street_to_dict(street),
         "ranking": rank_starts(street, predicted, temperature),
     }
-
-
-# --- the experiment (section 5.1) -------------------------------------------------------
-
-@dataclass(frozen=True)
-class ExperimentConfig:
-    """Everything `cuboidtrain localize` (without --street) does; options map onto fields."""
-
-    buildings: int = 100  # N, buildings per street
-    max_m: int = 30  # M, the longest sub-sequence
-    top_l: int = 5  # L, the widest top-l
-    seed: int = 0
-    streets: int = 1  # independent streets; acc is their mean
-    scene: str = "paper"  # the generator's scene: extent ranges, views, occlusion, noise
-    mask_size: int | None = None  # px of the drawn masks; None: the model's size
-    refine_steps: int | None = 1  # Refiner passes (None: until it settles), as `infer`
-    margin: float = 0.1  # framing margin, as `infer`
-    oracle: bool = False  # true ratios with relative noise instead of the networks
-    oracle_noise: float = 0.0  # the oracle's relative std
-    example_m: int = 4  # Figure 12: sub-sequence length of the example
-    example_start: int | None = None  # its true start, 1-based; None: the middle of the street
-    temperature: float = 1.0  # softmax(-distance / temperature)
-
-    def validate(self) -> "ExperimentConfig":
-        if self.buildings < 1:
-            raise ValueError(f"--buildings {self.buildings}: expected 1 or more")
-        if not 1 <= self.max_m <= self.buildings:
-            raise ValueError(f"--max-m {self.max_m}: expected 1 to --buildings ({self.buildings})")
-        if self.top_l < 1:
-            raise ValueError(f"--top-l {self.top_l}: expected 1 or more")
-        if self.streets < 1:
-            raise ValueError(f"--streets {self.streets}: expected 1 or more")
-        if not self.oracle_noise >= 0:
-            raise ValueError(f"--oracle-noise {self.oracle_noise}: expected 0 or more (a relative std)")
-        if self.mask_size is not None and not 16 <= self.mask_size <= 4096:
-            raise ValueError(f"--mask-size {self.mask_size}: expected 16 to 4096 px")
-        if not 1 <= self.example_m <= self.buildings:
-            raise ValueError(f"--example-m {self.example_m}: expected 1 to --buildings ({self.buildings})")
-        last = self.buildings - self.example_m + 1
-        if self.example_start is not None and not 1 <= self.example_start <= last:
-            raise ValueError(f"--example-start {self.example_start}: expected 1 to {last} "
-                             f"(a sub-sequence of {self.example_m} in {self.buildings} buildings)")
-        if not self.temperature > 0:
-            raise ValueError(f"--temperature {self.temperature}: expected a positive number")
-        load_scene(self.scene)
-        return self
-
-
-def street_predictions(config: ExperimentConfig, street_index: int, model: CuboidNet | None,
-                       library, device) -> tuple[list[Building], np.ndarray]:
-    """One street of the experiment and its predicted ratios (model or oracle)."""
-    rng = np.random.default_rng([config.seed, street_index])
-    scene = load_scene(config.scene)
-    street = draw_street(config.buildings, scene, rng)
-    true = street_ratios(street)
-    if config.oracle:
-        return street, oracle_ratios(true, config.oracle_noise, rng)
-    size = config.mask_size or model.size
-    masks = [silhouette_of(b, scene, size, sample_seed(config.seed, street_index, k), library).noisy
-             for k, b in enumerate(street)]
-    return street, predict_ratios(masks, model, config.refine_steps, config.margin, device)
-
-
-def ratio_errors(true: np.ndarray, predicted: np.ndarray) -> dict:
-    """Mean absolute and relative error per ratio, over every building of every street."""
-    absolute, relative = np.abs(predicted - true), np.abs(predicted - true) / true
-    return {key: {"mean_abs": float(absolute[:, i].mean()), "mean_rel": float(relative[:, i].mean())}
-            for i, key in enumerate(RATIO_KEYS)}
-
-
-def example(config: ExperimentConfig, street: list[Building], predicted: np.ndarray) -> dict:
-    """Figure 12 on the first street: one predicted sub-sequence against every start."""
-    m = config.example_m
-    start = (config.example_start or (config.buildings - m) // 2 + 1) - 1
-    distances, probabilities = start_probabilities(street_ratios(street), predicted[start : start + m],
-                                                   config.temperature)
-    return {"m": m, "true_start": start, "distances": distances.tolist(), "probabilities": probabilities.tolist()}
-
-
-def first_m_reaching(acc: np.ndarray, level: float = 0.5) -> list[int | None]:
-    """Per l, the shortest m with acc(m, l) >= level (None if no m up to M does)."""
-    return [next((m + 1 for m in range(acc.shape[0]) if acc[m, l] >= level), None) for l in range(acc.shape[1])]
-
-
-def run_experiment(config: ExperimentConfig, models: list[CuboidNet] | None = None,
-                   checkpoints: list[str] | None = None, device: str | torch.device = "cpu") -> dict:
-    """Eq. (2) over `config.streets` streets: the mean acc(m, l) and what made it."""
-    config.validate()
-    model = None if config.oracle else box_model(models or [])
-    library = None if config.oracle else OccluderLibrary.builtin()
-    per_street, trues, preds, streets, first = [], [], [], [], None
-    for s in range(config.streets):
-        street, predicted = street_predictions(config, s, model, library, device)
-        first = first or (street, predicted)
-        true = street_ratios(street)
-        per_street.append(accuracy(true, predicted, config.max_m, config.top_l))
-        trues.append(true), preds.append(predicted)
-        streets.append({"true": true.tolist(), "predicted": predicted.tolist()})
-        log.info("street %d of %d: acc(1, 1) %.2f", s + 1, config.streets, per_street[-1][0, 0])
-    acc = np.mean(per_street, axis=0)
-    return {
-        "format": "cuboid-fit/localization-experiment", "version": 1,
-        "settings": asdict(config) | {"checkpoints": list(checkpoints or []),
-                                       "model": None if model is None else {"shape": model.shape, "size": model.size}},
-        "m": list(range(1, config.max_m + 1)), "l": list(range(1, config.top_l + 1)),
-        "acc": acc.tolist(),
-        "acc_per_street": [a.tolist() for a in per_street],
-        "first_m_at_half": first_m_reaching(acc),
-        "ratio_error": ratio_errors(np.concatenate(trues), np.concatenate(preds)),
-        "example": example(config, *first),
-        "streets": streets,
-    }
-
 
 
 def mask_sequence(option_values: list[str], arguments: list[str]) -> list[str]:

@@ -16,36 +16,48 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cuboidtrain.options import DEFAULT_MARGIN
+
 
 def load_mask(path: Path, label_id: int | None = None) -> np.ndarray:
-    """The object pixels of a mask image as a bool (H, W) array.
+    """The object pixels of a mask image file as a bool (H, W) array (`to_mask`'s rules)."""
+    return to_mask(_read(path), label_id, str(path))
+
+
+def to_mask(image: np.ndarray, label_id: int | None = None, source: str = "mask") -> np.ndarray:
+    """The object pixels of a decoded mask image (H, W) or (H, W, C) as a bool (H, W) array.
 
     Grey images (0/255, 0/1, JPEG-noisy) are thresholded at half their maximum;
     colour images mark the object with any non-black colour, or with their alpha
     channel where it is not constant; with `label_id` a grey label map's pixels
-    equal to it are the object.
+    equal to it are the object. `source` names the input in errors.
     """
-    image = _read(path)
+    image = np.asarray(image)
+    if image.dtype == bool:
+        image = image.astype(np.uint8)
+    if image.ndim not in (2, 3) or image.size == 0:
+        raise ValueError(f"{source}: an array of shape {image.shape}, expected an (H, W) or (H, W, C) image")
     if label_id is not None:
         if image.ndim != 2:
-            raise ValueError(f"{path}: a label id needs a single-channel label map, "
+            raise ValueError(f"{source}: a label id needs a single-channel label map, "
                              f"got a {image.shape[2]}-channel image")
         mask = image == label_id
         if not mask.any():
             labels = np.unique(image).tolist()
             present = ", ".join(map(str, labels[:12])) + (", ..." if len(labels) > 12 else "")
-            raise ValueError(f"{path}: label {label_id} not found in the label map "
+            raise ValueError(f"{source}: label {label_id} not found in the label map "
                              f"(labels present: {present})")
         return mask
     if image.ndim == 3 and image.shape[2] == 4 and image[..., 3].min() != image[..., 3].max():
         # A varying alpha is the cut-out itself; the colour under a transparent pixel is arbitrary.
-        mask = image[..., 3] > np.iinfo(image.dtype).max // 2
+        top = np.iinfo(image.dtype).max if image.dtype.kind in "ui" else 1.0
+        mask = image[..., 3] > top / 2
     else:
         grey = image if image.ndim == 2 else image[..., :3].max(axis=2)
         # Half the maximum serves 0/1 and 0/255 masks alike and drops JPEG ringing near black.
         mask = grey > grey.max() / 2 if grey.max() > 0 else np.zeros(grey.shape, bool)
     if not mask.any():
-        raise ValueError(f"{path}: empty mask: no object pixels")
+        raise ValueError(f"{source}: empty mask: no object pixels")
     return mask
 
 
@@ -128,12 +140,11 @@ class Framing:
         return np.array([[s, 0.0, tx], [0.0, s, ty]])
 
 
-def frame(mask: np.ndarray, size: int, margin: float = 0.1) -> tuple[np.ndarray, Framing]:
+def frame(mask: np.ndarray, size: int, margin: float = DEFAULT_MARGIN) -> tuple[np.ndarray, Framing]:
     """Scale and centre the object of `mask` so its longer side spans the model input
-    less two margins (fraction of `size`, each side, as the generator frames its
-    scenes); returns the bool (size, size) model input and its Framing."""
-    if not 0 <= margin < 0.5:
-        raise ValueError(f"margin {margin} is outside the allowed range [0, 0.5)")
+    less two margins (fraction of `size`, each side, in [0, 0.5) as FitOptions checks,
+    as the generator frames its scenes); returns the bool (size, size) model input and
+    its Framing."""
     if not mask.any():
         raise ValueError("cannot frame an empty mask")
     x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))

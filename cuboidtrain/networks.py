@@ -187,6 +187,8 @@ class CuboidNet(nn.Module):
         self.shape, self.size, self.arch = shape, size, check_arch(arch)
         # The heat maps' Gaussian std in px that S was trained to draw: sub-pixel decoders need it.
         self.sigma = sigma if sigma is not None else default_sigma(size)
+        # The shape model of --extractor pdm (cuboidtrain.pdm), saved in a model file; None until one is set.
+        self.pdm = None
         self.refiner, self.estimator, self.tabulator = ARCHS[arch](
             geometry.num_keypoints, len(geometry.ratio_names), size)
 

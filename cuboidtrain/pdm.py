@@ -8,30 +8,22 @@ components describe form, not where or how large a building was framed. The
 projection keeps each coefficient within the range the training shapes showed
 (a classic PDM clips at 3 standard deviations, but mirror flips and perspective
 make these coefficients far from Gaussian, and 3 sd cut off valid shapes).
+
+It is fitted on the keypoint sets of the spool a model was trained on and saved in
+the model file (`cuboidtrain models pack`), so inference never draws a scene: a
+change to the generator cannot change what a shipped model infers.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
+from shared.sample import decode
+from shared.spool import enumerate_spool, read_sample_bytes
+
 MIN_SAMPLES = 1000  # the paper's initialisation size
-
-
-def parse_components(value: str | int | float) -> int | float:
-    """`--pdm-components`: an integer count (>= 1) or a variance fraction in (0, 1)."""
-    text = str(value).strip()
-    try:
-        number = float(text)
-    except ValueError:
-        number = float("nan")
-    if number >= 1 and number == int(number) and "." not in text:
-        return int(number)
-    if 0 < number < 1:
-        return number
-    raise ValueError(f"PDM components {value!r}: expected a count of components (1, 2, ...) "
-                     f"or a fraction of the shape variance to keep, between 0 and 1")
 
 
 def normalise(keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,10 +60,14 @@ class PointDistributionModel:
         return cls(mean=mean, components=vt, variances=singular**2 / (len(sets) - 1),
                    low=low - margin, high=high + margin)
 
+    def to_dict(self) -> dict:
+        """Plain lists, saved in a model file beside the weights."""
+        return {name: getattr(self, name).tolist() for name in ("mean", "components", "variances", "low", "high")}
+
     @classmethod
-    def from_generator(cls, shape: str, size: int, samples: int = 2000, seed: int = 0) -> "PointDistributionModel":
-        """Fitted on `samples` views drawn as the generator's `paper` scene draws them (cached)."""
-        return _fitted(shape, size, samples, seed)
+    def from_dict(cls, data: dict) -> "PointDistributionModel":
+        return cls(**{name: np.asarray(data[name], dtype=np.float64)
+                      for name in ("mean", "components", "variances", "low", "high")})
 
     def active_components(self, components: int | float) -> int:
         """How many components a count or a variance fraction keeps."""
@@ -99,12 +95,23 @@ class PointDistributionModel:
         return rebuilt * scale + centroid
 
 
-@lru_cache(maxsize=8)
-def _fitted(shape: str, size: int, samples: int, seed: int) -> PointDistributionModel:
-    from cuboidgen.config import PAPER
-    from cuboidgen.scene import draw_view
-    from shared.shapes import get_shape
-
-    geometry, rng = get_shape(shape), np.random.default_rng(seed)
-    sets = np.stack([draw_view(geometry, PAPER, size, rng).keypoints for _ in range(samples)])
-    return PointDistributionModel.fit(sets)
+def spool_keypoints(spool: Path, shape: str, count: int = 2000) -> np.ndarray:
+    """(M, N, 2) keypoint sets of up to `count` `shape` samples of a training spool, oldest first:
+    the shapes the model was trained on. Corrupt or vanished samples are passed over."""
+    sets = []
+    for name in enumerate_spool(Path(spool)):
+        data = read_sample_bytes(Path(spool), name)
+        if data is None:  # evicted since the listing
+            continue
+        try:
+            sample = decode(data)
+        except ValueError:  # corrupt
+            continue
+        if sample.shape == shape:
+            sets.append(sample.keypoints)
+            if len(sets) == count:
+                break
+    if len(sets) < MIN_SAMPLES:
+        raise ValueError(f"spool {spool}: {len(sets)} {shape} samples, a point distribution model needs "
+                         f"at least {MIN_SAMPLES}")
+    return np.stack(sets).astype(np.float64)

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
+from cuboidtrain.pdm import PointDistributionModel, spool_keypoints
 from shared.files import atomic_path
 
 SHIPPED_SHAPES = ("box", "twobox")
@@ -99,17 +100,30 @@ def make_card(checkpoint_path: Path, checkpoint: dict, scenes: list[str], valida
 
 
 def pack(checkpoint_path: Path, out: Path, scenes: list[str], validation: dict | None = None,
-         recipe: str | None = None, half: bool = True) -> dict:
+         recipe: str | None = None, half: bool = True, pdm_spool: Path | None = None) -> dict:
     """Write the model file of a training checkpoint: weights (float16 unless `half` is
-    False), config and card. Returns the card."""
+    False), config and card. Returns the card.
+
+    With `pdm_spool` (the spool the model trained on), the point distribution model of
+    `--extractor pdm` is fitted on its keypoint sets and saved in the file. A model file
+    given with `pdm_spool` is packed again: its weights and card stay, its PDM is refitted.
+    """
     checkpoint = load_checkpoint(checkpoint_path)
-    if checkpoint["format"] != FORMAT:
-        raise ValueError(f"{checkpoint_path}: already a model file; pack a training checkpoint (last.pt)")
-    card = make_card(checkpoint_path, checkpoint, scenes, validation, recipe)
-    weights = {k: v.half() if half and v.is_floating_point() else v for k, v in checkpoint["model"].items()}
-    payload = {"format": MODEL_FORMAT, "version": VERSION, "shape": checkpoint["shape"], "size": checkpoint["size"],
-               "arch": card["arch"], "sigma": checkpoint["sigma"], "config": checkpoint["config"],
-               "step": checkpoint["step"], "model": weights, "card": card}
+    if checkpoint["format"] == FORMAT:
+        card = make_card(checkpoint_path, checkpoint, scenes, validation, recipe)
+        weights = {k: v.half() if half and v.is_floating_point() else v for k, v in checkpoint["model"].items()}
+        payload = {"format": MODEL_FORMAT, "version": VERSION, "shape": checkpoint["shape"],
+                   "size": checkpoint["size"], "arch": card["arch"], "sigma": checkpoint["sigma"],
+                   "config": checkpoint["config"], "step": checkpoint["step"], "model": weights, "card": card}
+    elif pdm_spool is not None:
+        payload, card = checkpoint, checkpoint["card"]
+    else:
+        raise ValueError(f"{checkpoint_path}: already a model file; pack a training checkpoint (last.pt), "
+                         f"or give --pdm-spool to fit its shape model again")
+    if pdm_spool is not None:
+        sets = spool_keypoints(pdm_spool, checkpoint["shape"])
+        payload["pdm"] = PointDistributionModel.fit(sets).to_dict()
+        card["pdm"] = {"spool": str(pdm_spool), "keypoint_sets": len(sets)}
     with atomic_path(out) as tmp:
         torch.save(payload, tmp)
     return card

@@ -48,6 +48,22 @@ def tiny_model(shape: str = "box", size: int = SIZE, seed: int = 0, sigma: float
     return build_model(shape, size, seed=seed, sigma=sigma, arch=ARCH)
 
 
+def infer_paths(paths, models, explain=None, **options) -> list[dict]:
+    """`cuboidtrain infer`'s records through the Fitter, on the CPU; `options` as FitOptions'."""
+    from cuboidtrain.fitter import Fitter
+    from cuboidtrain.options import FitOptions
+
+    return Fitter(models, FitOptions(**({"device": "cpu"} | options))).records(paths, explain=explain)
+
+
+def with_generated_pdm(model):
+    """`model` with the shape model a model file would carry, drawn from the generator."""
+    from cuboidtrain.experiments.generated_pdm import generated_pdm
+
+    model.pdm = generated_pdm(model.shape, model.size)
+    return model
+
+
 def train_config(**fields):
     """A TrainConfig of the test architecture; `fields` as TrainConfig's."""
     from cuboidtrain.config import TrainConfig

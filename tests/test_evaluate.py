@@ -12,10 +12,11 @@ from torch import nn
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
 from cuboidtrain.heatmaps import render_heatmaps
+from cuboidtrain.options import FitOptions
 from shared.sample import encode, signed
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter
-from tests.conftest import build_sample, tiny_model, train_config
+from tests.conftest import build_sample, tiny_model, train_config, with_generated_pdm
 
 SIZE = 32  # px: the smallest size a ResNet-18 model takes
 CPU = torch.device("cpu")
@@ -72,7 +73,7 @@ def test_mask_iou_on_hand_made_masks():
 
 def test_evaluate_reports_every_metric_in_range(box_spool):
     model = tiny_model("box", SIZE, seed=0).train()
-    result = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=4)  # batches of 4 and 2
+    result = evaluate(model, box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=4)  # batches of 4 and 2
     assert KEYS <= set(result)
     assert (result["shape"], result["size"], result["samples"]) == ("box", SIZE, 6)
     assert not any(result["skipped"].values())
@@ -91,8 +92,8 @@ def test_evaluate_reports_every_metric_in_range(box_spool):
 
 def test_evaluate_is_deterministic_and_independent_of_batch_size(box_spool):
     model = tiny_model("box", SIZE, seed=1)
-    a = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=6)
-    b = evaluate(model, box_spool, sigma=1.0, device=CPU, batch_size=1)
+    a = evaluate(model, box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=6)
+    b = evaluate(model, box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=1)
     assert a["mean_px_error"] == pytest.approx(b["mean_px_error"], rel=1e-5)
     assert a["refiner_iou"] == pytest.approx(b["refiner_iou"], rel=1e-5)
 
@@ -134,7 +135,7 @@ class Oracle(nn.Module):
 
 
 def test_an_oracle_scores_perfectly(box_spool, box_samples):
-    result = evaluate(Oracle(box_samples, "box", SIZE), box_spool, sigma=1.0, device=CPU, batch_size=4)
+    result = evaluate(Oracle(box_samples, "box", SIZE), box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=4)
     assert result["samples"] == 6
     assert result["mean_px_error"] == pytest.approx(0, abs=1e-5)
     assert result["median_px_error"] == pytest.approx(0, abs=1e-5)
@@ -149,7 +150,8 @@ def test_an_oracle_scores_perfectly(box_spool, box_samples):
 def test_an_oracles_heat_maps_decode_to_the_truth_with_every_extractor(box_spool, box_samples, extractor, bound):
     # The Oracle's S draws the true maps: each extractor then shows its own decoding error, and
     # argmax its half-pixel grid (at most sqrt(2)/2 px).
-    result = evaluate(Oracle(box_samples, "box", SIZE), box_spool, sigma=1.0, device=CPU, extractor=extractor)
+    oracle = with_generated_pdm(Oracle(box_samples, "box", SIZE))
+    result = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu", extractor=extractor))
     assert result["extractor"] == extractor
     assert result["mean_px_error"] < bound
     assert result["extractor_px_error_on_true_heatmaps"] == pytest.approx(result["mean_px_error"], abs=1e-5)
@@ -162,11 +164,11 @@ def test_evaluate_skips_and_counts_other_samples(tmp_path):
                     build_sample(4, "box", size=SIZE)])
     (spool / "0000000000000000001-junk.cub").write_bytes(b"not a sample")  # sorts first
     model = tiny_model("box", SIZE)
-    result = evaluate(model, spool, sigma=1.0, device=CPU)
+    result = evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"))
     # the 64 px box is framed at the model's size as infer frames a mask: evaluated, not skipped
     assert result["samples"] == 4
     assert result["skipped"] == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 0, "cut_off": 0}
-    first_two = evaluate(model, spool, sigma=1.0, device=CPU, batch_size=1, max_samples=2)
+    first_two = evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=1, max_samples=2)
     assert first_two["samples"] == 2  # the first two box samples, past the others
 
 
@@ -175,22 +177,22 @@ def test_a_spool_without_the_models_samples_is_a_clear_error(tmp_path):
     publish(spool, [build_sample(i, "twobox", size=SIZE) for i in range(2)])
     model = tiny_model("box", SIZE)
     with pytest.raises(ValueError, match=r"spool .*val: 0 box 32 px samples among 2 \(2 twobox 32 px\)"):
-        evaluate(model, spool, sigma=1.0, device=CPU)
+        evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"))
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(ValueError, match="empty, no box 32 px samples"):
-        evaluate(model, empty, sigma=1.0, device=CPU)
+        evaluate(model, empty, sigma=1.0, options=FitOptions(device="cpu"))
 
 
 def test_evaluate_checkpoint_reports_the_random_weights_row(tmp_path, box_spool):
     config = train_config(shape="box", size=SIZE, steps=1, sigma=1.5)
     path = save_checkpoint(tmp_path / "random.pt", tiny_model("box", SIZE, seed=3), config, step=7)
-    result = evaluate_checkpoint(path, box_spool, device="cpu", max_samples=4, random_init_seed=3)
+    result = evaluate_checkpoint(path, box_spool, FitOptions(device="cpu"), max_samples=4, random_init_seed=3)
     assert {"random_init_mean_px_error", "random_init_median_px_error", "checkpoint", "step", "spool"} <= set(result)
     assert (result["step"], result["samples"], result["sigma"]) == (7, 4, 1.5)
     assert result["mean_px_error"] == result["random_init_mean_px_error"]
     assert result["median_px_error"] == result["random_init_median_px_error"]
-    other = evaluate_checkpoint(path, box_spool, device="cpu", max_samples=4, random_init_seed=4)
+    other = evaluate_checkpoint(path, box_spool, FitOptions(device="cpu"), max_samples=4, random_init_seed=4)
     assert other["random_init_mean_px_error"] != other["mean_px_error"]
     report = format_report(result)
     assert "random init" in report and "BACK-RIGHT-TOP" in report and "step 7" in report

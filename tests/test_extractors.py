@@ -7,11 +7,13 @@ import torch
 
 from cuboidgen.config import PAPER
 from cuboidgen.scene import draw_view
-from cuboidtrain.extractors import EXTRACTORS, argmax, centre_of_mass, dark, make_extractor
+from cuboidtrain.experiments.generated_pdm import generated_pdm
+from cuboidtrain.extractors import argmax, centre_of_mass, dark, make_extractor
 from cuboidtrain.heatmaps import render_heatmaps
-from cuboidtrain.pdm import MIN_SAMPLES, PointDistributionModel, parse_components
+from cuboidtrain.options import EXTRACTORS, parse_components
+from cuboidtrain.pdm import MIN_SAMPLES, PointDistributionModel
 from shared.shapes import get_shape
-from tests.conftest import tiny_model
+from tests.conftest import tiny_model, with_generated_pdm
 
 SIZE = 64
 
@@ -64,7 +66,7 @@ def test_peaks_at_the_border_and_flat_maps_give_finite_points_inside_the_image()
 
 
 def test_tabulator_extractor_passes_t_through_and_names_are_checked():
-    model = tiny_model("box", 32)
+    model = with_generated_pdm(tiny_model("box", 32))
     tabulated = torch.rand(1, 8, 2)
     assert make_extractor("tabulator", model)(torch.rand(1, 8, 32, 32), tabulated) is tabulated
     with pytest.raises(ValueError, match="--extractor 'soft'.*tabulator, argmax, centre-of-mass, dark, pdm"):
@@ -83,7 +85,7 @@ def generated_sets(shape: str, count: int, seed: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def pdm():
-    return PointDistributionModel.from_generator("box", SIZE, 2000, seed=0)
+    return generated_pdm("box", SIZE, 2000, seed=0)
 
 
 def test_all_components_reproduce_any_valid_shape_and_fewer_approximate_it(pdm):
@@ -141,17 +143,36 @@ def test_a_pdm_needs_enough_well_formed_sets():
 
 
 def test_twobox_pdm_and_extractor_on_true_maps():
-    model = tiny_model("twobox", SIZE)
+    model = with_generated_pdm(tiny_model("twobox", SIZE))
     truth = torch.from_numpy(generated_sets("twobox", 4, seed=3))
     points = make_extractor("pdm", model, pdm_components="0.999")(render_heatmaps(truth, SIZE, 1.0), None)
     assert points.shape == truth.shape and distances(points, truth).mean() < 0.6
 
 
 def test_the_cli_offers_every_extractor_and_the_library_default():
-    from cuboidtrain import cli, extractors
+    from cuboidtrain import cli, options
 
-    assert cli.EXTRACTOR_NAMES == extractors.EXTRACTORS
-    assert float(cli.DEFAULT_PDM_COMPONENTS) == extractors.DEFAULT_PDM_COMPONENTS
+    assert [choice.value for choice in cli.ExtractorChoice] == list(options.EXTRACTORS)
+    assert [choice.value for choice in cli.FitShape] == list(options.FIT_SHAPES)
+    assert float(typer_default(cli.infer, "pdm_components")) == options.DEFAULT_PDM_COMPONENTS
+    assert typer_default(cli.infer, "margin") == options.DEFAULT_MARGIN
+
+
+def test_a_model_without_a_pdm_says_how_to_get_one():
+    with pytest.raises(ValueError, match="carries no point distribution model.*--pdm-spool"):
+        make_extractor("pdm", tiny_model("box", 32))
+
+
+def test_a_pdm_survives_its_trip_through_a_model_file(pdm):
+    again = PointDistributionModel.from_dict(pdm.to_dict())
+    shapes = generated_sets("box", 5, seed=9)
+    assert np.array_equal(again.project(shapes, 6), pdm.project(shapes, 6))
+
+
+def typer_default(command, name: str):
+    import inspect
+
+    return inspect.signature(command).parameters[name].default.default
 
 
 def test_dark_uses_the_mixed_derivative_on_a_tilted_blob():

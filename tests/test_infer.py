@@ -16,11 +16,13 @@ from typer.testing import CliRunner
 
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.infer import RICHER_SHAPE_MARGIN, choose, confidence, fit, infer_paths, refine, silhouette
+from cuboidtrain.fitter import Fitter
+from cuboidtrain.options import FitOptions
+from cuboidtrain.infer import RICHER_SHAPE_MARGIN, choose, confidence, refine, silhouette
 from cuboidtrain.masks import components, frame, load_mask
 from shared.sample import signed
 from shared.shapes import get_shape
-from tests.conftest import build_sample, tiny_model, train_config
+from tests.conftest import build_sample, infer_paths, tiny_model, train_config, with_generated_pdm
 
 SIZE = 32
 RECORD_KEYS = {"input", "shape", "confidence", "keypoints", "ratios", "refine_steps", "refine_converged", "error",
@@ -159,7 +161,7 @@ def test_keypoints_are_mapped_back_to_input_pixels(tmp_path):
 
 def test_fit_with_one_step_is_the_chained_forward(random_models):
     model, framed = random_models[0], rectangles((SIZE, SIZE), (6, 9, 25, 22))
-    result = fit(model, framed, refine_steps=1)
+    result = Fitter([model], FitOptions(device="cpu")).fit_framed(model, framed)
     with torch.inference_mode():
         expected = model(torch.from_numpy(signed(framed))[None, None])
     assert np.allclose(result["keypoints"], expected["keypoints"][0].numpy(), atol=1e-6)
@@ -418,7 +420,7 @@ def test_an_extractor_replaces_t_s_keypoints_but_not_its_ratios(tmp_path, extrac
     path = write_png(tmp_path / "rect.png", rectangles((60, 90), (10, 10, 70, 50)))
     refiner = Recording()
     tabulated = lambda: rect_keypoints(refiner.last, 8)  # noqa: E731
-    model = stub_model("box", refiner, tabulated)
+    model = with_generated_pdm(stub_model("box", refiner, tabulated))
     model.estimator = TrueHeatmaps(lambda: rect_keypoints(refiner.last, 8) + 0.6)  # S's peaks 0.6 px off T's
     by_t = infer_paths([path], [model])[0]
     decoded = infer_paths([path], [model], extractor=extractor)[0]

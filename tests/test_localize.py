@@ -15,9 +15,10 @@ from typer.testing import CliRunner
 from cuboidgen.config import PAPER
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.localize import (Building, ExperimentConfig, accuracy, draw_street, localize_masks, mask_sequence,
-                                  rank_starts, read_street, run_experiment, silhouette_of, start_probabilities,
-                                  street_from_dict, street_ratios, street_to_dict, subsequence_distances, true_ranks)
+from cuboidtrain.experiments.localisation import ExperimentConfig, draw_street, run_experiment, silhouette_of
+from cuboidtrain.localize import (Building, accuracy, localize_masks, mask_sequence, rank_starts, read_street,
+                                  start_probabilities, street_from_dict, street_to_dict,
+                                  subsequence_distances, true_ranks)
 from tests.conftest import small_library, tiny_model, train_config
 
 SIZE = 64  # the smallest size a street's masks are drawn and fitted at in the CPU recipe

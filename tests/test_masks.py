@@ -118,9 +118,11 @@ def test_framing_matrix_is_to_model():
     assert framing.input_shape == (60, 50) and framing.size == 32
 
 
-def test_frame_rejects_bad_margin_and_empty_mask():
-    with pytest.raises(ValueError, match="margin 0.5"):
-        frame(np.ones((8, 8), bool), 16, margin=0.5)
+def test_a_bad_margin_and_an_empty_mask_are_rejected():
+    from cuboidtrain.options import FitOptions
+
+    with pytest.raises(ValueError, match="margin 0.5"):  # checked once, where every fit's options are
+        FitOptions(margin=0.5).validate()
     with pytest.raises(ValueError, match="empty"):
         frame(np.zeros((8, 8), bool), 16)
 

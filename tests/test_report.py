@@ -15,8 +15,9 @@ from cuboidgen.config import PAPER
 from cuboidtrain.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.evaluate import evaluate, load_batches
-from cuboidtrain.report import NOISE_LEVELS, OCCLUSION_BINS, ReportConfig, generated_batches, run_report, table3
-from cuboidtrain.report_figures import PAPER_TABLE3
+from cuboidtrain.options import FitOptions
+from cuboidtrain.experiments.report import NOISE_LEVELS, OCCLUSION_BINS, ReportConfig, generated_batches, run_report, table3
+from cuboidtrain.experiments.report_figures import PAPER_TABLE3
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import build_sample, small_library, tiny_model, train_config
@@ -64,10 +65,11 @@ def test_table3_trained_row_is_evaluate_on_the_same_samples(setup):
     batches, _ = load_batches(spools["clean-box"], "box", SIZE, 32, None)
     rows = table3("box", model, batches, torch.device("cpu"))
     assert [r["configuration"] for r in rows] == list(PAPER_TABLE3)
-    expected = evaluate(model, spools["clean-box"], model.sigma, torch.device("cpu"))
+    expected = evaluate(model, spools["clean-box"], model.sigma, FitOptions(device="cpu"))
     assert rows[1]["mean_px_error"] == pytest.approx(expected["mean_px_error"], rel=1e-6)
     assert rows[2]["mean_px_error"] == pytest.approx(
-        evaluate(model, spools["clean-box"], model.sigma, torch.device("cpu"), extractor="pdm")["mean_px_error"], rel=1e-6)
+        evaluate(model, spools["clean-box"], model.sigma, FitOptions(device="cpu", extractor="pdm"))["mean_px_error"],
+        rel=1e-6)
     assert "mean_px_error" not in rows[3] and "mean_px_error" not in rows[4]  # not given: not trained
 
 

@@ -11,7 +11,11 @@ from typer.testing import CliRunner
 from cuboidtrain.checkpoint import MODEL_FORMAT, load_checkpoint, load_model, save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
-from tests.conftest import SIZE, build_sample, tiny_model, train_config
+from cuboidtrain.extractors import make_extractor
+from cuboidtrain.pdm import MIN_SAMPLES
+from shared.sample import encode
+from shared.spool import SpoolWriter
+from tests.conftest import SIZE, build_sample, fill_spool, tiny_model, train_config
 
 runner = CliRunner()
 
@@ -59,8 +63,34 @@ def test_the_card_says_how_the_model_was_made(zoo):
 
 def test_packing_a_model_file_again_is_refused(zoo, tmp_path):
     folder, _ = zoo
-    with pytest.raises(ValueError, match="already a model file"):
+    with pytest.raises(ValueError, match="already a model file.*or give --pdm-spool"):
         pack(folder / "box.pt", tmp_path / "again.pt", [])
+
+
+def test_a_pdm_is_fitted_on_the_training_spool_and_travels_in_the_model_file(zoo, tmp_path):
+    folder, _ = zoo
+    spool = tmp_path / "spool"
+    with SpoolWriter(spool, limit=0) as writer:  # 16 px: the PDM normalises position and scale away
+        for seed in range(MIN_SAMPLES):
+            writer.publish(encode(build_sample(seed, "box", size=16)))
+    runner_result = runner.invoke(app, ["models", "pack", "--checkpoint", str(folder / "box.pt"),
+                                        "--out", str(tmp_path / "box.pt"), "--pdm-spool", str(spool)])
+    assert runner_result.exit_code == 0, runner_result.output
+    before, _ = load_model(folder / "box.pt")
+    after, payload = load_model(tmp_path / "box.pt")
+    assert before.pdm is None and payload["card"]["pdm"] == {"spool": str(spool), "keypoint_sets": MIN_SAMPLES}
+    assert all(torch.equal(before.state_dict()[k], v) for k, v in after.state_dict().items())  # weights stay
+    truth = np.stack([build_sample(seed, "box", size=16).keypoints for seed in range(5)])
+    assert np.allclose(after.pdm.project(truth, 16), truth, atol=1e-6)  # every component: exact
+    make_extractor("pdm", after)  # the extractor finds the file's shape model
+
+
+def test_too_small_a_pdm_spool_is_a_one_line_error(zoo, tmp_path):
+    folder, checkpoints = zoo
+    spool = tmp_path / "spool"
+    fill_spool(spool, 3)
+    with pytest.raises(ValueError, match=f"3 box samples, a point distribution model needs at least {MIN_SAMPLES}"):
+        pack(checkpoints["box"], tmp_path / "box.pt", [], pdm_spool=spool)
 
 
 def test_models_lists_the_cards(zoo):

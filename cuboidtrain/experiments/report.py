@@ -1,7 +1,7 @@
 """The report's experiments (paper section 4.1, Table 3, Figure 14 and our additions), as data.
 
 Each experiment measures trained models on fixed samples and returns plain
-dicts; `cuboidtrain.report_figures` turns them into REPORT.md and its plots.
+dicts; `cuboidtrain.experiments.report_figures` turns them into REPORT.md and its plots.
 
 - Table 3: the chain's mean keypoint error on clean validation masks for random
   weights, the trained model (phases 1 + 2), T replaced by a PDM, the phase 1
@@ -32,10 +32,11 @@ from cuboidgen.synth import make_sample
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.device import resolve_device
 from cuboidtrain.evaluate import load_batches, measure, report
-from cuboidtrain.extractors import EXTRACTORS, make_extractor
-from cuboidtrain.infer import fit_component
-from cuboidtrain.masks import components
+from cuboidtrain.experiments.generated_pdm import with_pdm
+from cuboidtrain.extractors import make_extractor
+from cuboidtrain.fitter import Fitter
 from cuboidtrain.networks import CuboidNet, build_model
+from cuboidtrain.options import EXTRACTORS, FitOptions
 from shared.sample import encode
 from shared.spool import SpoolWriter, check_spool
 
@@ -97,7 +98,8 @@ def read_validation(spools: tuple[str, ...], model: CuboidNet, samples: int) -> 
 
 def mean_error(model: CuboidNet, batches: list[dict], device, extractor: str = "tabulator",
                refine_steps: int | None = 1) -> dict:
-    result = report(model, batches, {}, model.sigma, device, extractor=extractor, refine_steps=refine_steps)
+    options = FitOptions(device=device, extractor=extractor, refine_steps=refine_steps)
+    result = report(model, batches, {}, model.sigma, options)
     return {"mean_px_error": result["mean_px_error"], "median_px_error": result["median_px_error"],
             "refiner_iou": result["refiner_iou"], "samples": result["samples"],
             "mean_ratio_error": result["mean_ratio_error"]}
@@ -108,7 +110,7 @@ def table3(shape: str, model: CuboidNet, batches: list[dict], device, finetune=N
     rows = [
         ("random weights", build_model(shape, model.size, seed=0, sigma=model.sigma, arch=model.arch), "tabulator"),
         ("trained with rep. meaning", model, "tabulator"),
-        ("trained with rep. meaning, T replaced with PDM", model, "pdm"),
+        ("trained with rep. meaning, T replaced with PDM", with_pdm(model), "pdm"),
         ("pre-trained with rep. meaning, trained without rep. meaning", finetune, "tabulator"),
         ("uninitialized, trained without rep. meaning", e2e, "tabulator"),
     ]
@@ -156,7 +158,7 @@ def occlusion_sweep(model: CuboidNet, workdir: Path, count: int, seed: int, devi
     scene = replace(PAPER, name="occlusion-only", occluders=(0, 4), contour_noise=(0.0, 0.0))
     batches, params = generated_batches(workdir / f"{model.shape}-occlusion", model.shape, model.size,
                                         scene, count, seed, library)
-    errors = measure(model, batches, model.sigma, device)["keypoint"].double().mean(1).numpy()
+    errors = measure(model, batches, model.sigma, FitOptions(device=device))["keypoint"].double().mean(1).numpy()
     fractions = np.array([params[name]["occluded_fraction"] for batch in batches for name in batch["names"]])
     rows = []
     for low, high in zip(OCCLUSION_BINS[:-1], OCCLUSION_BINS[1:]):
@@ -168,16 +170,13 @@ def occlusion_sweep(model: CuboidNet, workdir: Path, count: int, seed: int, devi
 
 def shape_selection(models: dict[str, CuboidNet], count: int, seed: int, device, library) -> dict:
     """`--shape auto` on `count` noisy samples of each class, drawn at the models' size."""
-    chosen = list(models.values())
-    size = chosen[0].size
-    extractors = dict.fromkeys(models)
+    fitter = Fitter(list(models.values()), FitOptions(device=device))
+    size = fitter.models[0].size
     confusion = {truth: dict.fromkeys(models, 0) for truth in models}
     for truth in models:
         for k in range(count):
             sample = make_sample(truth, PAPER, size, seed + k, library)
-            parts = components(sample.noisy)  # as infer_paths does: the largest component is fitted
-            record, _ = fit_component(parts[0], chosen, extractors, 1, 0.1, device)
-            confusion[truth][record["shape"]] += 1
+            confusion[truth][fitter.fit(sample.noisy).shape] += 1  # as infer: the largest component
     right = sum(confusion[s][s] for s in models)
     return {"samples": count * len(models), "accuracy": right / (count * len(models)), "confusion": confusion,
             "seeds": [seed, seed + count - 1]}
@@ -196,7 +195,7 @@ def run_report(config: ReportConfig) -> dict:
         for shape, (model, ckpt, path) in main.items():
             log.info("report: %s", shape)
             results["models"][shape] = _describe(ckpt, path, finetune.get(shape), e2e.get(shape))
-            pdm = make_extractor("pdm", model)
+            pdm = make_extractor("pdm", with_pdm(model))
             results["models"][shape]["pdm"] = {"components": pdm.active, "variance_fraction": pdm.components}
             results["shapes"][shape] = _shape_results(config, model, finetune.get(shape), e2e.get(shape),
                                                       Path(tmp), library, device)

@@ -1,0 +1,212 @@
+"""The one fit path, and the Python API: a Fitter fits masks, every command goes through it.
+
+    from cuboidtrain import Fitter
+    fit = Fitter.from_shipped().fit("mask.png")
+    fit.keypoints, fit.ratios, fit.shape, fit.confidence
+
+A Fitter is built once from models (the shipped ones, files, or CuboidNets in
+hand) and one FitOptions, checked there. `fit` takes a mask image file or an
+array and returns a `Fit`; `records` is `cuboidtrain infer`: one JSON record per
+input (docs/contract.md, "The infer record"), an unreadable input recorded as an
+error while the others go on. `run_chain` is where the Refiner passes, the
+Estimator, the Tabulator and the keypoint extractor meet, for `eval`'s batches
+as for one framed mask. `report` and `localize` fit through `fit` and `records`.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from cuboidtrain.device import resolve_device
+from cuboidtrain.extractors import make_extractor
+from cuboidtrain.infer import (DRIFT_IOU, border_warnings, chain, choose, confidence, error_record, load_models,
+                               trust)
+from cuboidtrain.masks import components, frame, load_mask, to_mask
+from cuboidtrain.networks import CuboidNet
+from cuboidtrain.options import MAX_REFINE_STEPS, FitOptions
+from shared.shapes import get_shape
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """One fitted component: the infer record's fields, typed (docs/contract.md, "The infer record")."""
+
+    shape: str  # the chosen shape class, "box" or "twobox"
+    keypoints: np.ndarray  # (N, 2) x, y in the input's pixels, pixel centres, in the contract's corner order
+    ratios: dict[str, float]  # depth/height, width/height (and the twobox's part ratios)
+    confidence: float  # IoU of the fitted silhouette with the input, lowered where corners are guessed
+    refine_steps: int  # Refiner passes run
+    refine_converged: bool
+    warnings: tuple[str, ...] = ()
+    candidates: dict[str, float] = field(default_factory=dict)  # every shape class tried -> its confidence
+    input: str | None = None  # the file, when one was read
+    component: int | None = None  # 0 = largest; set with FitOptions(all_components=True)
+    # What an explanation draws (the winning fit's refined mask and heat maps, framed input, Framing).
+    explanation: dict | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def keypoint_names(self) -> tuple[str, ...]:
+        return tuple(get_shape(self.shape).keypoint_names)
+
+    def record(self, with_component: bool = False) -> dict:
+        """The JSON record `cuboidtrain infer` writes."""
+        record = {"input": self.input, "shape": self.shape, "confidence": self.confidence,
+                  "keypoints": np.asarray(self.keypoints).tolist(), "ratios": self.ratios,
+                  "refine_steps": self.refine_steps, "refine_converged": self.refine_converged, "error": None,
+                  "warnings": list(self.warnings), "candidates": self.candidates}
+        return record | ({"component": self.component} if with_component else {})
+
+
+class Fitter:
+    """Models (at most one per shape class) and FitOptions; fits masks."""
+
+    def __init__(self, models: Sequence[CuboidNet], options: FitOptions | None = None):
+        self.options = (options or FitOptions()).validate()
+        self.models = candidate_models(models, self.options.shape)
+        self.device = resolve_device(self.options.device)
+        self.extractors = {m.shape: make_extractor(self.options.extractor, m, self.options.pdm_components)
+                           for m in self.models}
+        for model in self.models:
+            model.to(self.device).eval()
+
+    @classmethod
+    def from_files(cls, paths: Sequence[str | Path], options: FitOptions | None = None) -> "Fitter":
+        """From checkpoints or model files; the options are checked before any file is read."""
+        options = (options or FitOptions()).validate()
+        return cls(load_models([Path(p) for p in paths]), options)
+
+    @classmethod
+    def from_shipped(cls, options: FitOptions | None = None) -> "Fitter":
+        """From the shipped models (`cuboidtrain models`): box and twobox, or the one `options.shape` names."""
+        from cuboidtrain.zoo import default_checkpoints
+
+        options = (options or FitOptions()).validate()
+        return cls.from_files(default_checkpoints(None, options.shapes), options)
+
+    # --- fitting ---------------------------------------------------------------------------
+
+    def fit(self, mask: str | Path | np.ndarray) -> Fit:
+        """The largest component of a mask image file or array (H, W) (object > half its maximum, or
+        `label_id`); ValueError when it has none, or the file cannot be read."""
+        return self._fit_parts(mask, all_components=False)[0]
+
+    def fit_all(self, mask: str | Path | np.ndarray) -> list[Fit]:
+        """One Fit per component (>= 16 px, largest first) with `all_components`, else the largest only."""
+        return self._fit_parts(mask, self.options.all_components)
+
+    def records(self, paths: Sequence[str | Path],
+                explain: Callable[[int, str, dict, dict], None] | None = None) -> list[dict]:
+        """`cuboidtrain infer`: the JSON records of the inputs, in input order (one per component
+        with `all_components`). An input that cannot be fitted gets a record with `error` and no
+        keypoints, and the others still run. `explain(index, path, record, explanation)` draws
+        each fitted component (cuboidtrain.explain.Explainer)."""
+        records = []
+        with_component = self.options.all_components
+        for index, path in enumerate(paths):
+            try:
+                fits = self.fit_all(path)
+            except (ValueError, OSError, cv2.error) as exc:  # bad data: this input only
+                reason = " ".join(str(exc).split())  # one line, whatever cv2 put in it
+                log.warning("%s", reason)
+                records.append(error_record(str(path), reason, with_component))
+                continue
+            for fitted in fits:
+                record = fitted.record(with_component)
+                for warning in record["warnings"]:
+                    log.warning("%s: %s", path, warning)
+                if explain is not None:
+                    draw(explain, index, str(path), record, fitted.explanation)
+                records.append(record)
+        return records
+
+    @torch.inference_mode()
+    def run_chain(self, model: CuboidNet, x1: torch.Tensor) -> dict:
+        """T(S(R^K(x1))) on a (B, 1, S, S) +-1 batch, with the keypoints read by the extractor:
+        refined, heatmaps, keypoints, ratios (T's, whatever reads the keypoints), tabulated (T's
+        keypoints), refine_steps, refine_converged."""
+        out = chain(model, x1.to(self.device), self.options.refine_steps)
+        return out | {"tabulated": out["keypoints"],
+                      "keypoints": self.extractors[model.shape](out["heatmaps"], out["keypoints"])}
+
+    def _read(self, mask: str | Path | np.ndarray) -> np.ndarray:
+        if isinstance(mask, (str, Path)):
+            return load_mask(Path(mask), self.options.label_id)
+        return to_mask(mask, self.options.label_id)
+
+    def _fit_parts(self, mask, all_components: bool) -> list[Fit]:
+        name = str(mask) if isinstance(mask, (str, Path)) else None
+        parts = components(self._read(mask), all_components)
+        if not parts:
+            raise ValueError(f"{name or 'mask'}: no component of at least 16 px")
+        fits = [self._fit_component(part, name) for part in parts]
+        if all_components:
+            fits = [replace(f, component=k) for k, f in enumerate(fits)]
+        return fits
+
+    def _fit_component(self, mask: np.ndarray, name: str | None) -> Fit:
+        """Frame one component for every candidate model and keep the best-explained fit,
+        its keypoints mapped back to the input's pixels."""
+        fits = []
+        for model in self.models:
+            framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
+            fits.append((self.fit_framed(model, framed), framed, framing))
+        best, framed, framing = choose(fits)
+        keypoints = framing.to_input(best["keypoints"])
+        record = {"confidence": best["confidence"], "warnings": border_warnings(mask)}
+        if not best["refine_converged"]:
+            record["warnings"].append(f"refinement did not settle within {MAX_REFINE_STEPS} passes, or drifted "
+                                      f"from its first pass (IoU < {DRIFT_IOU}): its first pass was used")
+        trust(record, mask, keypoints, best["shape"])
+        return Fit(shape=best["shape"], keypoints=keypoints, ratios=best["ratios"], confidence=record["confidence"],
+                   refine_steps=best["refine_steps"], refine_converged=best["refine_converged"],
+                   warnings=tuple(record["warnings"]), candidates={r["shape"]: r["confidence"] for r, _, _ in fits},
+                   input=name, explanation={"fit": best, "framed": framed, "framing": framing, "mask": mask})
+
+    def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray) -> dict:
+        """One framed bool (S, S) mask at model resolution: keypoints (N, 2) model px, ratios,
+        confidence, refine passes, and what an explanation draws (refined, heatmaps)."""
+        if framed_mask.shape != (model.size, model.size):
+            raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
+        x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
+        out = self.run_chain(model, x1)
+        keypoints = out["keypoints"][0].double().cpu().numpy()
+        geometry = get_shape(model.shape)
+        return {
+            "shape": model.shape,
+            "keypoints": keypoints,
+            "ratios": geometry.ratio_dict(out["ratios"][0].cpu().tolist()),
+            "confidence": confidence(geometry, keypoints, framed_mask),
+            "refine_steps": out["refine_steps"],
+            "refine_converged": out["refine_converged"],
+            "refined": out["refined"][0, 0].float().cpu().numpy(),
+            "heatmaps": out["heatmaps"][0].float().cpu().numpy(),
+        }
+
+
+def candidate_models(models: Sequence[CuboidNet], shape: str) -> list[CuboidNet]:
+    """The models to try for `shape`: all of them for auto, else the one of that class."""
+    given = [m.shape for m in models]
+    if len(set(given)) != len(given):
+        raise ValueError(f"two models of the same shape class ({', '.join(given)}): give one per shape")
+    chosen = [m for m in models if shape == "auto" or m.shape == shape]
+    if not chosen:
+        raise ValueError(f"--shape {shape}: no {shape} model among the checkpoints given "
+                         f"({', '.join(given) or 'none'})")
+    return chosen
+
+
+def draw(explain, index: int, path: str, record: dict, explanation: dict) -> None:
+    """Call the explanation writer; a picture that cannot be made is a warning, never a lost record."""
+    try:
+        explain(index, path, record, explanation)
+    except (OSError, ValueError, RuntimeError) as exc:  # a full disk, an unwritable folder, matplotlib
+        record["warnings"].append("no explanation: " + " ".join(str(exc).split()))
+        log.warning("%s: %s", path, record["warnings"][-1])

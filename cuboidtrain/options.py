@@ -1,0 +1,77 @@
+"""FitOptions: everything a fit may be asked, each default and each check stated once.
+
+`infer`, `eval`, `report` and `localize` (and the Python API, `cuboidtrain.Fitter`)
+take one FitOptions; `validate()` turns what a user typed (`"auto"`, `"0.999"`)
+into checked values, before any input is read. No torch here: the command line
+builds its choices from these lists, and `--help` must not wait for torch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from shared.shapes import SHAPES
+
+FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
+EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")  # cuboidtrain.extractors
+MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
+DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the model size per side
+DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px
+
+
+def parse_refine_steps(value: int | str | None) -> int | None:
+    """`auto` (or None) -> None: until the Refiner settles; otherwise a count of passes, 0 or more."""
+    if value is None or value == "auto":
+        return None
+    try:
+        steps = int(value)
+    except (TypeError, ValueError):
+        steps = -1
+    if steps < 0 or (isinstance(value, float) and value != steps):
+        raise ValueError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more) or auto")
+    return steps
+
+
+def parse_components(value: str | int | float) -> int | float:
+    """`--pdm-components`: an integer count (>= 1) or a variance fraction in (0, 1)."""
+    text = str(value).strip()
+    try:
+        number = float(text)
+    except ValueError:
+        number = float("nan")
+    if number >= 1 and number == int(number) and "." not in text:
+        return int(number)
+    if 0 < number < 1:
+        return number
+    raise ValueError(f"PDM components {value!r}: expected a count of components (1, 2, ...) "
+                     f"or a fraction of the shape variance to keep, between 0 and 1")
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    shape: str = "auto"  # a FIT_SHAPES name: which models may fit
+    refine_steps: int | str | None = 1  # Refiner passes; None or "auto": until a pass changes nothing
+    margin: float = DEFAULT_MARGIN
+    extractor: str = "tabulator"  # how keypoints are read off the heat maps; ratios are always T's
+    pdm_components: int | float | str = DEFAULT_PDM_COMPONENTS  # with extractor "pdm": a count or a fraction
+    all_components: bool = False  # one fit per 8-connected component (>= 16 px), else the largest only
+    label_id: int | None = None  # read a grey label map: pixels equal to this id are the object
+    device: str = "auto"  # auto (CUDA when present), cpu, cuda or cuda:N
+
+    def validate(self) -> "FitOptions":
+        """The checked options, strings parsed; a ValueError names the bad value and what was expected.
+        Every option is checked, used or not: a typo is never silent."""
+        if self.shape not in FIT_SHAPES:
+            raise ValueError(f"--shape {self.shape!r}: expected one of {', '.join(FIT_SHAPES)}")
+        if self.extractor not in EXTRACTORS:
+            raise ValueError(f"--extractor {self.extractor!r}: expected one of {', '.join(EXTRACTORS)}")
+        if not 0 <= self.margin < 0.5:
+            raise ValueError(f"--margin {self.margin}: expected a fraction in [0, 0.5)")
+        if self.label_id is not None and not 0 <= self.label_id <= 65535:
+            raise ValueError(f"--label-id {self.label_id}: expected a label from 0 to 65535")
+        return replace(self, refine_steps=parse_refine_steps(self.refine_steps),
+                       pdm_components=parse_components(self.pdm_components))
+
+    @property
+    def shapes(self) -> tuple[str, ...]:
+        """The shape classes whose models this fit may use."""
+        return tuple(SHAPES) if self.shape == "auto" else (self.shape,)
