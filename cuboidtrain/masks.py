@@ -4,7 +4,7 @@
 into 8-connected objects and `frame` maps one object onto the model's square input
 with a single affine map, kept as a `Framing` so that keypoints predicted at the
 model's resolution go back to the input image's own pixels. Integer coordinates are
-pixel centres in both images (DESIGN.md), so the map between them is
+pixel centres in both images (docs/contract.md, "Coordinates: pixel centres"), so the map between them is
 `x_model = scale * x_input + offset` with no half-pixel terms anywhere.
 """
 from __future__ import annotations
