@@ -1,4 +1,4 @@
-"""Inference: DESIGN.md's records, keypoints in input pixels, iterative refinement, confidence, the CLI.
+"""Inference: the records of docs/contract.md ("The infer record"), keypoints in input pixels, iterative refinement, confidence, the CLI.
 
 Models are 32 px with random weights; where a test needs known outputs, the
 Refiner or Tabulator of a real CuboidNet is swapped for a stub.
