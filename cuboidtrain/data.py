@@ -78,17 +78,20 @@ class SpoolBatches(Dataset):
         self.spool, self.shape, self.size, self.reframe = Path(spool), shape, size, reframe
 
     def __getitem__(self, names: list[str]) -> dict:
-        records, kept, skipped = [], [], dict.fromkeys(SKIP_REASONS, 0)
+        records, kept, vanished, skipped = [], [], [], dict.fromkeys(SKIP_REASONS, 0)
         for name in names:
             reason, record = self._read(name)
             if reason:
                 skipped[reason] += 1
+                if reason == "vanished":
+                    vanished.append(name)
                 continue
             records.append(record)
             kept.append(name)
         batch = collate(records, unpack=False) if records else {}
         batch = {k: torch.from_numpy(v) for k, v in batch.items()}
         batch["names"] = kept
+        batch["vanished"] = vanished  # evicted before they were read: the trainer's census counts them
         batch["skipped"] = skipped
         return batch
 

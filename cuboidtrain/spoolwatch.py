@@ -12,10 +12,12 @@ published and evicted before either listing saw them. Between epochs `arrivals_p
 lists again at most every `refresh_every` seconds: a few milliseconds of the main thread
 for 10,000 names (benchmarks/bench_spool_live.py measures both).
 
-Evicted unread, the samples the paper says the trainer never misses:
+Evicted unread, the samples the paper says the trainer never misses, counted at each
+epoch's listing against the one before (a sample read in an earlier epoch is not counted):
 * never listed: published and evicted between two epoch listings (sequence numbers);
-* vanished: listed at an epoch's start, gone when the loader read it (the loader's skip count);
-* abandoned: listed, left unread when a stale epoch ended early, gone by the next listing.
+* listed unread: in the last listing, never read (gone when the loader came to it, or
+  left by a stale epoch that ended early), and gone now.
+Under torchrun only rank 0 counts, and it takes the other ranks' shares as read.
 """
 from __future__ import annotations
 
@@ -67,45 +69,39 @@ class SpoolCensus:
         self.spool, self.refresh_every, self.clock, self.list_spool = Path(spool), refresh_every, clock, list_spool
         self.count = 0
         self.rate: float | None = None  # samples published per second over the latest window
-        self.evicted_unread = {"never_listed": 0, "vanished": 0, "abandoned": 0}
+        self.evicted_unread = {"never_listed": 0, "listed_unread": 0}
         self._window: tuple[float, dict[str, int]] | None = None  # start of the rate's window
         self._looked = -float("inf")
-        self._known: dict[str, int] = {}  # highest sequence per writer at the last epoch listing
-        self._abandoned: set[str] = set()
         self._last_names: list[str] = []
-        self._vanished_at_listing = 0
+        self._read: set[str] = set()  # names the loader read, among the last listing's
         self._look(self._safe_listing())
-        self._known = highest_sequences(self._last_names)
+        self._known = highest_sequences(self._last_names)  # highest sequence per writer at the last listing
+        self._listed = set(self._last_names)
 
     # ---- events from the training loop
 
     def listed(self, names: list[str]) -> dict[str, int]:
         """An epoch's listing: re-anchor the count and rate, and count the samples evicted
-        unread since the last one. Returns those counts (never listed, vanished, abandoned)."""
+        unread since the last one. Returns those counts (never listed, listed unread)."""
         self._look(names)
-        now = highest_sequences(names)
+        current = set(names)
         new = 0
         for name in names:
             parsed = parse_name(name)
             if parsed is not None and parsed[1] > self._known.get(parsed[0], 0):
                 new += 1
-        merged = {**self._known, **now}  # a writer whose samples all went keeps its last number
+        merged = {**self._known, **highest_sequences(names)}  # a writer whose samples all went keeps its number
+        gone = self._listed - current
         fresh = {"never_listed": max(0, published_between(self._known, merged) - new),
-                 "abandoned": len(self._abandoned.difference(names))}
-        self._known, self._abandoned = merged, set()
-        self.evicted_unread["never_listed"] += fresh["never_listed"]
-        self.evicted_unread["abandoned"] += fresh["abandoned"]
-        fresh["vanished"] = self.evicted_unread["vanished"] - self._vanished_at_listing
-        self._vanished_at_listing = self.evicted_unread["vanished"]
+                 "listed_unread": len(gone - self._read)}
+        self._known, self._listed, self._read = merged, current, self._read & current
+        for key, n in fresh.items():
+            self.evicted_unread[key] += n
         return fresh
 
-    def vanished(self, count: int) -> None:
-        """Listed samples the loader found gone (the batch's `vanished` skips)."""
-        self.evicted_unread["vanished"] += count
-
-    def abandon(self, names: list[str]) -> None:
-        """The rest of an epoch left unread (a stale listing): those evicted before the next listing count."""
-        self._abandoned.update(names)
+    def read(self, names) -> None:
+        """Names the loader read (usable or not): not evicted unread, whenever they go."""
+        self._read.update(names)
 
     @property
     def evicted_unread_total(self) -> int:

@@ -266,13 +266,15 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                     waited = progress.fetched()
                     sampler.state.position += 1
                     skipped, too_small = batch_facts(ranks, batch)
-                    census.vanished(skipped["vanished"])
+                    # this global batch's names were read, but for those found gone (on this rank)
+                    span = config.batch_size * ranks.world
+                    census.read(set(sampler.state.order[(sampler.state.position - 1) * span:
+                                                        sampler.state.position * span]) - set(batch["vanished"]))
                     unusable = {k: unusable.get(k, 0) + n for k, n in skipped.items()}
                     if stale(skipped, config.batch_size * ranks.world):
                         # The generator evicted most of this listing (it outruns the trainer):
                         # end the epoch and list the spool afresh rather than skip through it.
                         progress.skip(skipped)
-                        census.abandon(sampler.state.order[sampler.state.position * config.batch_size * ranks.world:])
                         sampler.state.position = len(sampler)
                         went_stale = True
                         break
@@ -338,9 +340,8 @@ def _account_listing(census: SpoolCensus, names: list[str], speaks: bool, said: 
     total, unread = census.evicted_unread_total, census.evicted_unread
     if speaks and total > said["total"] and time.monotonic() - said["at"] >= EVICTED_LOG_EVERY:
         log.warning("%d samples evicted before the trainer read them since the last warning, %d in all (%d never "
-                    "listed, %d listed but gone when read, %d left by a stale epoch): the generator outruns the "
-                    "trainer (cuboidgen run --max-rate)", total - said["total"], total, unread["never_listed"],
-                    unread["vanished"], unread["abandoned"])
+                    "listed, %d listed but never read): the generator outruns the trainer (cuboidgen run --max-rate)",
+                    total - said["total"], total, unread["never_listed"], unread["listed_unread"])
         said.update(at=time.monotonic(), total=total)
 
 

@@ -56,7 +56,7 @@ def test_spool_batches_returns_packed_masks_and_keeps_names(tmp_path):
     assert len(dataset) == 3
     batch = dataset[[names[2], names[0]]]
     assert batch["names"] == [names[2], names[0]]
-    assert batch["skipped"] == no_skips()
+    assert batch["skipped"] == no_skips() and batch["vanished"] == []
     assert batch["noisy"].shape == batch["clean"].shape == (2, SIZE * SIZE // 8)
     assert batch["noisy"].dtype == torch.uint8
     assert batch["keypoints"].shape == (2, 8, 2) and batch["keypoints"].dtype == torch.float32
@@ -75,7 +75,7 @@ def test_a_name_evicted_after_listing_is_skipped_as_vanished(tmp_path):
     os.unlink(tmp_path / names[1])
     batch = SpoolBatches(tmp_path, "box", SIZE)[listed]
     assert batch["names"] == [names[0], names[2]]
-    assert batch["skipped"] == no_skips(vanished=1)
+    assert batch["skipped"] == no_skips(vanished=1) and batch["vanished"] == [names[1]]  # the census's input
     assert batch["noisy"].shape[0] == 2
 
 
@@ -359,22 +359,24 @@ def test_census_counts_rate_and_evictions_from_listings_alone():
     clock, spool = Clock(), {"names": names_of("h-1-aa", range(1, 11))}  # 1..10 present
     census = SpoolCensus("unused", refresh_every=30, clock=clock, list_spool=lambda _: spool["names"])
     assert census.count == 10 and census.arrivals_per_s() is None  # one look: no rate yet
+    census.read(names_of("h-1-aa", range(1, 11)))  # all ten read before they went
     # 10 s later the writer is at 60; the spool (limit 10) holds 51..60: 50 published,
     # of which 40 (11..50) were evicted before any listing saw them
     clock.now += 10
     spool["names"] = names_of("h-1-aa", range(51, 61))
-    fresh = census.listed(spool["names"])
-    assert fresh == {"never_listed": 40, "vanished": 0, "abandoned": 0}
+    assert census.listed(spool["names"]) == {"never_listed": 40, "listed_unread": 0}
     assert census.count == 10 and census.arrivals_per_s() == pytest.approx(5.0)
-    # the loader found 3 listed samples gone; a stale epoch left 4 unread, 2 of them evicted since
-    census.vanished(3)
-    census.abandon(spool["names"][6:])
+    # of this listing the loader read 51..54 and 59; 55..58 went unread (vanished, or a stale epoch's rest)
+    census.read(names_of("h-1-aa", [51, 52, 53, 54, 59]))
     clock.now += 10
     spool["names"] = names_of("h-1-aa", range(59, 69))  # 61..68 new, 51..58 gone; 59, 60 still there
-    assert census.listed(spool["names"]) == {"never_listed": 0, "vanished": 3, "abandoned": 2}
-    assert census.evicted_unread == {"never_listed": 40, "vanished": 3, "abandoned": 2}
-    assert census.evicted_unread_total == 45
-    assert census.arrivals_per_s() == pytest.approx(0.8)
+    assert census.listed(spool["names"]) == {"never_listed": 0, "listed_unread": 4}
+    # 59 was read once: its eviction later is not a loss; 60 was never read
+    clock.now += 10
+    spool["names"] = names_of("h-1-aa", range(61, 71))
+    assert census.listed(spool["names"]) == {"never_listed": 0, "listed_unread": 1}
+    assert census.evicted_unread == {"never_listed": 40, "listed_unread": 5} and census.evicted_unread_total == 45
+    assert census.arrivals_per_s() == pytest.approx(0.2)
 
 
 def test_census_refreshes_between_epochs_at_most_every_refresh_every_seconds():
@@ -390,7 +392,7 @@ def test_census_refreshes_between_epochs_at_most_every_refresh_every_seconds():
         census.arrivals_per_s()
     assert looks == [100, 130, 160, 190]
     assert census.arrivals_per_s() == pytest.approx(1.0) and census.count == 91
-    assert census.listed(listing(None)) == {"never_listed": 0, "vanished": 0, "abandoned": 0}  # nothing evicted
+    assert census.listed(listing(None)) == {"never_listed": 0, "listed_unread": 0}  # nothing evicted
 
 
 def test_census_survives_a_spool_that_goes_away_and_names_of_another_form():
