@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
+from cuboidtrain.options import check_device
 from shared.shapes import get_shape
 
 
@@ -94,8 +95,7 @@ class TrainConfig:
             raise ValueError("--phase finetune needs --init CKPT: the trained model to fine-tune")
         if self.phase == "e2e" and self.init:
             raise ValueError("--phase e2e trains from scratch: drop --init (or use --phase finetune)")
-        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise ValueError(f"--device {self.device!r}: expected auto, cpu, cuda or cuda:N")
+        check_device(self.device)
         return self
 
     @property

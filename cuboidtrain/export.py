@@ -21,6 +21,7 @@ from torch import nn
 from cuboidtrain.checkpoint import load_model
 from cuboidtrain.infer import binarise
 from cuboidtrain.networks import CuboidNet
+from cuboidtrain.options import parse_refine_steps
 from shared.files import atomic_path
 from shared.shapes import get_shape
 
@@ -50,8 +51,7 @@ class Pipeline(nn.Module):
 
 
 def check_options(refine_steps: int, opset: int) -> None:
-    if refine_steps < 0:
-        raise ValueError(f"--refine-steps {refine_steps}: expected 0 or more Refiner passes")
+    parse_refine_steps(refine_steps, allow_auto=False)  # a traced graph runs a fixed number of passes
     if not MIN_OPSET <= opset <= MAX_OPSET:
         raise ValueError(f"--opset {opset}: expected {MIN_OPSET} to {MAX_OPSET}")
 

@@ -27,7 +27,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from cuboidtrain.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, parse_components
+from cuboidtrain.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, check_choice, parse_components
 from cuboidtrain.pdm import PointDistributionModel
 
 
@@ -131,8 +131,7 @@ def make_extractor(name: str, model, pdm_components: str | int | float = DEFAULT
     fraction of shape variance to keep (in (0, 1)); the PDM is the one saved in
     the model file (`model.pdm`), fitted on the keypoints it was trained on.
     """
-    if name not in EXTRACTORS:
-        raise ValueError(f"--extractor {name!r}: expected one of {', '.join(EXTRACTORS)}")
+    check_choice("--extractor", name, EXTRACTORS)
     if name == "dark":
         return lambda heatmaps, tabulated=None: dark(heatmaps, tabulated, model.sigma)
     if name == "pdm":

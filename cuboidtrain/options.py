@@ -7,6 +7,7 @@ builds its choices from these lists, and `--help` must not wait for torch.
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, replace
 
 from shared.shapes import SHAPES
@@ -18,16 +19,34 @@ DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the m
 DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px
 
 
-def parse_refine_steps(value: int | str | None) -> int | None:
-    """`auto` (or None) -> None: until the Refiner settles; otherwise a count of passes, 0 or more."""
-    if value is None or value == "auto":
+def check_choice(option: str, value: str, choices) -> str:
+    """`value` if it is one of `choices`, else a ValueError naming the option and the choices."""
+    if value not in choices:
+        raise ValueError(f"{option} {value!r}: expected one of {', '.join(choices)}")
+    return value
+
+
+def check_device(device) -> str:
+    """A device name torch may take: auto (CUDA when present), cpu, cuda or cuda:N (whether CUDA
+    is there is `cuboidtrain.device.resolve_device`'s to say, when a model moves)."""
+    name = str(device)
+    if name not in ("auto", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", name):
+        raise ValueError(f"--device {device!r}: expected auto, cpu, cuda or cuda:N")
+    return name
+
+
+def parse_refine_steps(value: int | str | None, allow_auto: bool = True) -> int | None:
+    """`auto` (or None) -> None: until the Refiner settles; otherwise a count of passes, 0 or more.
+    An exported graph runs a fixed number of passes: it does not `allow_auto`."""
+    if allow_auto and (value is None or value == "auto"):
         return None
     try:
         steps = int(value)
     except (TypeError, ValueError):
         steps = -1
     if steps < 0 or (isinstance(value, float) and value != steps):
-        raise ValueError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more) or auto")
+        raise ValueError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more)"
+                         + (" or auto" if allow_auto else ""))
     return steps
 
 
@@ -60,16 +79,14 @@ class FitOptions:
     def validate(self) -> "FitOptions":
         """The checked options, strings parsed; a ValueError names the bad value and what was expected.
         Every option is checked, used or not: a typo is never silent."""
-        if self.shape not in FIT_SHAPES:
-            raise ValueError(f"--shape {self.shape!r}: expected one of {', '.join(FIT_SHAPES)}")
-        if self.extractor not in EXTRACTORS:
-            raise ValueError(f"--extractor {self.extractor!r}: expected one of {', '.join(EXTRACTORS)}")
+        check_choice("--shape", self.shape, FIT_SHAPES)
+        check_choice("--extractor", self.extractor, EXTRACTORS)
         if not 0 <= self.margin < 0.5:
             raise ValueError(f"--margin {self.margin}: expected a fraction in [0, 0.5)")
         if self.label_id is not None and not 0 <= self.label_id <= 65535:
             raise ValueError(f"--label-id {self.label_id}: expected a label from 0 to 65535")
         return replace(self, refine_steps=parse_refine_steps(self.refine_steps),
-                       pdm_components=parse_components(self.pdm_components))
+                       pdm_components=parse_components(self.pdm_components), device=check_device(self.device))
 
     @property
     def shapes(self) -> tuple[str, ...]:

@@ -72,9 +72,7 @@ class PointDistributionModel:
     def active_components(self, components: int | float) -> int:
         """How many components a count or a variance fraction keeps."""
         total = len(self.variances)
-        if isinstance(components, float):
-            if not 0 < components < 1:
-                raise ValueError(f"PDM variance fraction {components}: expected a number in (0, 1)")
+        if isinstance(components, float):  # a fraction in (0, 1), as FitOptions parsed it
             explained = np.cumsum(self.variances) / self.variances.sum()
             return int(np.searchsorted(explained, components) + 1)
         if not 1 <= components <= total:
