@@ -232,78 +232,112 @@ def export(
                   f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False)
 
 
+STREET_HELP = "A street's known buildings (README: Localization); locate the MASKs in it."
+TEMPERATURE_HELP = "Probabilities are softmax(-distance / temperature)."
+BOX_CHECKPOINT_HELP = "A trained box model (street buildings are single boxes); default: the shipped one."
+
+
 @app.command()
 def localize(
-    mask_args: Optional[list[str]] = typer.Argument(None, metavar="MASK", help="With --street: masks of consecutive buildings, in street order."),
-    street: Optional[Path] = typer.Option(None, metavar="STREET.json", help="A street's known buildings (README: Localization); locate MASKs in it."),
+    mask_args: Optional[list[str]] = typer.Argument(None, metavar="MASK", help="Masks of consecutive buildings, in street order."),
+    street: Path = typer.Option(..., metavar="STREET.json", help=STREET_HELP),
     masks: Optional[list[str]] = typer.Option(None, "--masks", metavar="MASK", help="Masks in street order: --masks A B C, or one per --masks."),
-    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help="A trained box model (street buildings are single boxes); default: the shipped one."),
-    buildings: int = typer.Option(100, help="Experiment: N, buildings per random street."),
-    max_m: int = typer.Option(30, help="Experiment: M, the longest sub-sequence (at most N)."),
-    top_l: int = typer.Option(5, help="Experiment: L, the widest top-l."),
-    seed: int = typer.Option(0, help="Experiment: seed of the streets, views, occluders and noise."),
-    streets: int = typer.Option(1, help="Experiment: independent streets; acc is their mean."),
-    scene: str = typer.Option("paper", help="Experiment: the generator's scene (extent ranges, views, occlusion, noise)."),
-    mask_size: Optional[int] = typer.Option(None, metavar="PX", help="Experiment: size of the drawn masks (default the model's)."),
-    oracle: bool = typer.Option(False, "--oracle", help="Experiment: true ratios with --oracle-noise instead of the networks."),
-    oracle_noise: float = typer.Option(0.0, metavar="SIGMA", help="The oracle's relative Gaussian noise (0: exact ratios)."),
-    example_m: int = typer.Option(4, help="Experiment: Figure 12's sub-sequence length."),
-    example_start: Optional[int] = typer.Option(None, help="Experiment: Figure 12's true start, 1-based (default the middle)."),
-    temperature: float = typer.Option(1.0, help="Probabilities are softmax(-distance / temperature)."),
+    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP),
+    temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
     refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, as infer."),
     margin: float = typer.Option(DEFAULT_MARGIN, help="Framing margin, as infer."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
-    csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="Experiment: acc(m, l), one row per m."),
-    heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Experiment: Figures 10-11's heat map of acc(m, l)."),
     bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
     device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
     threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
 ) -> None:
-    """Localization (paper section 5): the acc(m, l) experiment, or with --street, where the MASKs were taken."""
+    """Localization (paper section 5): where in a known street the MASKs were taken, start positions ranked."""
+    from cuboidtrain import localize as loc
+    from cuboidtrain.experiments import localisation_figures as figures
+    from cuboidtrain.infer import load_models
+
+    out = localisation_setup(json_out, threads)
+    try:
+        options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
+        paths = loc.mask_sequence(masks, mask_args)
+        if not paths:
+            raise ValueError("--street: expected masks (--masks A B C) to locate in it")
+        result = loc.localize_masks(loc.read_street(street), paths, load_models(box_checkpoints(checkpoint)), options,
+                                    temperature=temperature)
+        out.print(figures.ranking_table(result))
+        if bars:
+            figures.plot_ranking(bars, result)
+        figures.write_json(json_out, result)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+
+
+@app.command("localize-experiment")
+def localize_experiment(
+    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP),
+    buildings: int = typer.Option(100, help="N, buildings per random street."),
+    max_m: int = typer.Option(30, help="M, the longest sub-sequence (at most N)."),
+    top_l: int = typer.Option(5, help="L, the widest top-l."),
+    seed: int = typer.Option(0, help="Seed of the streets, views, occluders and noise."),
+    streets: int = typer.Option(1, help="Independent streets; acc is their mean."),
+    scene: str = typer.Option("paper", help="The generator's scene (extent ranges, views, occlusion, noise)."),
+    mask_size: Optional[int] = typer.Option(None, metavar="PX", help="Size of the drawn masks (default the model's)."),
+    oracle: bool = typer.Option(False, "--oracle", help="True ratios with --oracle-noise instead of the networks."),
+    oracle_noise: float = typer.Option(0.0, metavar="SIGMA", help="The oracle's relative Gaussian noise (0: exact ratios)."),
+    example_m: int = typer.Option(4, help="Figure 12's sub-sequence length."),
+    example_start: Optional[int] = typer.Option(None, help="Figure 12's true start, 1-based (default the middle)."),
+    temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
+    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, as infer."),
+    margin: float = typer.Option(DEFAULT_MARGIN, help="Framing margin, as infer."),
+    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
+    csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="acc(m, l), one row per m."),
+    heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figures 10-11's heat map of acc(m, l)."),
+    bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
+    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
+) -> None:
+    """The localisation experiment (paper section 5.1, eq. 2): acc(m, l) on random streets drawn by the generator."""
+    from cuboidtrain.experiments import localisation as experiment
+    from cuboidtrain.experiments import localisation_figures as figures
+    from cuboidtrain.infer import load_models
+
+    out = localisation_setup(json_out, threads)
+    try:
+        options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
+        config = experiment.ExperimentConfig(
+            buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
+            mask_size=mask_size, oracle=oracle, oracle_noise=oracle_noise,
+            example_m=example_m, example_start=example_start, temperature=temperature).validate()
+        checkpoint = [] if oracle else box_checkpoints(checkpoint)
+        result = experiment.run_experiment(config, models=load_models(checkpoint),
+                                           checkpoints=[str(c) for c in checkpoint], options=options)
+        out.print(figures.accuracy_table(result))
+        if csv_out:
+            figures.write_csv(csv_out, result)
+        if heatmap:
+            figures.plot_accuracy(heatmap, result)
+        if bars:
+            figures.plot_example(bars, result)
+        figures.write_json(json_out, result)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+
+
+def localisation_setup(json_out: Optional[str], threads: Optional[int]):
+    """Set up logging and torch threads; returns where tables go: stdout, or stderr when --json - takes stdout."""
     import torch
     from rich.console import Console
 
-    from cuboidtrain import localize as loc
-    from cuboidtrain.experiments import localisation as experiment
-    from cuboidtrain.experiments import localisation_figures as report
-    from cuboidtrain.infer import load_models
+    setup_logging()
+    if threads is not None:
+        torch.set_num_threads(max(threads, 1))
+    return console if json_out == "-" else Console()
+
+
+def box_checkpoints(given: Optional[list[Path]]) -> list[Path]:
     from cuboidtrain.zoo import default_checkpoints
 
-    setup_logging()
-    out = console if json_out == "-" else Console()
-    try:
-        if not oracle:
-            checkpoint = default_checkpoints(checkpoint, ("box",))
-        if threads is not None:
-            torch.set_num_threads(max(threads, 1))
-        options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
-        paths = loc.mask_sequence(masks, mask_args)
-        if street is not None:
-            if oracle or not paths:
-                raise ValueError("--street: expected masks (--masks A B C), and no --oracle")
-            result = loc.localize_masks(loc.read_street(street), paths, load_models(checkpoint), options,
-                                        temperature=temperature)
-            out.print(report.ranking_table(result))
-        else:
-            if paths:
-                raise ValueError(f"masks {paths}: expected --street STREET.json to locate them in")
-            config = experiment.ExperimentConfig(
-                buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
-                mask_size=mask_size, oracle=oracle, oracle_noise=oracle_noise,
-                example_m=example_m, example_start=example_start, temperature=temperature).validate()
-            models = [] if oracle else load_models(checkpoint)
-            result = experiment.run_experiment(config, models=models, checkpoints=[str(c) for c in checkpoint or []],
-                                               options=options)
-            out.print(report.accuracy_table(result))
-            if csv_out:
-                report.write_csv(csv_out, result)
-            if heatmap:
-                report.plot_accuracy(heatmap, result)
-        if bars:
-            (report.plot_ranking if street is not None else report.plot_example)(bars, result)
-        report.write_json(json_out, result)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    return default_checkpoints(given, ("box",))
 
 
 @app.command()

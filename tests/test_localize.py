@@ -232,7 +232,7 @@ def test_the_command_ranks_every_start_of_the_street(tmp_path, box_checkpoint, s
 
 @pytest.mark.parametrize("args, message", [
     (["--masks", "{m0}", "{m1}", "{m2}"], "3 masks for a street of 2 buildings"),
-    (["--masks", "{m0}", "--oracle"], "--street: expected masks"),
+    ([], "--street: expected masks"),  # (an --oracle is the experiment's: `localize` has none)
 ])
 def test_the_command_fails_in_one_line(tmp_path, box_checkpoint, street_and_masks, args, message):
     _, masks = street_and_masks
@@ -246,7 +246,8 @@ def test_the_command_fails_in_one_line(tmp_path, box_checkpoint, street_and_mask
 
 def test_the_experiment_command_writes_acc_and_its_figures(tmp_path, box_checkpoint):
     out = {name: tmp_path / name for name in ("acc.json", "acc.csv", "heat.png", "bars.png")}
-    result = runner.invoke(app, ["localize", "--checkpoint", str(box_checkpoint), "--buildings", "6", "--max-m", "3",
+    result = runner.invoke(app, ["localize-experiment", "--checkpoint", str(box_checkpoint), "--buildings", "6",
+                                 "--max-m", "3",
                                  "--top-l", "2", "--example-m", "2", "--seed", "4", "--threads", "1",
                                  "--json", str(out["acc.json"]), "--csv", str(out["acc.csv"]),
                                  "--heatmap", str(out["heat.png"]), "--bars", str(out["bars.png"])])
@@ -258,6 +259,13 @@ def test_the_experiment_command_writes_acc_and_its_figures(tmp_path, box_checkpo
     assert all(out[name].stat().st_size > 0 for name in ("heat.png", "bars.png"))
 
 
+def test_locating_needs_a_street_and_the_experiment_takes_no_masks(tmp_path):
+    no_street = runner.invoke(app, ["localize", "a.png", "b.png"])
+    assert no_street.exit_code == 2 and "--street" in no_street.output
+    with_masks = runner.invoke(app, ["localize-experiment", "a.png"])
+    assert with_masks.exit_code == 2 and "unexpected extra argument" in with_masks.output.lower()
+
+
 def test_the_experiment_command_rejects_a_long_m(tmp_path):
-    result = runner.invoke(app, ["localize", "--oracle", "--buildings", "10", "--max-m", "30"])
+    result = runner.invoke(app, ["localize-experiment", "--oracle", "--buildings", "10", "--max-m", "30"])
     assert result.exit_code == 2 and "--max-m 30: expected 1 to --buildings (10)" in result.output
