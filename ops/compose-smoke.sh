@@ -222,7 +222,8 @@ t=$(date +%s)
 compose up -d --no-build 2>&1 | sed 's/^/    /' || die "up failed"
 say "up returned in $(($(date +%s) - t)) s"
 until_ "the generator finishes (exit code 0)" exited_zero generator
-say "    generator: $(state generator), health frozen at '$(health generator)', $(samples) samples"
+say "    generator: $(state generator) after $(samples) samples; Docker's health for it: $(health generator)" \
+    "(Docker marks any stopped container unhealthy; the exit code tells)"
 until_ "the trainer trains its 15 steps and exits 0" exited_zero trainer
 read -r st step ckpt _ <<< "$(status_field)"
 [ "$st" = done ] && [ "$step" = 15 ] && [ "$ckpt" = 15 ] || die "trainer status: $st at step $step, checkpoint $ckpt"
