@@ -68,6 +68,10 @@ stop() {
             -N) iptables -t "$t" -X "$chain" || true ;;
         esac
     done
+    # Chain policies as they were (the engine sets FORWARD to DROP when it turns forwarding on).
+    grep ' -P ' "$dir/iptables.before" | while read -r t op chain policy; do
+        iptables -t "$t" -P "$chain" "$policy" || true
+    done
     [ -f "$dir/docker0.before" ] || ip link delete docker0 2>/dev/null || true
     cat "$dir/ip_forward.before" > /proc/sys/net/ipv4/ip_forward 2>/dev/null || true
     # The engine is down: its overlay mounts are gone with it; unmount any it left behind.
