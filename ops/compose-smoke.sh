@@ -96,7 +96,7 @@ if [ -z "${BASE_IMAGE:-}" ]; then
             mmdebstrap --quiet --variant=minbase \
                 --include=python3,python3-venv,python-is-python3,ca-certificates bookworm "$tar"
         fi
-        docker import -q "$tar" "$LOCAL_BASE" > /dev/null
+        docker import "$tar" "$LOCAL_BASE" > /dev/null
         BASE_IMAGE=$LOCAL_BASE
         say "base image $LOCAL_BASE imported ($(du -h "$tar" | cut -f1) tar)"
     fi
