@@ -49,9 +49,11 @@ def default_checkpoints(given: list[Path] | None, shapes: tuple[str, ...] = SHIP
 
 def run_chain(checkpoint: dict) -> list[dict]:
     """The checkpoint and those it was initialised from (its config's `init`), newest first.
-    Each still on disk adds its steps and wall time to the model card."""
+    Each still on disk adds its steps and wall time to the model card. A model file ends the
+    chain: its card already holds the phases before it (a continued shipped model)."""
     chain, seen = [checkpoint], set()
-    while (init := chain[-1]["config"].get("init")) and init not in seen and Path(init).is_file():
+    while ("card" not in chain[-1] and (init := chain[-1]["config"].get("init")) and init not in seen
+           and Path(init).is_file()):
         seen.add(init)
         chain.append(load_checkpoint(init))
     return chain
@@ -84,6 +86,9 @@ def make_card(checkpoint_path: Path, checkpoint: dict, scenes: list[str], valida
     config = checkpoint["config"]
     phases = []
     for ckpt in reversed(chain):  # oldest first
+        if "card" in ckpt:  # a model file this run continued: its phases, as its card tells them
+            phases.extend(ckpt["card"]["phases"])
+            continue
         c = ckpt["config"]
         folder = Path(c["out"])
         phases.append({"phase": c["phase"], "steps": ckpt["step"], "batch_size": c["batch_size"],

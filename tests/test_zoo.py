@@ -61,6 +61,30 @@ def test_the_card_says_how_the_model_was_made(zoo):
     assert card["steps"] == 40 and card["samples_seen"] == 40 * card["phases"][0]["batch_size"]
 
 
+def test_a_continued_model_card_keeps_the_phases_of_the_model_it_continued(tmp_path):
+    """CONTINUE=1 recipes/shipped.sh: phase 2 again from a shipped model file (--init), whose
+    training checkpoints are long gone (a fresh clone has no runs/). The new card lists the
+    shipped model's phases from its card, then the continuation's, and sums them."""
+    import shutil
+
+    model = tiny_model("box", seed=5)
+    p1 = save_checkpoint(tmp_path / "p1" / "last.pt", model,
+                         train_config(shape="box", size=SIZE, out=str(tmp_path / "p1")), step=40)
+    p2 = save_checkpoint(tmp_path / "p2" / "last.pt", model,
+                         train_config(shape="box", size=SIZE, phase="2", init=str(p1), out=str(tmp_path / "p2")),
+                         step=30)
+    shipped = pack(p2, tmp_path / "shipped.pt", ["paper"], recipe="shipped")
+    assert [(p["phase"], p["steps"]) for p in shipped["phases"]] == [("1", 40), ("2", 30)]
+    shutil.rmtree(tmp_path / "p1"), shutil.rmtree(tmp_path / "p2")
+    config = train_config(shape="box", size=SIZE, phase="2", init=str(tmp_path / "shipped.pt"),
+                          out=str(tmp_path / "continued"))
+    continued = save_checkpoint(tmp_path / "continued" / "last.pt", model, config, step=25)
+    card = pack(continued, tmp_path / "box.pt", ["paper"], recipe="continued")
+    assert [(p["phase"], p["steps"]) for p in card["phases"]] == [("1", 40), ("2", 30), ("2", 25)]
+    assert card["phases"][:2] == shipped["phases"]
+    assert card["steps"] == 95 and card["samples_seen"] == 95 * config.batch_size
+
+
 def test_packing_a_model_file_again_is_refused(zoo, tmp_path):
     folder, _ = zoo
     with pytest.raises(ValueError, match="already a model file.*or give --pdm-spool"):
