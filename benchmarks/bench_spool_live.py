@@ -121,7 +121,7 @@ def child(args) -> None:
         return original(self, step, losses, samples, waited, *rest)
 
     progress.Progress.step = step
-    config = TrainConfig(spool=args.spool, out=args.out, shape="box", size=args.size, arch=args.arch, reframe=False,
+    config = TrainConfig(spool=args.spool, out=args.out, shape="box", size=args.size, arch=args.arch, reframe=args.reframe,
                          batch_size=args.batch_size, threads=1, loader_workers=1, checkpoint_every=10**9,
                          log_every=10**6, dashboard=False)
     train.run(config)
@@ -155,7 +155,8 @@ def trainer(variant: str, spool: Path, out: Path, args, log: Path) -> tuple[subp
     steps = out.with_suffix(".steps.jsonl")
     return start([sys.executable, __file__, "--child", variant, "--spool", str(spool), "--out", str(out),
                   "--steps-log", str(steps), "--size", str(args.size), "--arch", args.arch,
-                  "--batch-size", str(args.batch_size)], log, cores("trainer")), steps
+                  "--batch-size", str(args.batch_size), "--reframe" if args.reframe else "--no-reframe"],
+                 log, cores("trainer")), steps
 
 
 def signal_group(proc: subprocess.Popen, sig: int) -> None:
@@ -197,6 +198,42 @@ def status_of(out: Path) -> dict:
         return {}
 
 
+def group_cpu(pgid: int) -> dict[str, float]:
+    """CPU seconds (user + system) of the processes in a process group: the group's leader
+    (the trainer's main process) apart from the rest (its loader worker)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    leader = others = 0.0
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = open(f"/proc/{entry}/stat").read().rpartition(")")[2].split()
+        except OSError:
+            continue
+        if int(fields[2]) != pgid:  # fields after the name: state, ppid, pgrp, ...
+            continue
+        seconds = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        if int(entry) == pgid:
+            leader += seconds
+        else:
+            others += seconds
+    return {"main": leader, "workers": others}
+
+
+def core_times(core: int) -> dict[str, float]:
+    """Seconds core `core` spent in each state since boot (/proc/stat), for the kernel's share."""
+    tick = os.sysconf("SC_CLK_TCK")
+    for line in open("/proc/stat"):
+        if line.startswith(f"cpu{core} "):
+            values = [int(v) / tick for v in line.split()[1:9]]
+            return dict(zip(("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal"), values))
+    return {}
+
+
+def difference(after: dict, before: dict) -> dict:
+    return {k: round(after[k] - before.get(k, 0.0), 3) for k in after}
+
+
 def window_figures(steps: list[list[float]], start: float, end: float) -> dict:
     inside = [s for s in steps if start < s[0] <= end]
     previous = [s[0] for s in steps if s[0] <= start]
@@ -228,12 +265,17 @@ def run_variant(variant: str, args, work: Path) -> dict:
                 signal_group(gen, signal.SIGCONT if live else signal.SIGSTOP)
                 before, began = highest_sequences(enumerate_spool(spool)), time.time()
                 unread_before = status_of(out).get("spool_evicted_unread")
+                cpu_before, core_before = group_cpu(proc.pid), core_times(min(cores("trainer") or {0}))
                 time.sleep(args.window)
                 ended = time.time()
+                cpu = difference(group_cpu(proc.pid), cpu_before)
+                core = difference(core_times(min(cores("trainer") or {0})), core_before)
                 published = published_between(before, highest_sequences(enumerate_spool(spool)))
                 windows.append({"live": live, "published_per_s": published / (ended - began),
                                 "evicted_unread_so_far": status_of(out).get("spool_evicted_unread"),
-                                "evicted_unread_at_start": unread_before, "began": began, "ended": ended})
+                                "evicted_unread_at_start": unread_before, "began": began, "ended": ended,
+                                "trainer_cpu_s": cpu, "trainer_core_s": core,
+                                "epochs_so_far": status_of(out).get("epoch")})
     finally:
         signal_group(gen, signal.SIGSTOP)
         stop(proc)
@@ -253,6 +295,12 @@ def run_variant(variant: str, args, work: Path) -> dict:
         "frozen_data_wait": statistics.median(w["data_wait"] for w in frozen),
         "live_data_wait": statistics.median(w["data_wait"] for w in live),
         "published_per_s_live": statistics.median(w["published_per_s"] for w in live),
+        # where the trainer's core went, per window second: its main process, its loader worker, the kernel
+        **{f"{name}_core_share_{cond}": statistics.median(share(w) for w in ws)
+           for cond, ws in (("frozen", frozen), ("live", live))
+           for name, share in (("main", lambda w: w["trainer_cpu_s"]["main"] / (w["ended"] - w["began"])),
+                               ("loader", lambda w: w["trainer_cpu_s"]["workers"] / (w["ended"] - w["began"])),
+                               ("system", lambda w: w["trainer_core_s"]["system"] / (w["ended"] - w["began"])))},
         "evicted_unread_total": final.get("spool_evicted_unread"),
         "skipped": final.get("skipped"),
         "windows": windows,
@@ -296,6 +344,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--arch", default="paper")
     parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--reframe", action=argparse.BooleanOptionalAction, default=True,
+                        help="frame every sample as infer does (the trainer's default; its loader's heavier case)")
     parser.add_argument("--limit", type=int, default=10_000, help="the spool's cap (cuboidgen's default)")
     parser.add_argument("--window", type=float, default=20.0, help="s per window")
     parser.add_argument("--pairs", type=int, default=3, help="live/frozen window pairs per variant")
@@ -326,6 +376,11 @@ def main() -> None:
               f"{v['published_per_s_live']:11.0f} "
               f"{str(v['evicted_unread_total']) if v['variant'] == 'listing' else 'not counted':>14s}")
     t = throttled
+    for v in variants:
+        print(f"{v['variant']}: the trainer's core, frozen / live: main process "
+              f"{v['main_core_share_frozen']:.0%} / {v['main_core_share_live']:.0%}, loader worker "
+              f"{v['loader_core_share_frozen']:.0%} / {v['loader_core_share_live']:.0%}, kernel "
+              f"{v['system_core_share_frozen']:.0%} / {v['system_core_share_live']:.0%}")
     print(f"throttled: --max-rate {t['max_rate']:.2f}/s, limit {t['limit']}: {t['published']} published, "
           f"{t['trained_samples']} trained on, {t['epochs_listed']} epochs, evicted unread {t['evicted_unread_total']}")
     result = {"settings": {k: v for k, v in vars(args).items() if k not in ("child", "spool", "out", "steps_log")},
