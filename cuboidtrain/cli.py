@@ -10,7 +10,7 @@ from typing import Optional
 import typer
 
 from cuboidtrain.config import PHASES
-from cuboidtrain.options import DEFAULT_MARGIN, DEFAULT_PDM_COMPONENTS, EXTRACTORS, FIT_SHAPES, FitOptions
+from cuboidtrain.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
 from shared.console import Commands, console, fail, setup_logging
 from shared.shapes import SHAPES
 
@@ -27,6 +27,7 @@ PhaseChoice = choices("PhaseChoice", PHASES)
 ShapeChoice = choices("ShapeChoice", SHAPES)
 FitShape = choices("FitShape", FIT_SHAPES)
 ExtractorChoice = choices("ExtractorChoice", EXTRACTORS)
+FIT = FitOptions()  # the fitting commands' defaults are the library's: stated once, in FitOptions
 
 
 @app.command()
@@ -101,6 +102,7 @@ def run(
 EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the paper's T), argmax, centre-of-mass, "
                   "dark (sub-pixel Taylor step), pdm (argmax made valid by a PCA shape model). Ratios are always T's.")
 PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape variance to keep (e.g. 0.999)."
+DEVICE_HELP = "auto (CUDA when present), cpu, cuda or cuda:N."
 
 
 @app.command("eval")
@@ -110,10 +112,10 @@ def evaluate(
     shape: ShapeChoice = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model."),
     batch_size: int = typer.Option(32, help="Samples per forward pass."),
     max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
-    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
-    extractor: ExtractorChoice = typer.Option(ExtractorChoice["tabulator"], help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option(str(DEFAULT_PDM_COMPONENTS), metavar="N|FRACTION", help=PDM_HELP),
-    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes before S (as in infer)."),
+    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
+    extractor: ExtractorChoice = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP),
+    pdm_components: str = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP),
+    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes before S (as in infer)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
     """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
@@ -154,16 +156,16 @@ def infer(
     paths: list[str] = typer.Argument(..., metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id."),
     checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
     json_out: str = typer.Option("-", "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout."),
-    shape: FitShape = typer.Option(FitShape["auto"], help="auto: every given model, the best-explained fit wins."),
-    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, each on the last one's binary output; auto: until nothing changes (at most 16)."),
+    shape: FitShape = typer.Option(FitShape[FIT.shape], help="auto: every given model, the best-explained fit wins."),
+    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help=f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else the largest only."),
     label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
-    margin: float = typer.Option(DEFAULT_MARGIN, help="Empty border around the framed object, as a fraction of the model size per side."),
-    extractor: ExtractorChoice = typer.Option(ExtractorChoice["tabulator"], help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option(str(DEFAULT_PDM_COMPONENTS), metavar="N|FRACTION", help=PDM_HELP),
+    margin: float = typer.Option(FIT.margin, help="Empty border around the framed object, as a fraction of the model size per side."),
+    extractor: ExtractorChoice = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP),
+    pdm_components: str = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP),
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
-    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
 ) -> None:
     """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
 
@@ -244,11 +246,11 @@ def localize(
     masks: Optional[list[str]] = typer.Option(None, "--masks", metavar="MASK", help="Masks in street order: --masks A B C, or one per --masks."),
     checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP),
     temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
-    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, as infer."),
-    margin: float = typer.Option(DEFAULT_MARGIN, help="Framing margin, as infer."),
+    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes, as infer."),
+    margin: float = typer.Option(FIT.margin, help="Framing margin, as infer."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
     bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
-    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
     threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
 ) -> None:
     """Localization (paper section 5): where in a known street the MASKs were taken, start positions ranked."""
@@ -287,13 +289,13 @@ def localize_experiment(
     example_m: int = typer.Option(4, help="Figure 12's sub-sequence length."),
     example_start: Optional[int] = typer.Option(None, help="Figure 12's true start, 1-based (default the middle)."),
     temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
-    refine_steps: str = typer.Option("1", metavar="K|auto", help="Refiner passes, as infer."),
-    margin: float = typer.Option(DEFAULT_MARGIN, help="Framing margin, as infer."),
+    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes, as infer."),
+    margin: float = typer.Option(FIT.margin, help="Framing margin, as infer."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="acc(m, l), one row per m."),
     heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figures 10-11's heat map of acc(m, l)."),
     bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
-    device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
     threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
 ) -> None:
     """The localisation experiment (paper section 5.1, eq. 2): acc(m, l) on random streets drawn by the generator."""

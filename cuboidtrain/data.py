@@ -27,6 +27,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from cuboidtrain.masks import components, frame, warp
+from cuboidtrain.options import DEFAULT_MARGIN
 from shared.sample import collate, decode_record, unpack_mask
 from shared.shapes import get_shape
 from shared.spool import enumerate_spool, name_time, read_sample_bytes
@@ -46,7 +47,7 @@ class CutOff(ValueError):
     """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
 
-def frame_as_infer(record: dict, size: int) -> dict:
+def frame_as_infer(record: dict, size: int, margin: float = DEFAULT_MARGIN) -> dict:
     """The sample as `infer` would see it (train as you infer): the noisy mask's largest
     component framed at `size` by `cuboidtrain.masks.frame`, the clean mask and the
     keypoints carried by the same map. A generated sample is framed by its clean
@@ -54,7 +55,7 @@ def frame_as_infer(record: dict, size: int) -> dict:
     noisy = components(unpack_mask(record["noisy"], record["size"]))
     if not noisy:
         raise CutOff("no visible pixel to frame")
-    framed, framing = frame(noisy[0], size)
+    framed, framing = frame(noisy[0], size, margin)
     clean = warp(unpack_mask(record["clean"], record["size"]), framing)
     keypoints = framing.to_model(np.frombuffer(record["keypoints"], "<f8").reshape(-1, 2))
     reach = MAX_OUTSIDE * size
@@ -70,12 +71,13 @@ class SpoolBatches(Dataset):
     `reframe` (REFRAME_MODES): `always` frames every sample as `infer` frames a mask, at
     `size` (training: train as you infer); `other-sizes` only those of another size (eval:
     the generator's framing where it fits, so the paper's metric stays the paper's); `never`
-    skips samples of another size."""
+    skips samples of another size. `margin`: the framing's, as FitOptions' (eval passes its own)."""
 
-    def __init__(self, spool: str | Path, shape: str, size: int, reframe: str = "never"):
+    def __init__(self, spool: str | Path, shape: str, size: int, reframe: str = "never",
+                 margin: float = DEFAULT_MARGIN):
         if reframe not in REFRAME_MODES:
             raise ValueError(f"reframe {reframe!r}: expected one of {', '.join(REFRAME_MODES)}")
-        self.spool, self.shape, self.size, self.reframe = Path(spool), shape, size, reframe
+        self.spool, self.shape, self.size, self.reframe, self.margin = Path(spool), shape, size, reframe, margin
 
     def __getitem__(self, names: list[str]) -> dict:
         records, kept, vanished, skipped = [], [], [], dict.fromkeys(SKIP_REASONS, 0)
@@ -112,7 +114,7 @@ class SpoolBatches(Dataset):
             return "other_shape", None
         if self.reframe == "always" or (self.reframe == "other-sizes" and record["size"] != self.size):
             try:
-                return None, frame_as_infer(record, self.size)
+                return None, frame_as_infer(record, self.size, self.margin)
             except CutOff:
                 return "cut_off", None
         if record["size"] != self.size:

@@ -22,7 +22,7 @@ from cuboidtrain.fitter import Fitter
 from cuboidtrain.heatmaps import prepare_batch
 from cuboidtrain.infer import mask_iou
 from cuboidtrain.networks import CuboidNet, build_model
-from cuboidtrain.options import FitOptions
+from cuboidtrain.options import DEFAULT_MARGIN, FitOptions
 from shared.sample import decode_record
 from shared.shapes import get_shape
 from shared.spool import check_spool, enumerate_spool, read_sample_bytes
@@ -39,15 +39,16 @@ def keypoint_errors(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(pred.float() - true.float(), dim=-1)
 
 
-def load_batches(spool: Path, shape: str, size: int, batch_size: int,
-                 max_samples: int | None) -> tuple[list[dict], dict[str, int]]:
+def load_batches(spool: Path, shape: str, size: int, batch_size: int, max_samples: int | None,
+                 margin: float = DEFAULT_MARGIN) -> tuple[list[dict], dict[str, int]]:
     """The first `max_samples` samples of this shape, in name order, as packed batches; samples of
-    another size are framed at `size` as `infer` frames a mask (so a 256 px spool serves any model).
+    another size are framed at `size` as `infer` frames a mask, with `margin` (so a 256 px spool
+    serves any model).
 
     Read once and kept, so two models can be evaluated on the very same samples
     even while a generator evicts from the spool. Returns the skip counts too.
     """
-    reader, names = SpoolBatches(spool, shape, size, reframe="other-sizes"), enumerate_spool(spool)
+    reader, names = SpoolBatches(spool, shape, size, reframe="other-sizes", margin=margin), enumerate_spool(spool)
     wanted = len(names) if max_samples is None else max_samples
     batches, skipped, kept, position = [], dict.fromkeys(SKIP_REASONS, 0), 0, 0
     while kept < wanted and position < len(names):
@@ -137,7 +138,7 @@ def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | 
     options = (options or FitOptions()).validate()
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
-    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
+    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples, options.margin)
     return report(model, batches, skipped, sigma, options, pck_thresholds)
 
 
@@ -166,7 +167,7 @@ def evaluate_checkpoint(checkpoint: Path, spool: Path, options: FitOptions | Non
     model, ckpt = load_model(checkpoint)
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
-    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples)
+    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples, options.margin)
     result = report(model, batches, skipped, ckpt["sigma"], options)
     random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"], arch=model.arch)
     random_model.pdm = model.pdm  # the same shape model: only the networks' weights differ

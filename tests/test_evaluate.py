@@ -196,3 +196,33 @@ def test_evaluate_checkpoint_reports_the_random_weights_row(tmp_path, box_spool)
     assert other["random_init_mean_px_error"] != other["mean_px_error"]
     report = format_report(result)
     assert "random init" in report and "BACK-RIGHT-TOP" in report and "step 7" in report
+
+
+@pytest.fixture(scope="module")
+def spool_of_another_size(tmp_path_factory) -> Path:
+    """64 px box samples for SIZE px models: eval frames each as infer frames a mask."""
+    spool = tmp_path_factory.mktemp("val64")
+    publish(spool, [build_sample(seed, "box", size=64) for seed in range(4)])
+    return spool
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.1, 0.25])
+def test_eval_frames_samples_of_another_size_with_its_margin(spool_of_another_size, margin):
+    from cuboidtrain.evaluate import load_batches
+    from shared.sample import unpack_mask
+
+    batches, skipped = load_batches(spool_of_another_size, "box", SIZE, 4, None, margin)
+    assert sum(len(b["names"]) for b in batches) + skipped["cut_off"] == 4
+    for batch in batches:
+        for packed in batch["noisy"].numpy():
+            ys, xs = np.nonzero(unpack_mask(packed.tobytes(), SIZE))
+            longer = max(ys.max() - ys.min(), xs.max() - xs.min()) + 1
+            assert abs(longer - SIZE * (1 - 2 * margin)) <= 1.5  # the object spans the frame less two margins
+
+
+def test_evaluate_honours_the_fit_options_margin(spool_of_another_size):
+    model = tiny_model("box", SIZE, seed=3).eval()
+    errors = {margin: evaluate(model, spool_of_another_size, sigma=1.0,
+                               options=FitOptions(device="cpu", margin=margin))["mean_px_error"]
+              for margin in (0.1, 0.3)}
+    assert errors[0.1] != errors[0.3]  # another framing, other inputs, other answers
