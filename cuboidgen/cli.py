@@ -5,7 +5,6 @@ import json
 import os
 import sys
 from dataclasses import asdict
-from enum import Enum
 from pathlib import Path
 from typing import Optional
 
@@ -13,7 +12,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from shared.console import Commands, console, fail, setup_logging
+from cuboidgen.config import GEN_SHAPES, SCENES, GenConfig
+from shared.console import Commands, choices, console, fail, setup_logging
+from shared.files import atomic_path
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
                   help="Synthetic cuboid samples into a capped spool.")
@@ -21,37 +22,36 @@ occluders_app = typer.Typer(no_args_is_help=True, help="Occluder libraries: extr
 app.add_typer(occluders_app, name="occluders")
 
 
-class ShapeChoice(str, Enum):
-    box = "box"
-    twobox = "twobox"
-    mix = "mix"
+GenShape = choices("GenShape", GEN_SHAPES)
+GEN = GenConfig()  # `run`'s defaults are the config's: stated once
 
 
 @app.command()
 def run(
-    spool: Path = typer.Option(Path("data_spool"), envvar="CUBOIDGEN_SPOOL", help="Spool folder (created if missing)."),
-    limit: int = typer.Option(10_000, envvar="CUBOIDGEN_LIMIT",
+    spool: Path = typer.Option(GEN.spool, envvar="CUBOIDGEN_SPOOL", help="Spool folder (created if missing)."),
+    limit: int = typer.Option(GEN.limit, envvar="CUBOIDGEN_LIMIT",
                               help="Samples kept; the oldest are evicted. 0 retains the spool (no eviction)."),
     max_samples: Optional[int] = typer.Option(None, envvar="CUBOIDGEN_MAX_SAMPLES", help="Stop after publishing this many samples."),
     workers: int = typer.Option(os.cpu_count() or 1, envvar="CUBOIDGEN_WORKERS", help="Worker processes (default: all cores)."),
-    size: int = typer.Option(256, envvar="CUBOIDGEN_SIZE", help="Mask size in px (square)."),
-    shape: ShapeChoice = typer.Option(ShapeChoice.box, envvar="CUBOIDGEN_SHAPE", help="Shape class; mix picks one per sample."),
+    size: int = typer.Option(GEN.size, envvar="CUBOIDGEN_SIZE", help="Mask size in px (square)."),
+    shape: GenShape = typer.Option(GenShape[GEN.shape], envvar="CUBOIDGEN_SHAPE", help="Shape class; mix picks one per sample."),
     seed: Optional[int] = typer.Option(None, envvar="CUBOIDGEN_SEED", help="Run seed: the same seed and options give the same samples."),
-    scene: str = typer.Option("paper", envvar="CUBOIDGEN_SCENE", help="Scene preset (paper, street) or a .json/.toml scene file."),
+    scene: str = typer.Option(GEN.scene.name, envvar="CUBOIDGEN_SCENE",
+                              help=f"Scene preset ({', '.join(SCENES)}) or a .json/.toml scene file."),
     occluders: Optional[Path] = typer.Option(None, envvar="CUBOIDGEN_OCCLUDERS",
                                              help="Folder of RGBA or binary PNG occluders (default: built-in)."),
     dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", envvar="CUBOIDGEN_DASHBOARD",
                                    help="Live dashboard (else log lines)."),
     fsync: bool = typer.Option(False, envvar="CUBOIDGEN_FSYNC",
                                help="Sync every sample to disk before publishing it (survives power loss)."),
-    evict_every: int = typer.Option(64, envvar="CUBOIDGEN_EVICT_EVERY",
+    evict_every: int = typer.Option(GEN.evict_every, envvar="CUBOIDGEN_EVICT_EVERY",
                                     help="Publishes between spool listings; bounds overshoot per worker."),
     max_rate: Optional[float] = typer.Option(None, envvar="CUBOIDGEN_MAX_RATE",
                                              help="At most this many samples a second, all workers together "
                                                   "(default: as fast as they go)."),
 ) -> None:
     """Generate samples into the spool until Ctrl-C/SIGTERM (or --max-samples)."""
-    from cuboidgen.config import GenConfig, load_scene
+    from cuboidgen.config import load_scene
     from cuboidgen.daemon import run as run_daemon
 
     setup_logging()
@@ -172,7 +172,8 @@ def bench(
     results = run_benchmarks(size=size, samples=samples, repeats=repeats, where=str(where))
     text = json.dumps(results, indent=2)
     if json_out:
-        json_out.write_text(text)
+        with atomic_path(json_out) as tmp:
+            tmp.write_text(text)
     typer.echo(text)
 
 

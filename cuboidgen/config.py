@@ -12,6 +12,9 @@ import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+from shared.shapes import SHAPES
+from shared.spool import EVICT_EVERY
+
 Range = tuple[float, float]
 
 
@@ -127,7 +130,7 @@ def scene_from_dict(data: dict, default_name: str = "custom") -> SceneConfig:
     return replace(base, **values).validate()
 
 
-SHAPE_CHOICES = ("box", "twobox", "mix")
+GEN_SHAPES = (*SHAPES, "mix")  # mix: each sample picks a shape class at random
 
 
 @dataclass(frozen=True)
@@ -145,7 +148,7 @@ class GenConfig:
     occluders: Path | None = None  # folder of RGBA/binary PNG cutouts; None: the built-in library
     dashboard: bool = True
     fsync: bool = False  # sync each sample before publishing (survives power loss; slower)
-    evict_every: int = 64  # publishes between spool listings (the bound on overshoot per writer)
+    evict_every: int = EVICT_EVERY  # publishes between spool listings (the bound on overshoot per writer)
     # samples a second, all workers together (each takes its share); None: as fast as they go.
     # A trainer that reads slower than this rate misses samples (README: the generator's throttle).
     max_rate: float | None = None
@@ -159,8 +162,8 @@ class GenConfig:
             raise ValueError(f"--workers {self.workers}: expected at least 1")
         if not 16 <= self.size <= 4096:
             raise ValueError(f"--size {self.size}: expected 16 to 4096 px")
-        if self.shape not in SHAPE_CHOICES:
-            raise ValueError(f"--shape {self.shape!r}: expected one of {', '.join(SHAPE_CHOICES)}")
+        if self.shape not in GEN_SHAPES:
+            raise ValueError(f"--shape {self.shape!r}: expected one of {', '.join(GEN_SHAPES)}")
         if self.evict_every < 1:
             raise ValueError(f"--evict-every {self.evict_every}: expected at least 1")
         if self.max_rate is not None and not self.max_rate > 0:  # `not >` also refuses NaN

@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from shared.files import save_figure  # noqa: E402
 from shared.sample import Sample, decode  # noqa: E402
 from shared.shapes import get_shape  # noqa: E402
 from shared.spool import check_spool, enumerate_spool, read_sample_bytes  # noqa: E402
@@ -65,7 +66,7 @@ def render_grid(samples: list[Sample], out: Path, columns: int = 4) -> Path:
         right.set_xlim(-0.5, sample.size - 0.5)
         right.set_ylim(sample.size - 0.5, -0.5)
         right.set_title(f"{sample.shape} · seed {sample.seed}", fontsize=6)
-    return save(fig, out, dpi=110)
+    return save_figure(fig, out, dpi=110)
 
 
 def render_occluders(library, out: Path, columns: int = 10) -> Path:
@@ -78,7 +79,7 @@ def render_occluders(library, out: Path, columns: int = 10) -> Path:
         ax.imshow(mask, cmap="gray_r", vmin=0, vmax=1)
         ax.set_title(name, fontsize=7)
     fig.suptitle(f"occluders: {library.source} ({len(library)})", fontsize=9)
-    return save(fig, out, dpi=100)
+    return save_figure(fig, out, dpi=100)
 
 
 def blank_grid(rows: int, columns: int, figsize: tuple[float, float]):
@@ -86,12 +87,3 @@ def blank_grid(rows: int, columns: int, figsize: tuple[float, float]):
     for ax in axes.ravel():
         ax.axis("off")
     return fig, axes
-
-
-def save(fig, out: Path, dpi: int) -> Path:
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
-    plt.close(fig)
-    return out

@@ -3,30 +3,25 @@ from __future__ import annotations
 
 import json
 import sys
-from enum import Enum
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from cuboidtrain.config import PHASES
+from cuboidtrain.config import LR_SCHEDULES, PHASES
 from cuboidtrain.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
-from shared.console import Commands, console, fail, setup_logging
+from shared.console import Commands, choices, console, fail, setup_logging
 from shared.shapes import SHAPES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
                   help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run; infer.")
 
 
-def choices(name: str, values) -> type[Enum]:
-    """A click choice of the library's own list, so the two cannot drift apart."""
-    return Enum(name, {value: value for value in values}, type=str)
-
-
 PhaseChoice = choices("PhaseChoice", PHASES)
 ShapeChoice = choices("ShapeChoice", SHAPES)
 FitShape = choices("FitShape", FIT_SHAPES)
 ExtractorChoice = choices("ExtractorChoice", EXTRACTORS)
+ScheduleChoice = choices("ScheduleChoice", LR_SCHEDULES)
 FIT = FitOptions()  # the fitting commands' defaults are the library's: stated once, in FitOptions
 
 
@@ -42,7 +37,7 @@ def run(
     epochs: Optional[int] = typer.Option(None, envvar="CUBOIDTRAIN_EPOCHS", help="Or this many epochs over the spool."),
     batch_size: int = typer.Option(32, envvar="CUBOIDTRAIN_BATCH_SIZE", help="Samples per step."),
     lr: float = typer.Option(1e-3, envvar="CUBOIDTRAIN_LR", help="Adam learning rate."),
-    lr_schedule: str = typer.Option("constant", envvar="CUBOIDTRAIN_LR_SCHEDULE", help="constant, or cosine (decays to lr/100 at --steps)."),
+    lr_schedule: ScheduleChoice = typer.Option(ScheduleChoice["constant"], envvar="CUBOIDTRAIN_LR_SCHEDULE", help="constant, or cosine (decays to lr/100 at --steps)."),
     max_minutes: Optional[float] = typer.Option(None, envvar="CUBOIDTRAIN_MAX_MINUTES", help="Stop, with a checkpoint, after this many minutes."),
     max_wait: Optional[float] = typer.Option(None, metavar="SECONDS", envvar="CUBOIDTRAIN_MAX_WAIT", help="Give up (exit 1) after waiting this long for a usable sample: an empty spool, or none of its samples fit (default: wait on)."),
     weight_decay: float = typer.Option(1e-5, envvar="CUBOIDTRAIN_WEIGHT_DECAY", help="Adam's L2 penalty."),
@@ -77,7 +72,7 @@ def run(
         config = TrainConfig(
             phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe,
             steps=steps, epochs=epochs,
-            batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
+            batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
             alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
             out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
             resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
-from cuboidtrain.options import check_device
+from cuboidtrain.options import check_choice, check_device
 from shared.shapes import get_shape
 
 
@@ -22,6 +22,7 @@ PHASES = {
     "e2e": "ablation: R, S, T chained from scratch, final loss D_T only",
     "finetune": "ablation: a trained model fine-tuned chained, final loss D_T only",
 }
+LR_SCHEDULES = ("constant", "cosine")  # cosine decays to lr/100 at --steps
 
 
 @dataclass(frozen=True)
@@ -75,8 +76,7 @@ class TrainConfig:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ValueError(f"--{name.replace('_', '-')} {value}: expected a positive integer")
-        if self.lr_schedule not in ("constant", "cosine"):
-            raise ValueError(f"--lr-schedule {self.lr_schedule!r}: expected constant or cosine")
+        check_choice("--lr-schedule", self.lr_schedule, LR_SCHEDULES)
         if self.lr_schedule == "cosine" and self.steps is None:
             raise ValueError("--lr-schedule cosine needs --steps N: the step it decays to")
         if self.max_minutes is not None and self.max_minutes <= 0:

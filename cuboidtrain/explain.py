@@ -210,7 +210,7 @@ def overlay_figure(photo: np.ndarray, record: dict, keypoints: np.ndarray):
 
 
 class Explainer:
-    """`infer_paths`'s explain callback: writes each fitted component's panel (and overlay) to `folder`.
+    """`Fitter.records`'s explain callback: writes each fitted component's panel (and overlay) to `folder`.
 
     `photos[i]` is the photo behind input i (or None); a mask made at another
     resolution than its photo is scaled onto it.

@@ -2,11 +2,17 @@
 from __future__ import annotations
 
 import logging
+from enum import Enum
 
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
 from typer.core import TyperGroup
+
+
+def choices(name: str, values) -> type[Enum]:
+    """A click choice of a library's own list, so the command line and the library cannot drift apart."""
+    return Enum(name, {value: value for value in values}, type=str)
 
 console = Console(stderr=True)
 # Columns a live dashboard leaves free on the right: a terminal echoes Ctrl-C as "^C" after

@@ -6,6 +6,11 @@ status.json, SPOOL.json, a figure), is named `.tmp-0-<host>-<pid>-<name>`: the s
 reads the writer's host and pid back from the name, so it can tell a live writer's
 file from a dead one's without waiting. The first field is not read (older versions
 put a time there); the host tag has no `-`, so the fields split cleanly whatever `name` holds.
+
+Every writer goes through `atomic_path` (or `save_figure` for a picture) but one: the spool's
+publish (`shared.spool.SpoolWriter`), the generator's hot path at thousands of samples a
+second, names its temporary file by the same `temporary_name` with its host and pid looked
+up once, creates it exclusively, may fsync it, and turns a full disk into `SpoolFull`.
 """
 from __future__ import annotations
 
@@ -71,6 +76,17 @@ def atomic_path(path: str | Path):
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def save_figure(fig, path: str | Path, dpi: int) -> Path:
+    """A matplotlib figure as a picture (its format from the suffix), replaced atomically, then closed."""
+    import matplotlib.pyplot as plt  # only the writers of figures pay for matplotlib
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=Path(path).suffix.lstrip(".") or "png")
+    plt.close(fig)
+    return Path(path)
 
 
 def sweep_orphans(folder: str | Path, max_age: float) -> int:

@@ -122,6 +122,16 @@ def test_from_dir_skips_bad_files_with_warning(tmp_path, caplog):
     assert "x.png" in warned and "y_empty.png" in warned
 
 
+def test_from_dir_ignores_a_cutout_still_being_written(tmp_path):
+    """`cuboidgen occluders` writes each cut-out under a temporary name, then renames it: a
+    generator loading the folder meanwhile takes the finished files only."""
+    from shared.files import temporary_name
+
+    expected = _write_cutouts(tmp_path)
+    (tmp_path / "a_rect.png").rename(tmp_path / temporary_name("a_rect.png"))
+    assert OccluderLibrary.from_dir(tmp_path).names == sorted(set(expected) - {"a_rect"})
+
+
 def test_from_dir_errors_name_the_folder(tmp_path):
     with pytest.raises(ValueError, match="no PNG files") as e:
         OccluderLibrary.from_dir(tmp_path)

@@ -10,6 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from shared.files import atomic_path
+
 # The package's one logger name, as before it was split into modules: log settings and tests name it.
 log = logging.getLogger("cuboidgen.occluders")
 
@@ -86,8 +88,9 @@ def _extract_frame(label_path: Path, classes: dict[str, int], out: Path, min_pix
             if crop.sum() < min_pixels or x == 0 or y == 0 or x + w == cols or y + h == rows:
                 continue
             dest = out / f"{name.replace(' ', '-')}_{stem}_{n}.png"
-            if not cv2.imwrite(str(dest), crop.astype(np.uint8) * 255):
-                raise OSError(f"cannot write occluder {dest}")
+            with atomic_path(dest) as tmp:  # a running generator may load this folder meanwhile
+                if not cv2.imwrite(str(tmp), crop.astype(np.uint8) * 255):
+                    raise OSError(f"cannot write occluder {dest}")
             n += 1
         counts[name] = counts.get(name, 0) + n
 

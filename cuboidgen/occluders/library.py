@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from cuboidgen.occluders.urban_elements import KINDS, draw_element, tight_crop
+from shared.files import TMP_PREFIX
 
 # The package's one logger name, as before it was split into modules: log settings and tests name it.
 log = logging.getLogger("cuboidgen.occluders")
@@ -59,7 +60,8 @@ class OccluderLibrary:
         folder = Path(path)
         if not folder.is_dir():
             raise ValueError(f"occluders folder {folder}: no such folder")
-        files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".png"),
+        files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".png"
+                        and not p.name.startswith(TMP_PREFIX)),
                        key=lambda p: p.name)
         if not files:
             raise ValueError(f"occluders folder {folder}: no PNG files (expected RGBA or binary PNG cutouts)")

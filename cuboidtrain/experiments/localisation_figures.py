@@ -17,6 +17,9 @@ from rich.table import Table
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from cuboidtrain.files import write_json_atomically  # noqa: E402
+from shared.files import atomic_path, save_figure  # noqa: E402
+
 TRUE_COLOUR, OTHER_COLOUR = "#d62728", "#9aa5b1"
 
 
@@ -49,7 +52,7 @@ def ranking_table(result: dict, rows: int = 10) -> Table:
 
 def write_csv(path: str | Path, result: dict) -> None:
     """One row per m: m, then acc(m, 1) .. acc(m, L)."""
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["m", *(f"top_{l}" for l in result["l"])])
         for m, row in zip(result["m"], result["acc"]):
@@ -77,9 +80,7 @@ def plot_accuracy(path: str | Path, result: dict, title: str | None = None) -> N
     ax.set_ylabel("l: candidates kept")
     ax.set_title(wrapped(title, width), fontsize=10)
     fig.colorbar(image, ax=ax, fraction=0.03, pad=0.01).set_label("acc (cell labels in %)", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def plot_start_probabilities(path: str | Path, probabilities, true_start: int | None, names: list[str],
@@ -101,9 +102,7 @@ def plot_start_probabilities(path: str | Path, probabilities, true_start: int | 
         ax.annotate(f"{label}\n{100 * probabilities[true_start]:.0f}%", (true_start, probabilities[true_start]),
                     xytext=(0, 4), textcoords="offset points", ha="center", fontsize=8, color=TRUE_COLOUR)
     ax.set_title(wrapped(title, width), fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def wrapped(title: str, width_inches: float) -> str:
@@ -135,7 +134,6 @@ def write_json(out: str | None, result: dict) -> None:
     """`-`: stdout; a path: written atomically; None: nothing."""
     import json
 
-    from cuboidtrain.files import write_json_atomically
 
     if out == "-":
         print(json.dumps(result, indent=2))

@@ -16,6 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from cuboidtrain.files import write_json_atomically  # noqa: E402
+from shared.files import atomic_path, save_figure  # noqa: E402
 
 PAPER_TABLE3 = {  # paper, Table 3: mean px error on clean synthetic validation masks, 256 px
     "random weights": 17.9,
@@ -42,7 +43,8 @@ def write_report(results: dict, out: Path, command: str, localization: Path | No
     ]
     write_json_atomically(out / "report.json", results, indent=2)
     text = markdown(results, command, localization)
-    (out / "REPORT.md").write_text(text)
+    with atomic_path(out / "REPORT.md") as tmp:
+        tmp.write_text(text)
     return [out / "REPORT.md", out / "report.json", *figures]
 
 
@@ -71,9 +73,7 @@ def _plot(path: Path, results: dict, key: str, x_label: str, title: str, x_key: 
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path
 
 
@@ -92,9 +92,7 @@ def _extractor_plot(path: Path, results: dict) -> Path:
     ax.set_title("Keypoint extractors on the same heat maps", fontsize=10)
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path
 
 
