@@ -20,7 +20,6 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torchvision.models import resnet18
 
 from cuboidtrain import compact
 from cuboidtrain.config import default_sigma
@@ -31,6 +30,10 @@ DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1
 
 def resnet18_backbone(in_channels: int) -> nn.Module:
     """torchvision's ResNet-18, untrained, its stem taking `in_channels` channels."""
+    # Imported here, not at the top: torchvision's import pulls in torch._dynamo (2-3 s on this
+    # CPU), and only the `paper` arch needs it; `infer` with the shipped compact models does not.
+    from torchvision.models import resnet18
+
     net = resnet18(weights=None)
     net.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
     return net

@@ -52,19 +52,26 @@ def readme_python_example() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
+# Modules a fit with the shipped models does not need, each seconds to import on a small CPU:
+# torchvision (only the `paper` arch's ResNet-18) pulls in torch._dynamo; matplotlib draws
+# explanations only when asked. A one-mask `cuboidtrain infer` is mostly imports.
+SLOW_IMPORTS = ("torchvision", "torch._dynamo", "matplotlib")
+
+
 @pytest.fixture(scope="module")
 def fresh_interpreter() -> dict:
     """In a fresh interpreter at the repository's root (torch and the shipped models load once):
     the README's example as written, then the same mask fitted from an array, and which
-    cuboidgen modules all of that loaded."""
+    cuboidgen modules and SLOW_IMPORTS all of that loaded."""
     example = readme_python_example()
     # One torch thread, as this process has (conftest): the same sums in the same order, the same floats.
-    code = ("import torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.infer\n"
+    code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.infer\n"
             "from cuboidtrain import FitOptions\n"
             "fitter = Fitter.from_shipped(FitOptions(device='cpu'))\n"
             "array = fitter.fit(cv2.imread('examples/building.png', cv2.IMREAD_UNCHANGED))\n"
             "print(json.dumps({'example': fit.record(), 'array': array.record(), 'generator': "
-            "sorted(m for m in sys.modules if m.split('.')[0] == 'cuboidgen')}))\n")
+            "sorted(m for m in sys.modules if m.split('.')[0] == 'cuboidgen'), "
+            "'slow_imports': sorted(m for m in SLOW_IMPORTS if m in sys.modules)}))\n")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     return {"code": example} | json.loads(done.stdout.strip().splitlines()[-1])
@@ -72,6 +79,10 @@ def fresh_interpreter() -> dict:
 
 def test_fitting_a_mask_never_loads_the_generator(fresh_interpreter):
     assert fresh_interpreter["generator"] == []
+
+
+def test_fitting_a_mask_imports_nothing_slow_it_does_not_need(fresh_interpreter):
+    assert fresh_interpreter["slow_imports"] == []
 
 
 def test_the_readme_python_example_runs_as_written(fresh_interpreter):
