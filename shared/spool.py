@@ -1,6 +1,7 @@
 """The spool: a capped folder of samples, published atomically, evicted oldest first.
 
-The spool folder is the only link between the generator and the trainer. Its rules:
+The spool folder is the only link between the generator and the trainer. Its rules (the
+contract for outside readers and writers: docs/contract.md, "The spool"), as this code keeps them:
 
 * A sample is one file `<time_ns>-<host>-<pid>-<token>-<seq>.cub`. The name sorts
   by age and never collides: pid and a random token tell apart writers on one
