@@ -2,8 +2,8 @@
 
 For each validation set (a spool of 256 px samples: `paper-clean`, noisy and
 occluded `paper`, `street`) and each shape class, every sample's noisy mask is
-written as a PNG and fitted by `cuboidtrain.Fitter` (as `cuboidtrain infer` fits it): reading, the
-largest component, framing, R, S, T, and the map back to the input's pixels. The
+written as a PNG and fitted by `cuboidtrain.Fitter` (as `cuboidtrain infer` fits it): reading,
+the building's pieces, framing, R, S, T, and the map back to the input's pixels. The
 mean corner error is then in 256 px units by construction. Beside it:
 
 * `eval`'s figures on the same spool (`cuboidtrain.evaluate`), px x 256 / size,

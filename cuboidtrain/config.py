@@ -32,7 +32,7 @@ class TrainConfig:
     shape: str = "box"
     size: int = 256  # px, the model's square input
     arch: str = "compact"  # a name in cuboidtrain.networks.ARCHS: paper (three ResNet-18s), compact, tiny
-    reframe: bool = True  # frame each sample as `infer` frames a mask (largest visible component); any spool size
+    reframe: bool = True  # frame each sample as `infer` frames a mask (its visible pieces); any spool size
     steps: int | None = None  # train until this step (a run's steps count from 0; --resume continues the count)
     epochs: int | None = None  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
     batch_size: int = 32

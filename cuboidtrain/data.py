@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from cuboidtrain.masks import components, frame, warp
+from cuboidtrain.masks import frame, silhouette, warp
 from cuboidtrain.options import DEFAULT_MARGIN
 from shared.sample import collate, decode_record, unpack_mask
 from shared.shapes import get_shape
@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size", "cut_off")
 # A reframed sample whose corner lies further than this fraction of the size outside the frame is
-# skipped: its largest visible component is a fragment, and no Tabulator could reach the corner.
+# skipped: what is visible of it is a fragment, and no Tabulator could reach the corner.
 MAX_OUTSIDE = 0.125
 
 
@@ -48,14 +48,15 @@ class CutOff(ValueError):
 
 
 def frame_as_infer(record: dict, size: int, margin: float = DEFAULT_MARGIN) -> dict:
-    """The sample as `infer` would see it (train as you infer): the noisy mask's largest
-    component framed at `size` by `cuboidtrain.masks.frame`, the clean mask and the
-    keypoints carried by the same map. A generated sample is framed by its clean
-    silhouette; a real mask can only be framed by what is visible of it."""
-    noisy = components(unpack_mask(record["noisy"], record["size"]))
-    if not noisy:
-        raise CutOff("no visible pixel to frame")
-    framed, framing = frame(noisy[0], size, margin)
+    """The sample as `infer` would see it (train as you infer): the noisy mask's building
+    (`cuboidtrain.masks.silhouette`: its pieces, together) framed at `size` by
+    `cuboidtrain.masks.frame`, the clean mask and the keypoints carried by the same map. A
+    generated sample is framed by its clean silhouette; a real mask can only be framed by what
+    is visible of it."""
+    building = silhouette(unpack_mask(record["noisy"], record["size"]))
+    if building is None:
+        raise CutOff("no visible piece to frame")
+    framed, framing = frame(building, size, margin)
     clean = warp(unpack_mask(record["clean"], record["size"]), framing)
     keypoints = framing.to_model(np.frombuffer(record["keypoints"], "<f8").reshape(-1, 2))
     reach = MAX_OUTSIDE * size

@@ -27,7 +27,7 @@ from cuboidtrain.device import resolve_device
 from cuboidtrain.extractors import make_extractor
 from cuboidtrain.infer import (DRIFT_IOU, border_warnings, chain, choose, confidence, error_record, load_models,
                                trust)
-from cuboidtrain.masks import components, frame, load_mask, to_mask
+from cuboidtrain.masks import components, frame, load_mask, silhouette, to_mask
 from cuboidtrain.networks import CuboidNet
 from cuboidtrain.options import MAX_REFINE_STEPS, FitOptions
 from shared.shapes import get_shape
@@ -94,12 +94,13 @@ class Fitter:
     # --- fitting ---------------------------------------------------------------------------
 
     def fit(self, mask: str | Path | np.ndarray) -> Fit:
-        """The largest component of a mask image file or array (H, W) (object > half its maximum, or
-        `label_id`); ValueError when it has none, or the file cannot be read."""
+        """The building of a mask image file or array (H, W) (object > half its maximum, or `label_id`):
+        its pieces of at least 1% of the largest one's area, together (`masks.silhouette`);
+        ValueError when it has none, or the file cannot be read."""
         return self._fit_parts(mask, all_components=False)[0]
 
     def fit_all(self, mask: str | Path | np.ndarray) -> list[Fit]:
-        """One Fit per component (>= 16 px, largest first) with `all_components`, else the largest only."""
+        """One Fit per component (>= 16 px, largest first) with `all_components`, else `fit`'s one."""
         return self._fit_parts(mask, self.options.all_components)
 
     def records(self, paths: Sequence[str | Path],
@@ -143,7 +144,12 @@ class Fitter:
 
     def _fit_parts(self, mask, all_components: bool) -> list[Fit]:
         name = str(mask) if isinstance(mask, (str, Path)) else None
-        parts = components(self._read(mask), all_components)
+        mask = self._read(mask)
+        if all_components:  # a mask of several objects: each fitted alone
+            parts = components(mask, all_components=True)
+        else:  # one building, maybe cut into pieces by an occluder: fitted whole
+            building = silhouette(mask)
+            parts = [] if building is None else [building]
         if not parts:
             raise ValueError(f"{name or 'mask'}: no component of at least 16 px")
         fits = [self._fit_component(part, name) for part in parts]

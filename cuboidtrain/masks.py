@@ -115,6 +115,25 @@ def components(mask: np.ndarray, all_components: bool = False, min_pixels: int =
     return [labels == k for k in order]
 
 
+# A piece of a one-building mask at least this share of its largest piece's area is part of the
+# building: an occluder (a pole, a car, a tree) cuts a silhouette into pieces, and framing only
+# the largest one fits a fragment. Smaller specks are segmentation noise. Measured through infer
+# on 300 generated 256 px masks per set with the shipped models (BENCHMARKS.md): mean corner
+# error 13.4 -> 9.3 px on `street` box, 17.1 -> 12.0 on noisy `paper` twobox; 5% kept less.
+PIECE_SHARE = 0.01
+
+
+def silhouette(mask: np.ndarray, min_share: float = PIECE_SHARE, min_pixels: int = 16) -> np.ndarray | None:
+    """The building of a one-building mask, as a bool mask of the same shape: every 8-connected
+    piece of at least `min_pixels` pixels and `min_share` of the largest piece's area, together.
+    None when the mask has no such piece."""
+    pieces = components(mask, all_components=True, min_pixels=min_pixels)
+    if not pieces:
+        return None
+    least = min_share * pieces[0].sum()
+    return np.logical_or.reduce([p for p in pieces if p.sum() >= least])
+
+
 @dataclass(frozen=True)
 class Framing:
     """The affine map from an input image's pixels to the model's `size` x `size` input:

@@ -72,7 +72,7 @@ class FitOptions:
     margin: float = DEFAULT_MARGIN
     extractor: str = "tabulator"  # how keypoints are read off the heat maps; ratios are always T's
     pdm_components: int | float | str = DEFAULT_PDM_COMPONENTS  # with extractor "pdm": a count or a fraction
-    all_components: bool = False  # one fit per 8-connected component (>= 16 px), else the largest only
+    all_components: bool = False  # one fit per 8-connected component (>= 16 px), else one building (masks.silhouette)
     label_id: int | None = None  # read a grey label map: pixels equal to this id are the object
     device: str = "auto"  # auto (CUDA when present), cpu, cuda or cuda:N
 

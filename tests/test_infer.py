@@ -343,6 +343,20 @@ def test_all_components_gives_one_record_per_component(tmp_path):
     assert len(infer_paths([path], [model])) == 1 and "component" not in infer_paths([path], [model])[0]
 
 
+def test_a_building_cut_in_pieces_by_an_occluder_is_fitted_whole(tmp_path):
+    """A pole cuts the building in two: the fit frames both pieces (masks.silhouette), not the
+    larger one alone; --all-components still fits each piece on its own."""
+    left, right = (5, 5, 40, 30), (43, 5, 80, 30)  # a 2 px pole at x = 41, 42
+    path = write_png(tmp_path / "cut.png", rectangles((60, 90), left, right))
+    refiner = Recording()
+    model = stub_model("box", refiner, lambda: rect_keypoints(refiner.last, 8))  # the framed object's corners
+    [record] = infer_paths([path], [model])
+    xs, ys = np.array(record["keypoints"]).T
+    model_px = 76 / (SIZE * (1 - 2 * 0.1))  # one model pixel in input pixels: the framing's resolution
+    assert np.allclose([xs.min(), ys.min(), xs.max(), ys.max()], [5, 5, 80, 30], atol=model_px)  # not 5 .. 40
+    assert len(infer_paths([path], [model], all_components=True)) == 2
+
+
 # --- the command line ----------------------------------------------------------
 
 def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):

@@ -201,3 +201,23 @@ def test_components_largest_and_all():
     assert [c.sum() for c in found] == [125, 60]
     assert [c.sum() for c in components(mask, all_components=True, min_pixels=1)] == [125, 60, 15, 1]
     assert components(np.zeros((4, 4), bool)) == []
+
+
+def test_the_silhouette_of_a_building_cut_in_pieces_is_all_its_pieces():
+    """An occluder (here a pole, a 3 px column) cuts the building in two: both pieces are it.
+    A speck under 1% of the largest piece's area (segmentation noise) is not."""
+    from cuboidtrain.masks import PIECE_SHARE, silhouette
+
+    mask = np.zeros((120, 200), bool)
+    mask[20:100, 10:90] = True  # 6,400 px
+    mask[20:100, 93:150] = True  # 4,560 px, beyond the pole
+    mask[110, 190:195] = True  # 5 px: under 16 px, never a piece
+    mask[2:6, 170:180] = True  # 40 px: 0.6% of the largest
+    building = silhouette(mask)
+    assert building.sum() == 6400 + 4560 and building[50, 20] and building[50, 140] and not building[3, 175]
+    assert silhouette(mask, min_share=0.005).sum() == 6400 + 4560 + 40  # over the share: a piece too
+    assert 40 < PIECE_SHARE * 6400  # the default drops it, as asserted above
+    framed, _ = frame(building, 64)
+    ys, xs = np.nonzero(framed)
+    assert xs.max() - xs.min() + 1 == pytest.approx(64 * 0.8, abs=1)  # framed whole: both pieces, margins kept
+    assert silhouette(np.zeros((8, 8), bool)) is None

@@ -127,14 +127,14 @@ def unpacked(batch: dict, key: str, k: int, size: int) -> np.ndarray:
 
 @pytest.mark.parametrize("seed", [0, 3, 7])
 def test_a_reframed_sample_is_what_infer_frames_from_its_noisy_mask(tmp_path, seed):
-    from cuboidtrain.masks import components, frame, warp
+    from cuboidtrain.masks import frame, silhouette, warp
 
     sample = build_sample(seed, size=96)
     publish(tmp_path, [sample])
     batch = SpoolBatches(tmp_path, "box", 32, reframe="always")[enumerate_spool(tmp_path)]
     if batch["skipped"]["cut_off"]:
         pytest.skip("this seed's visible part is a fragment")
-    framed, framing = frame(components(sample.noisy)[0], 32)  # infer's own framing
+    framed, framing = frame(silhouette(sample.noisy), 32)  # infer's own framing (Fitter._fit_parts)
     np.testing.assert_array_equal(unpacked(batch, "noisy", 0, 32), framed)
     np.testing.assert_array_equal(unpacked(batch, "clean", 0, 32), warp(sample.clean, framing))
     np.testing.assert_allclose(batch["keypoints"][0].numpy(), framing.to_model(sample.keypoints), atol=1e-4)

@@ -42,7 +42,7 @@ def silhouette_of(building: Building, scene: SceneConfig, size: int, seed: int, 
 
 
 def predict_ratios(masks: list[np.ndarray], fitter: Fitter) -> np.ndarray:
-    """(N, 2) ratios predicted for bool masks as `infer` would: the largest component, framed
+    """(N, 2) ratios predicted for bool masks as `infer` would: the building (its pieces), framed
     for the model, R (iterated), S, T (T's ratios whatever reads the keypoints)."""
     predicted = []
     for k, mask in enumerate(masks):

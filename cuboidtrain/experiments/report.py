@@ -176,7 +176,7 @@ def shape_selection(models: dict[str, CuboidNet], count: int, seed: int, device,
     for truth in models:
         for k in range(count):
             sample = make_sample(truth, PAPER, size, seed + k, library)
-            confusion[truth][fitter.fit(sample.noisy).shape] += 1  # as infer: the largest component
+            confusion[truth][fitter.fit(sample.noisy).shape] += 1  # as infer: the building, its pieces together
     right = sum(confusion[s][s] for s in models)
     return {"samples": count * len(models), "accuracy": right / (count * len(models)), "confusion": confusion,
             "seeds": [seed, seed + count - 1]}
