@@ -256,7 +256,7 @@ def run_variant(variant: str, args, work: Path) -> dict:
         time.sleep(0.5)
     signal_group(gen, signal.SIGSTOP)
     proc, steps_path = trainer(variant, spool, out, args, logs / f"trainer-{variant}.log")
-    windows = []
+    windows, trainer_core = [], min(cores("trainer") or {0})  # the core whose kernel time is counted
     try:
         wait_for_steps(steps_path, args.warmup_steps, 600)
         for pair in range(args.pairs):
@@ -265,11 +265,11 @@ def run_variant(variant: str, args, work: Path) -> dict:
                 signal_group(gen, signal.SIGCONT if live else signal.SIGSTOP)
                 before, began = highest_sequences(enumerate_spool(spool)), time.time()
                 unread_before = status_of(out).get("spool_evicted_unread")
-                cpu_before, core_before = group_cpu(proc.pid), core_times(min(cores("trainer") or {0}))
+                cpu_before, core_before = group_cpu(proc.pid), core_times(trainer_core)
                 time.sleep(args.window)
                 ended = time.time()
                 cpu = difference(group_cpu(proc.pid), cpu_before)
-                core = difference(core_times(min(cores("trainer") or {0})), core_before)
+                core = difference(core_times(trainer_core), core_before)
                 published = published_between(before, highest_sequences(enumerate_spool(spool)))
                 windows.append({"live": live, "published_per_s": published / (ended - began),
                                 "evicted_unread_so_far": status_of(out).get("spool_evicted_unread"),

@@ -105,14 +105,20 @@ def components(mask: np.ndarray, all_components: bool = False, min_pixels: int =
     """The largest 8-connected component of `mask` as a bool mask of the same shape, or
     with `all_components` every component of at least `min_pixels` pixels, largest first.
     An empty mask has no components."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    order = np.argsort(-areas, kind="stable") + 1  # label 0 is the background
+    labels, order, areas = _labelled(mask)
     if not all_components:
         order = order[:1]
     else:
-        order = [k for k in order if stats[k, cv2.CC_STAT_AREA] >= min_pixels]
+        order = [k for k in order if areas[k] >= min_pixels]
     return [labels == k for k in order]
+
+
+def _labelled(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 8-connected labels of `mask`, the labels largest first (background 0 left out), and
+    each label's area (indexed by label)."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    areas = stats[:, cv2.CC_STAT_AREA]
+    return labels, np.argsort(-areas[1:], kind="stable") + 1, areas
 
 
 # A piece of a one-building mask at least this share of its largest piece's area is part of the
@@ -127,11 +133,11 @@ def silhouette(mask: np.ndarray, min_share: float = PIECE_SHARE, min_pixels: int
     """The building of a one-building mask, as a bool mask of the same shape: every 8-connected
     piece of at least `min_pixels` pixels and `min_share` of the largest piece's area, together.
     None when the mask has no such piece."""
-    pieces = components(mask, all_components=True, min_pixels=min_pixels)
-    if not pieces:
+    labels, order, areas = _labelled(mask)
+    if not len(order) or areas[order[0]] < min_pixels:
         return None
-    least = min_share * pieces[0].sum()
-    return np.logical_or.reduce([p for p in pieces if p.sum() >= least])
+    least = max(min_pixels, min_share * areas[order[0]])  # the areas the labelling counted: no mask summed again
+    return np.isin(labels, [k for k in order if areas[k] >= least])
 
 
 @dataclass(frozen=True)
