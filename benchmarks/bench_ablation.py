@@ -26,9 +26,9 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from cuboidtrain.checkpoint import load_model
+from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.evaluate import evaluate
-from cuboidtrain.options import FitOptions
+from cuboidtrain.fit.options import FitOptions
 
 VARIANTS = {
     "compact": ["--arch", "compact", "--reframe"],

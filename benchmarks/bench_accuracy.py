@@ -35,12 +35,12 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from cuboidtrain.checkpoint import load_model
+from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.evaluate import evaluate
-from cuboidtrain.fitter import Fitter
-from cuboidtrain.networks import build_model
-from cuboidtrain.options import FitOptions
-from cuboidtrain.zoo import default_checkpoints
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.models.networks import build_model
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.models.zoo import default_checkpoints
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 

@@ -34,12 +34,12 @@ from rich.table import Table
 from cuboidgen.config import PAPER
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
-from cuboidtrain.checkpoint import load_model
-from cuboidtrain.config import default_sigma
-from cuboidtrain.export import OnnxPipeline, Pipeline, export_model
-from cuboidtrain.fitter import Fitter
-from cuboidtrain.networks import build_model
-from cuboidtrain.options import FitOptions
+from cuboidtrain.models.checkpoint import load_model
+from cuboidtrain.train.config import default_sigma
+from cuboidtrain.fit.export import OnnxPipeline, Pipeline, export_model
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.models.networks import build_model
+from cuboidtrain.fit.options import FitOptions
 from shared.sample import signed
 
 TARGET_MS = 150.0  # docs/contract.md, "Targets": R+S+T at 256x256, batch 1, 2-core CPU

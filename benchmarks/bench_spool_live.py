@@ -7,7 +7,7 @@ the same trainer process, interleaved. Per window: samples/s, data wait (the tra
 own per-step fetch wait over step time), samples published. Variants:
 
 * listing: the trainer as shipped; the spool's count and rate come from its listings
-  (cuboidtrain.spoolwatch.SpoolCensus);
+  (cuboidtrain.train.spoolwatch.SpoolCensus);
 * watchdog: the same trainer with the watchdog/inotify watcher it had before (copied
   here unchanged), for comparison.
 
@@ -38,11 +38,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cuboidtrain.spoolwatch import highest_sequences, published_between  # noqa: E402
+from cuboidtrain.train.spoolwatch import highest_sequences, published_between  # noqa: E402
 from shared.spool import enumerate_spool, is_sample_name  # noqa: E402
 
 
-# ---- the watcher the trainer had before issue 14 (cuboidtrain/spoolwatch.py at 43d53fe)
+# ---- the watcher the trainer had before issue 14 (cuboidtrain/train/spoolwatch.py at 43d53fe)
 
 
 def watchdog_census(spool):
@@ -107,9 +107,9 @@ def watchdog_census(spool):
 
 
 def child(args) -> None:
-    import cuboidtrain.progress as progress
-    import cuboidtrain.train as train
-    from cuboidtrain.config import TrainConfig
+    import cuboidtrain.train.progress as progress
+    import cuboidtrain.train.loop as train
+    from cuboidtrain.train.config import TrainConfig
 
     if args.child == "watchdog":
         train.SpoolCensus = watchdog_census

@@ -21,12 +21,12 @@ import torch
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.config import PAPER
 from cuboidgen.synth import make_sample
-from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import make_loader
-from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.networks import build_model
+from cuboidtrain.train.config import TrainConfig
+from cuboidtrain.train.data import make_loader
+from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.models.networks import build_model
 from cuboidtrain.device import resolve_device
-from cuboidtrain.train import train_step
+from cuboidtrain.train.loop import train_step
 from shared.sample import encode
 from shared.spool import SpoolWriter
 

@@ -30,7 +30,7 @@ import threading
 import time
 from pathlib import Path
 
-from cuboidtrain.checkpoint import load_checkpoint
+from cuboidtrain.models.checkpoint import load_checkpoint
 from shared.inspect import inspect_spool
 from shared.spool import enumerate_spool
 

@@ -10,7 +10,7 @@ The Python API:
 """
 from __future__ import annotations
 
-_API = {"Fitter": "cuboidtrain.fitter", "Fit": "cuboidtrain.fitter", "FitOptions": "cuboidtrain.options"}
+_API = {"Fitter": "cuboidtrain.fit.fitter", "Fit": "cuboidtrain.fit.fitter", "FitOptions": "cuboidtrain.fit.options"}
 __all__ = list(_API)
 
 

@@ -8,8 +8,8 @@ from typing import Optional
 
 import typer
 
-from cuboidtrain.config import LR_SCHEDULES, PHASES
-from cuboidtrain.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
+from cuboidtrain.train.config import LR_SCHEDULES, PHASES
+from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
 from shared.console import Commands, choices, console, fail, setup_logging
 from shared.shapes import SHAPES
 
@@ -62,10 +62,10 @@ def run(
     val_samples: int = typer.Option(256, envvar="CUBOIDTRAIN_VAL_SAMPLES", help="Validation samples per evaluation."),
 ) -> None:
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
-    from cuboidtrain.config import TrainConfig
-    from cuboidtrain.dashboard import Dashboard
-    from cuboidtrain.train import NoUsableSamples
-    from cuboidtrain.train import run as run_training
+    from cuboidtrain.train.config import TrainConfig
+    from cuboidtrain.train.dashboard import Dashboard
+    from cuboidtrain.train.loop import NoUsableSamples
+    from cuboidtrain.train.loop import run as run_training
 
     setup_logging()
     try:
@@ -115,7 +115,7 @@ def evaluate(
 ) -> None:
     """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
     from cuboidtrain.evaluate import evaluate_checkpoint, format_report
-    from cuboidtrain.zoo import default_checkpoints
+    from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
     try:
@@ -135,7 +135,7 @@ def watch(
     once: bool = typer.Option(False, help="Print the dashboard once and exit."),
 ) -> None:
     """Show a running (or finished) training run's dashboard from another terminal."""
-    from cuboidtrain.dashboard import watch as watch_run
+    from cuboidtrain.train.dashboard import watch as watch_run
 
     try:
         code = watch_run(out, interval=interval, once=once)
@@ -166,9 +166,9 @@ def infer(
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.fitter import Fitter
-    from cuboidtrain.infer import write_records
-    from cuboidtrain.zoo import default_checkpoints
+    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.fit.chain import write_records
+    from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
     try:
@@ -202,7 +202,7 @@ def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
                          f"in the same order")
     if folder is None:
         return None
-    from cuboidtrain.explain import Explainer  # matplotlib: only when pictures are wanted
+    from cuboidtrain.fit.explain import Explainer  # matplotlib: only when pictures are wanted
 
     return Explainer(folder, photos)
 
@@ -216,8 +216,8 @@ def export(
     opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
 ) -> None:
     """Export R (K passes), S and T as one ONNX graph: +-1 mask in; refined, heatmaps, keypoints, ratios out."""
-    from cuboidtrain.export import export_checkpoint
-    from cuboidtrain.zoo import default_checkpoints
+    from cuboidtrain.fit.export import export_checkpoint
+    from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
     try:
@@ -250,10 +250,10 @@ def localize(
 ) -> None:
     """Localization (paper section 5): where in a known street the MASKs were taken, start positions ranked."""
     from cuboidtrain import localize as loc
-    from cuboidtrain.experiments import localisation_figures as figures
-    from cuboidtrain.infer import load_models
+    from cuboidtrain.experiments import localize_figures as figures
+    from cuboidtrain.fit.chain import load_models
 
-    out = localisation_setup(json_out, threads)
+    out = localize_setup(json_out, threads)
     try:
         options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
         paths = loc.mask_sequence(masks, mask_args)
@@ -293,12 +293,12 @@ def localize_experiment(
     device: str = typer.Option(FIT.device, help=DEVICE_HELP),
     threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
 ) -> None:
-    """The localisation experiment (paper section 5.1, eq. 2): acc(m, l) on random streets drawn by the generator."""
-    from cuboidtrain.experiments import localisation as experiment
-    from cuboidtrain.experiments import localisation_figures as figures
-    from cuboidtrain.infer import load_models
+    """The localization experiment (paper section 5.1, eq. 2): acc(m, l) on random streets drawn by the generator."""
+    from cuboidtrain.experiments import localize_experiment as experiment
+    from cuboidtrain.experiments import localize_figures as figures
+    from cuboidtrain.fit.chain import load_models
 
-    out = localisation_setup(json_out, threads)
+    out = localize_setup(json_out, threads)
     try:
         options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
         config = experiment.ExperimentConfig(
@@ -320,7 +320,7 @@ def localize_experiment(
         fail(str(exc))
 
 
-def localisation_setup(json_out: Optional[str], threads: Optional[int]):
+def localize_setup(json_out: Optional[str], threads: Optional[int]):
     """Set up logging and torch threads; returns where tables go: stdout, or stderr when --json - takes stdout."""
     import torch
     from rich.console import Console
@@ -332,7 +332,7 @@ def localisation_setup(json_out: Optional[str], threads: Optional[int]):
 
 
 def box_checkpoints(given: Optional[list[Path]]) -> list[Path]:
-    from cuboidtrain.zoo import default_checkpoints
+    from cuboidtrain.models.zoo import default_checkpoints
 
     return default_checkpoints(given, ("box",))
 
@@ -358,7 +358,7 @@ def report(
 
     from cuboidtrain.experiments.report import ReportConfig, run_report
     from cuboidtrain.experiments.report_figures import write_report
-    from cuboidtrain.zoo import default_checkpoints
+    from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
     if threads:
@@ -392,7 +392,7 @@ def models(
     """Print the model cards: arch, size, scenes, steps, samples seen, wall time, commit, validation figures."""
     if ctx.invoked_subcommand is not None:
         return
-    from cuboidtrain.zoo import cards
+    from cuboidtrain.models.zoo import cards
 
     try:
         found = cards(folder)
@@ -433,7 +433,7 @@ def models_pack(
     pdm_spool: Optional[Path] = typer.Option(None, metavar="DIR", help="Fit --extractor pdm's shape model on this spool's keypoints (the one it trained on) and save it in the file; with a model file as CKPT, only that is redone."),
 ) -> None:
     """Write a model file (weights, config, card; no optimizer state) from a training checkpoint."""
-    from cuboidtrain.zoo import pack, validation_for
+    from cuboidtrain.models.zoo import pack, validation_for
 
     try:
         figures = validation_for(validation, checkpoint) if validation else None

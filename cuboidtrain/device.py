@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from cuboidtrain.options import check_device
+from cuboidtrain.fit.options import check_device
 
 
 def resolve_device(device: str | torch.device) -> torch.device:

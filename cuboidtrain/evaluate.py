@@ -16,13 +16,13 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.checkpoint import load_model
-from cuboidtrain.data import SKIP_REASONS, SpoolBatches
-from cuboidtrain.fitter import Fitter
-from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.infer import mask_iou
-from cuboidtrain.networks import CuboidNet, build_model
-from cuboidtrain.options import DEFAULT_MARGIN, FitOptions
+from cuboidtrain.models.checkpoint import load_model
+from cuboidtrain.train.data import SKIP_REASONS, SpoolBatches
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.fit.chain import mask_iou
+from cuboidtrain.models.networks import CuboidNet, build_model
+from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
 from shared.sample import decode_record
 from shared.shapes import get_shape
 from shared.spool import check_spool, enumerate_spool, read_sample_bytes

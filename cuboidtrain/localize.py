@@ -9,7 +9,7 @@ Here: the street (a JSON file), the matching (eq. 2's distances and Figure 12's
 probabilities), and the practical command: a street's JSON and the user's masks,
 in street order, give the ranked start positions with probabilities (softmax of
 negative distances). The experiment of section 5.1 (random streets drawn by the
-generator) is `cuboidtrain.experiments.localisation`.
+generator) is `cuboidtrain.experiments.localize_experiment`.
 
 Positions are 0-based here and 1-based in what people read (tables, figures).
 """
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cuboidtrain.fitter import Fitter
-from cuboidtrain.networks import CuboidNet
-from cuboidtrain.options import FitOptions
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.fit.options import FitOptions
 from shared.shapes import RATIO_KEYS
 
 log = logging.getLogger(__name__)

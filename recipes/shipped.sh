@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# The shipped models (cuboidtrain/shipped/box.pt, twobox.pt): the compact arch at 64 px on a CPU.
+# The shipped models (cuboidtrain/models/shipped/box.pt, twobox.pt): the compact arch at 64 px on a CPU.
 #
 #   recipes/shipped.sh box             train from scratch: phase 1, then phase 2
-#   CONTINUE=1 recipes/shipped.sh box  continue from the shipped cuboidtrain/shipped/box.pt (phase 2 only;
+#   CONTINUE=1 recipes/shipped.sh box  continue from the shipped cuboidtrain/models/shipped/box.pt (phase 2 only;
 #                                      RUN=runs/NAME keeps each continuation's checkpoints apart)
-#   then: cuboidtrain models pack --checkpoint runs/shipped-box/p2/last.pt --out cuboidtrain/shipped/box.pt
+#   then: cuboidtrain models pack --checkpoint runs/shipped-box/p2/last.pt --out cuboidtrain/models/shipped/box.pt
 #
 # Data: a frozen 120,000-sample spool per shape class, half `paper`, half `street` scene,
 # with occluders and contour noise, drawn at 128 px. The trainer frames every sample as
@@ -46,7 +46,7 @@ if [ -z "${CONTINUE:-}" ]; then
         --max-minutes "$PHASE1_MINUTES" --out "$RUN/p1" $(resume "$RUN/p1")
     init=$RUN/p1/last.pt
 else
-    init=cuboidtrain/shipped/$SHAPE.pt
+    init=cuboidtrain/models/shipped/$SHAPE.pt
 fi
 "$BIN/cuboidtrain" run --phase 2 "${common[@]}" --steps "$PHASE2_STEPS" --lr "$PHASE2_LR" \
     --max-minutes "$PHASE2_MINUTES" --init "$init" --out "$RUN/p2" $(resume "$RUN/p2")

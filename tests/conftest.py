@@ -15,7 +15,7 @@ from shared.sample import encode
 from shared.spool import SpoolWriter
 
 SIZE = 48  # px: tests stay tiny
-# The registry's test architecture (cuboidtrain.networks): the compact design at a few
+# The registry's test architecture (cuboidtrain.models.networks): the compact design at a few
 # channels, built and stepped in milliseconds. Tests of behaviour (training, resume,
 # checkpoints, inference, export) use it; only tests of the real networks build others.
 ARCH = "tiny"
@@ -43,15 +43,15 @@ def fill_spool(spool: Path, count: int, limit: int = 0, shape: str = "box", libr
 
 def tiny_model(shape: str = "box", size: int = SIZE, seed: int = 0, sigma: float | None = None):
     """A freshly initialised model of the test architecture (`build_model(..., arch=ARCH)`)."""
-    from cuboidtrain.networks import build_model  # torch: only for the tests that need it
+    from cuboidtrain.models.networks import build_model  # torch: only for the tests that need it
 
     return build_model(shape, size, seed=seed, sigma=sigma, arch=ARCH)
 
 
 def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     """`cuboidtrain infer`'s records through the Fitter, on the CPU; `options` as FitOptions'."""
-    from cuboidtrain.fitter import Fitter
-    from cuboidtrain.options import FitOptions
+    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.fit.options import FitOptions
 
     return Fitter(models, FitOptions(**({"device": "cpu"} | options))).records(paths, explain=explain)
 
@@ -66,7 +66,7 @@ def with_generated_pdm(model):
 
 def train_config(**fields):
     """A TrainConfig of the test architecture; `fields` as TrainConfig's."""
-    from cuboidtrain.config import TrainConfig
+    from cuboidtrain.train.config import TrainConfig
 
     return TrainConfig(arch=ARCH, **fields)
 

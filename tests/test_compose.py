@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 import cuboidgen.cli
 import cuboidtrain.cli
-from cuboidtrain.status import TrainerStatus, write_status
+from cuboidtrain.train.status import TrainerStatus, write_status
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import build_sample
@@ -288,7 +288,7 @@ def test_trainer_service_starts_fresh_then_resumes(clean_env, volumes, tmp_path,
         seen.append(config)
         return {"state": "done", "step": 0, "last_checkpoint": {"path": f"{config.out}/last.pt"}}
 
-    clean_env.setattr("cuboidtrain.train.run", fake_training)
+    clean_env.setattr("cuboidtrain.train.loop.run", fake_training)
     for already_trained in (False, True):
         if already_trained:  # a restarted container finds the checkpoint of its last life
             Path(env["CUBOIDTRAIN_OUT"]).mkdir(parents=True, exist_ok=True)

@@ -17,11 +17,11 @@ import pytest
 import torch
 
 from cuboidgen.daemon import run as generate
-from cuboidtrain.checkpoint import load_checkpoint, load_model
-from cuboidtrain.data import EpochSampler, LoaderState, SpoolBatches
-from cuboidtrain.distributed import rank_batches
-from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.losses import combine, phase_losses
+from cuboidtrain.models.checkpoint import load_checkpoint, load_model
+from cuboidtrain.train.data import EpochSampler, LoaderState, SpoolBatches
+from cuboidtrain.train.distributed import rank_batches
+from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.train.losses import combine, phase_losses
 from tests.conftest import ARCH, tiny_config, tiny_model, train_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,9 +76,9 @@ def test_rank_samplers_split_one_listing_and_resume_at_the_same_place(tmp_path):
 def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
     from dataclasses import dataclass
 
-    from cuboidtrain.data import SKIP_REASONS
-    from cuboidtrain.distributed import Ranks
-    from cuboidtrain.train import batch_facts, stale
+    from cuboidtrain.train.data import SKIP_REASONS
+    from cuboidtrain.train.distributed import Ranks
+    from cuboidtrain.train.loop import batch_facts, stale
 
     @dataclass(frozen=True)
     class Pair(Ranks):  # two ranks in one process: sum() adds the other rank's values

@@ -9,10 +9,10 @@ import pytest
 import torch
 from torch import nn
 
-from cuboidtrain.checkpoint import save_checkpoint
+from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
-from cuboidtrain.heatmaps import render_heatmaps
-from cuboidtrain.options import FitOptions
+from cuboidtrain.fit.heatmaps import render_heatmaps
+from cuboidtrain.fit.options import FitOptions
 from shared.sample import encode, signed
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cuboidtrain.cli import app
-from cuboidtrain.explain import Explainer, _input_tile, front_arrow, overlay_zoom, to_photo
+from cuboidtrain.fit.explain import Explainer, _input_tile, front_arrow, overlay_zoom, to_photo
 from shared.shapes import get_shape
 from tests.conftest import infer_paths
 from tests.test_infer import (Recording, checkpoints, hexagon, random_models, rect_keypoints,  # noqa: F401 (fixtures)

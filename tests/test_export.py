@@ -12,10 +12,10 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from cuboidtrain.checkpoint import load_model, save_checkpoint
+from cuboidtrain.models.checkpoint import load_model, save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.export import FORMAT, OUTPUTS, OnnxPipeline, read_metadata
-from cuboidtrain.infer import refine
+from cuboidtrain.fit.export import FORMAT, OUTPUTS, OnnxPipeline, read_metadata
+from cuboidtrain.fit.chain import refine
 from shared.sample import signed
 from shared.shapes import get_shape
 from tests.conftest import build_sample, tiny_model, train_config

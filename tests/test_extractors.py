@@ -8,10 +8,10 @@ import torch
 from cuboidgen.config import PAPER
 from cuboidgen.scene import draw_view
 from cuboidtrain.experiments.generated_pdm import generated_pdm
-from cuboidtrain.extractors import argmax, centre_of_mass, dark, make_extractor
-from cuboidtrain.heatmaps import render_heatmaps
-from cuboidtrain.options import EXTRACTORS, parse_components
-from cuboidtrain.pdm import MIN_SAMPLES, PointDistributionModel
+from cuboidtrain.fit.extractors import argmax, centre_of_mass, dark, make_extractor
+from cuboidtrain.fit.heatmaps import render_heatmaps
+from cuboidtrain.fit.options import EXTRACTORS, parse_components
+from cuboidtrain.fit.pdm import MIN_SAMPLES, PointDistributionModel
 from shared.shapes import get_shape
 from tests.conftest import tiny_model, with_generated_pdm
 
@@ -150,7 +150,8 @@ def test_twobox_pdm_and_extractor_on_true_maps():
 
 
 def test_the_cli_offers_every_extractor_and_the_library_default():
-    from cuboidtrain import cli, options
+    from cuboidtrain import cli
+    from cuboidtrain.fit import options
 
     assert [choice.value for choice in cli.ExtractorChoice] == list(options.EXTRACTORS)
     assert [choice.value for choice in cli.FitShape] == list(options.FIT_SHAPES)

@@ -20,16 +20,16 @@ from rich.console import Console
 from typer.testing import CliRunner
 
 import cuboidgen.daemon as daemon
-import cuboidtrain.data as data
-import cuboidtrain.train as train_module
+import cuboidtrain.train.data as data
+import cuboidtrain.train.loop as train_module
 from cuboidgen.cli import app as gen_app
-from cuboidtrain.checkpoint import load_checkpoint
+from cuboidtrain.models.checkpoint import load_checkpoint
 from cuboidtrain.cli import app as train_app
-from cuboidtrain.config import TrainConfig
-from cuboidtrain.dashboard import render, watch
+from cuboidtrain.train.config import TrainConfig
+from cuboidtrain.train.dashboard import render, watch
 from cuboidtrain.files import sweep_orphans as sweep_run_folder
-from cuboidtrain.status import TrainerStatus, read_status, trainer_died, write_status
-from cuboidtrain.train import NoUsableSamples, StopRequest, run
+from cuboidtrain.train.status import TrainerStatus, read_status, trainer_died, write_status
+from cuboidtrain.train.loop import NoUsableSamples, StopRequest, run
 from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
 from shared.sample import encode
@@ -397,7 +397,7 @@ def test_a_worker_that_cannot_write_stops_every_worker_and_says_why(tmp_path, mo
 
 
 def test_a_checkpoint_that_cannot_be_written_is_a_one_line_error_and_the_last_one_survives(tmp_path, monkeypatch):
-    import cuboidtrain.checkpoint as checkpoint
+    import cuboidtrain.models.checkpoint as checkpoint
 
     fill(tmp_path / "spool", 4)
     real_save, saves = checkpoint.torch.save, []

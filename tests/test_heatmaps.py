@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from cuboidtrain.data import SpoolBatches
-from cuboidtrain.heatmaps import prepare_batch, render_heatmaps, unpack_masks
+from cuboidtrain.train.data import SpoolBatches
+from cuboidtrain.fit.heatmaps import prepare_batch, render_heatmaps, unpack_masks
 from shared.sample import signed
 from shared.shapes import get_shape
 from tests.conftest import SIZE as SAMPLE_SIZE

@@ -14,12 +14,12 @@ import torch.nn.functional as F
 from torch import nn
 from typer.testing import CliRunner
 
-from cuboidtrain.checkpoint import save_checkpoint
+from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.fitter import Fitter
-from cuboidtrain.options import FitOptions
-from cuboidtrain.infer import RICHER_SHAPE_MARGIN, choose, confidence, refine, silhouette
-from cuboidtrain.masks import components, frame, load_mask
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.fit.chain import RICHER_SHAPE_MARGIN, choose, confidence, refine, silhouette
+from cuboidtrain.fit.masks import components, frame, load_mask
 from shared.sample import signed
 from shared.shapes import get_shape
 from tests.conftest import build_sample, infer_paths, tiny_model, train_config, with_generated_pdm
@@ -457,6 +457,6 @@ class TrueHeatmaps(nn.Module):
         self.points = points
 
     def forward(self, mask):
-        from cuboidtrain.heatmaps import render_heatmaps
+        from cuboidtrain.fit.heatmaps import render_heatmaps
 
         return render_heatmaps(torch.as_tensor(self.points(), dtype=torch.float32)[None], mask.shape[-1], 1.0)

@@ -65,7 +65,7 @@ def fresh_interpreter() -> dict:
     cuboidgen modules and SLOW_IMPORTS all of that loaded."""
     example = readme_python_example()
     # One torch thread, as this process has (conftest): the same sums in the same order, the same floats.
-    code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.infer\n"
+    code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.fit.chain\n"
             "from cuboidtrain import FitOptions\n"
             "fitter = Fitter.from_shipped(FitOptions(device='cpu'))\n"
             "array = fitter.fit(cv2.imread('examples/building.png', cv2.IMREAD_UNCHANGED))\n"

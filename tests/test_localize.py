@@ -13,9 +13,9 @@ import pytest
 from typer.testing import CliRunner
 
 from cuboidgen.config import PAPER
-from cuboidtrain.checkpoint import save_checkpoint
+from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.experiments.localisation import ExperimentConfig, draw_street, run_experiment, silhouette_of
+from cuboidtrain.experiments.localize_experiment import ExperimentConfig, draw_street, run_experiment, silhouette_of
 from cuboidtrain.localize import (Building, accuracy, localize_masks, mask_sequence, rank_starts, read_street,
                                   start_probabilities, street_from_dict, street_to_dict,
                                   subsequence_distances, true_ranks)

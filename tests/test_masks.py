@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shared.raster import fill_convex
-from cuboidtrain.masks import Framing, components, frame, load_mask
+from cuboidtrain.fit.masks import Framing, components, frame, load_mask
 
 # A projected box's silhouette (six hull vertices), in units of its bounding square.
 HEXAGON = np.array([[0.12, 0.30], [0.55, 0.08], [0.93, 0.22], [0.95, 0.70], [0.60, 0.97], [0.10, 0.75]])
@@ -119,7 +119,7 @@ def test_framing_matrix_is_to_model():
 
 
 def test_a_bad_margin_and_an_empty_mask_are_rejected():
-    from cuboidtrain.options import FitOptions
+    from cuboidtrain.fit.options import FitOptions
 
     with pytest.raises(ValueError, match="margin 0.5"):  # checked once, where every fit's options are
         FitOptions(margin=0.5).validate()
@@ -206,7 +206,7 @@ def test_components_largest_and_all():
 def test_the_silhouette_of_a_building_cut_in_pieces_is_all_its_pieces():
     """An occluder (here a pole, a 3 px column) cuts the building in two: both pieces are it.
     A speck under 1% of the largest piece's area (segmentation noise) is not."""
-    from cuboidtrain.masks import PIECE_SHARE, silhouette
+    from cuboidtrain.fit.masks import PIECE_SHARE, silhouette
 
     mask = np.zeros((120, 200), bool)
     mask[20:100, 10:90] = True  # 6,400 px

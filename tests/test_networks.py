@@ -13,12 +13,12 @@ import pytest
 import torch
 from torch import nn
 
-from cuboidtrain.checkpoint import FORMAT, VERSION, load_checkpoint, load_model, loader_state, save_checkpoint
-from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import LoaderState
-from cuboidtrain.export import OnnxPipeline, export_model
-from cuboidtrain.heatmaps import render_heatmaps
-from cuboidtrain.networks import ARCHS, Estimator, Refiner, Tabulator, build_model, check_arch
+from cuboidtrain.models.checkpoint import FORMAT, VERSION, load_checkpoint, load_model, loader_state, save_checkpoint
+from cuboidtrain.train.config import TrainConfig
+from cuboidtrain.train.data import LoaderState
+from cuboidtrain.fit.export import OnnxPipeline, export_model
+from cuboidtrain.fit.heatmaps import render_heatmaps
+from cuboidtrain.models.networks import ARCHS, Estimator, Refiner, Tabulator, build_model, check_arch
 from shared.shapes import get_shape
 
 SHAPES = ["box", "twobox"]

@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from cuboidtrain.status import (
+from cuboidtrain.train.status import (
     FINISHED, Checkpoint, Freshness, TrainerStatus, Validation, read_status, trainer_died, write_status,
 )
 from tests.test_files import dead_pid

@@ -13,12 +13,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from cuboidtrain.checkpoint import load_checkpoint, load_model
-from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import SpoolBatches
-from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.losses import combine, phase_losses
-from cuboidtrain.train import learning_rate, run
+from cuboidtrain.models.checkpoint import load_checkpoint, load_model
+from cuboidtrain.train.config import TrainConfig
+from cuboidtrain.train.data import SpoolBatches
+from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.train.losses import combine, phase_losses
+from cuboidtrain.train.loop import learning_rate, run
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
 from tests.conftest import ARCH, build_sample, tiny_model, train_config
@@ -125,7 +125,7 @@ def test_a_listing_gone_stale_ends_the_epoch_and_lists_afresh(tmp_path, monkeypa
     with SpoolWriter(spool, limit=0) as writer:
         for seed in range(40):
             writer.publish(encode(build_sample(seed, "box", size=SIZE)))
-    import cuboidtrain.train as train_module
+    import cuboidtrain.train.loop as train_module
 
     real_prepare, calls = train_module.prepare_batch, []
 

@@ -13,8 +13,8 @@ import threading
 import pytest
 from rich.console import Console
 
-from cuboidtrain.dashboard import Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
-from cuboidtrain.status import TrainerStatus, read_status, write_status
+from cuboidtrain.train.dashboard import Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
+from cuboidtrain.train.status import TrainerStatus, read_status, write_status
 
 NOW = 1_700_000_000.0
 
@@ -165,7 +165,7 @@ def test_watch_follows_the_file_until_done(tmp_path):
 
 
 def test_log_mode_logs_on_interval_and_on_state_change(caplog):
-    caplog.set_level(logging.INFO, logger="cuboidtrain.dashboard")
+    caplog.set_level(logging.INFO, logger="cuboidtrain.train.dashboard")
     with Dashboard(live=False, log_interval=3600.0) as board:
         board.update(status(step=1))  # the first update always logs
         board.update(status(step=2))  # within the interval, same state: held back
@@ -202,7 +202,7 @@ def test_the_live_panel_leaves_room_for_the_echoed_ctrl_c():
 def test_a_stop_is_seen_before_its_handler_runs(tmp_path):
     import signal
 
-    from cuboidtrain.train import StopRequest
+    from cuboidtrain.train.loop import StopRequest
 
     with StopRequest().installed() as stop:
         write = signal.set_wakeup_fd(-1)  # the pipe the signal module writes each signal's number to
@@ -218,7 +218,7 @@ def test_status_stays_fresh_through_a_long_step_and_says_when_a_stop_waits_for_i
     import signal
     import time
 
-    import cuboidtrain.train as train_module
+    import cuboidtrain.train.loop as train_module
     from shared.sample import encode
     from shared.spool import SpoolWriter
     from tests.conftest import build_sample, train_config
@@ -263,8 +263,8 @@ def test_status_follows_steps_slower_than_the_publish_interval(tmp_path, monkeyp
 
     import torch
 
-    from cuboidtrain import progress as progress_module
-    from cuboidtrain.config import TrainConfig
+    from cuboidtrain.train import progress as progress_module
+    from cuboidtrain.train.config import TrainConfig
 
     monkeypatch.setattr(progress_module, "PUBLISH_EVERY", 0.05)
     monkeypatch.setattr(progress_module, "HEARTBEAT_EVERY", 0.01)

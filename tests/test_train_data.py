@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from cuboidgen.config import PAPER_CLEAN
-from cuboidtrain.data import SKIP_REASONS, EpochSampler, Freshness, LoaderState, SpoolBatches, make_loader
-from cuboidtrain.spoolwatch import SpoolCensus, parse_name, published_between
+from cuboidtrain.train.data import SKIP_REASONS, EpochSampler, Freshness, LoaderState, SpoolBatches, make_loader
+from cuboidtrain.train.spoolwatch import SpoolCensus, parse_name, published_between
 from shared.sample import VERSION, encode
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter, enumerate_spool
@@ -127,7 +127,7 @@ def unpacked(batch: dict, key: str, k: int, size: int) -> np.ndarray:
 
 @pytest.mark.parametrize("seed", [0, 3, 7])
 def test_a_reframed_sample_is_what_infer_frames_from_its_noisy_mask(tmp_path, seed):
-    from cuboidtrain.masks import frame, silhouette, warp
+    from cuboidtrain.fit.masks import frame, silhouette, warp
 
     sample = build_sample(seed, size=96)
     publish(tmp_path, [sample])

@@ -1,4 +1,4 @@
-"""Model files and the shipped models (cuboidtrain.zoo): pack round trips, cards, defaults, errors."""
+"""Model files and the shipped models (cuboidtrain.models.zoo): pack round trips, cards, defaults, errors."""
 from __future__ import annotations
 
 import json
@@ -8,11 +8,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from cuboidtrain.checkpoint import MODEL_FORMAT, load_checkpoint, load_model, save_checkpoint
+from cuboidtrain.models.checkpoint import MODEL_FORMAT, load_checkpoint, load_model, save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
-from cuboidtrain.extractors import make_extractor
-from cuboidtrain.pdm import MIN_SAMPLES
+from cuboidtrain.models.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
+from cuboidtrain.fit.extractors import make_extractor
+from cuboidtrain.fit.pdm import MIN_SAMPLES
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import SIZE, build_sample, fill_spool, tiny_model, train_config

@@ -29,14 +29,14 @@ import torch
 from cuboidgen.config import PAPER
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
-from cuboidtrain.checkpoint import load_model
+from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.device import resolve_device
 from cuboidtrain.evaluate import load_batches, measure, report
 from cuboidtrain.experiments.generated_pdm import with_pdm
-from cuboidtrain.extractors import make_extractor
-from cuboidtrain.fitter import Fitter
-from cuboidtrain.networks import CuboidNet, build_model
-from cuboidtrain.options import EXTRACTORS, FitOptions
+from cuboidtrain.fit.extractors import make_extractor
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.models.networks import CuboidNet, build_model
+from cuboidtrain.fit.options import EXTRACTORS, FitOptions
 from shared.sample import encode
 from shared.spool import SpoolWriter, check_spool
 

@@ -228,8 +228,8 @@ def _selection_section(results: dict) -> list[str]:
 
 
 def _localization_section(path: Path) -> list[str]:
-    """A pointer to the localisation report (issue 5), with its headline if its JSON is there."""
-    lines = ["## Localisation (paper section 5)", "", f"See [{path.name}]({path.name}).", ""]
+    """A pointer to the localization report (issue 5), with its headline if its JSON is there."""
+    lines = ["## Localization (paper section 5)", "", f"See [{path.name}]({path.name}).", ""]
     data_path = path.with_name("localization-100-model.json")
     if data_path.is_file():
         acc = json.loads(data_path.read_text())["acc"]

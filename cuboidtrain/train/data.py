@@ -12,7 +12,7 @@ another shape class or size are skipped and counted too: a `mix` spool feeds a
 `box` and a `twobox` trainer at once.
 
 Under torchrun each rank takes its strided share of every global batch (see
-`cuboidtrain.distributed`); the state (epoch, order, position) is the same on
+`cuboidtrain.train.distributed`); the state (epoch, order, position) is the same on
 every rank, so one checkpoint resumes them all.
 """
 from __future__ import annotations
@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from cuboidtrain.masks import frame, silhouette, warp
-from cuboidtrain.options import DEFAULT_MARGIN
+from cuboidtrain.fit.masks import frame, silhouette, warp
+from cuboidtrain.fit.options import DEFAULT_MARGIN
 from shared.sample import collate, decode_record, unpack_mask
 from shared.shapes import get_shape
 from shared.spool import enumerate_spool, name_time, read_sample_bytes
@@ -49,8 +49,8 @@ class CutOff(ValueError):
 
 def frame_as_infer(record: dict, size: int, margin: float = DEFAULT_MARGIN) -> dict:
     """The sample as `infer` would see it (train as you infer): the noisy mask's building
-    (`cuboidtrain.masks.silhouette`: its pieces, together) framed at `size` by
-    `cuboidtrain.masks.frame`, the clean mask and the keypoints carried by the same map. A
+    (`cuboidtrain.fit.masks.silhouette`: its pieces, together) framed at `size` by
+    `cuboidtrain.fit.masks.frame`, the clean mask and the keypoints carried by the same map. A
     generated sample is framed by its clean silhouette; a real mask can only be framed by what
     is visible of it."""
     building = silhouette(unpack_mask(record["noisy"], record["size"]))
@@ -176,7 +176,7 @@ class EpochSampler(Sampler):
             for start in range(state.position * self.batch_size, len(state.order) - self.batch_size + 1, self.batch_size):
                 yield state.order[start : start + self.batch_size]
         else:
-            from cuboidtrain.distributed import rank_batches
+            from cuboidtrain.train.distributed import rank_batches
 
             yield from rank_batches(state.order, self.batch_size, self.rank, self.world, state.position)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from cuboidtrain.networks import CuboidNet
+from cuboidtrain.models.networks import CuboidNet
 
 
 def refiner_loss(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:

@@ -25,7 +25,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from cuboidtrain.losses import phase_losses
+from cuboidtrain.train.losses import phase_losses
 
 log = logging.getLogger(__name__)
 

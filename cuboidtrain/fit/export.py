@@ -18,10 +18,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from cuboidtrain.checkpoint import load_model
-from cuboidtrain.infer import binarise
-from cuboidtrain.networks import CuboidNet
-from cuboidtrain.options import parse_refine_steps
+from cuboidtrain.models.checkpoint import load_model
+from cuboidtrain.fit.chain import binarise
+from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.fit.options import parse_refine_steps
 from shared.files import atomic_path
 from shared.shapes import get_shape
 

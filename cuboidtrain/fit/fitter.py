@@ -24,12 +24,12 @@ import numpy as np
 import torch
 
 from cuboidtrain.device import resolve_device
-from cuboidtrain.extractors import make_extractor
-from cuboidtrain.infer import (DRIFT_IOU, border_warnings, chain, choose, confidence, error_record, load_models,
+from cuboidtrain.fit.extractors import make_extractor
+from cuboidtrain.fit.chain import (DRIFT_IOU, border_warnings, chain, choose, confidence, error_record, load_models,
                                trust)
-from cuboidtrain.masks import components, frame, load_mask, silhouette, to_mask
-from cuboidtrain.networks import CuboidNet
-from cuboidtrain.options import MAX_REFINE_STEPS, FitOptions
+from cuboidtrain.fit.masks import components, frame, load_mask, silhouette, to_mask
+from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.fit.options import MAX_REFINE_STEPS, FitOptions
 from shared.shapes import get_shape
 
 log = logging.getLogger(__name__)
@@ -86,7 +86,7 @@ class Fitter:
     @classmethod
     def from_shipped(cls, options: FitOptions | None = None) -> "Fitter":
         """From the shipped models (`cuboidtrain models`): box and twobox, or the one `options.shape` names."""
-        from cuboidtrain.zoo import default_checkpoints
+        from cuboidtrain.models.zoo import default_checkpoints
 
         options = (options or FitOptions()).validate()
         return cls.from_files(default_checkpoints(None, options.shapes), options)
@@ -108,7 +108,7 @@ class Fitter:
         """`cuboidtrain infer`: the JSON records of the inputs, in input order (one per component
         with `all_components`). An input that cannot be fitted gets a record with `error` and no
         keypoints, and the others still run. `explain(index, path, record, explanation)` draws
-        each fitted component (cuboidtrain.explain.Explainer)."""
+        each fitted component (cuboidtrain.fit.explain.Explainer)."""
         records = []
         with_component = self.options.all_components
         for index, path in enumerate(paths):

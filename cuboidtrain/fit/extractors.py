@@ -13,7 +13,7 @@ and the report can swap them with `--extractor NAME`:
   Human Pose Estimation", CVPR 2020): a Newton step on the log of the smoothed map
   at its argmax, exact for a Gaussian blob;
 - `pdm`: the paper's section 4.1 alternative: argmax locations projected onto a
-  Point Distribution Model (a PCA shape model, `cuboidtrain.pdm`), which makes
+  Point Distribution Model (a PCA shape model, `cuboidtrain.fit.pdm`), which makes
   the octet globally valid.
 
 Every extractor takes `(heatmaps, tabulated)`, where `tabulated` is T's keypoints
@@ -27,8 +27,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from cuboidtrain.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, check_choice, parse_components
-from cuboidtrain.pdm import PointDistributionModel
+from cuboidtrain.fit.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, check_choice, parse_components
+from cuboidtrain.fit.pdm import PointDistributionModel
 
 
 def tabulator(heatmaps: torch.Tensor, tabulated: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cuboidtrain.options import DEFAULT_MARGIN
+from cuboidtrain.fit.options import DEFAULT_MARGIN
 
 
 def load_mask(path: Path, label_id: int | None = None) -> np.ndarray:

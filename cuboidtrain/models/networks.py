@@ -1,7 +1,7 @@
 """The three networks of paper 3.2 and the registry of architectures that build them.
 
 `paper` is the paper's: all three on torchvision's ResNet-18 (below). `compact`
-(cuboidtrain.compact) keeps the roles and outputs at a fraction of the cost.
+(cuboidtrain.models.compact) keeps the roles and outputs at a fraction of the cost.
 
 Refiner (R): FCN, mask (B, 1, H, W) -> refined mask (B, 1, H, W), tanh.
 Estimator (S): FCN, mask (B, 1, H, W) -> heat maps (B, N, H, W), sigmoid.
@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cuboidtrain import compact
-from cuboidtrain.config import default_sigma
+from cuboidtrain.models import compact
+from cuboidtrain.train.config import default_sigma
 from shared.shapes import get_shape
 
 DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1
@@ -166,7 +166,7 @@ def paper_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
 
 @register_arch("compact")
 def compact_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
-    """Narrow U-Nets at stride 2 and a spatial-expectation T (cuboidtrain.compact): the shipped models."""
+    """Narrow U-Nets at stride 2 and a spatial-expectation T (cuboidtrain.models.compact): the shipped models."""
     return _compact(num_keypoints, num_ratios, size, compact.WIDTHS)
 
 
@@ -190,7 +190,7 @@ class CuboidNet(nn.Module):
         self.shape, self.size, self.arch = shape, size, check_arch(arch)
         # The heat maps' Gaussian std in px that S was trained to draw: sub-pixel decoders need it.
         self.sigma = sigma if sigma is not None else default_sigma(size)
-        # The shape model of --extractor pdm (cuboidtrain.pdm), saved in a model file; None until one is set.
+        # The shape model of --extractor pdm (cuboidtrain.fit.pdm), saved in a model file; None until one is set.
         self.pdm = None
         self.refiner, self.estimator, self.tabulator = ARCHS[arch](
             geometry.num_keypoints, len(geometry.ratio_names), size)

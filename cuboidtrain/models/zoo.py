@@ -5,10 +5,10 @@ loader's position and every RNG so that a run resumes exactly; a *model file*
 carries what a user loads: the weights (float16), the TrainConfig, and a card
 saying how they were made (arch, size, scenes, steps, samples, wall time, commit,
 validation figures). `pack` turns the one into the other. Both load through
-`cuboidtrain.checkpoint.load_checkpoint`, so every `--checkpoint` option and
+`cuboidtrain.models.checkpoint.load_checkpoint`, so every `--checkpoint` option and
 `--init` take either.
 
-The shipped files live in `cuboidtrain/shipped/<shape>.pt` (package data, so a
+The shipped files live in `cuboidtrain/models/shipped/<shape>.pt` (package data, so a
 plain `pip install` carries them), or in the folder `CUBOID_MODELS` names.
 """
 from __future__ import annotations
@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
-from cuboidtrain.pdm import PointDistributionModel, spool_keypoints
+from cuboidtrain.models.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
+from cuboidtrain.fit.pdm import PointDistributionModel, spool_keypoints
 from shared.files import atomic_path
 
 SHIPPED_SHAPES = ("box", "twobox")

@@ -6,7 +6,7 @@ checkpoint, stop. SIGTERM and Ctrl-C finish the step in hand, write a
 checkpoint and return.
 
 Under torchrun every rank runs this loop on its share of each batch; the ranks
-agree (cuboidtrain.distributed) on each batch's fate and on when to stop, and
+agree (cuboidtrain.train.distributed) on each batch's fate and on when to stop, and
 only rank 0 writes.
 """
 from __future__ import annotations
@@ -21,17 +21,17 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
-from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import Freshness, WaitInterrupted, make_loader, spool_names
+from cuboidtrain.models.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
+from cuboidtrain.train.config import TrainConfig
+from cuboidtrain.train.data import Freshness, WaitInterrupted, make_loader, spool_names
 from cuboidtrain.device import resolve_device
-from cuboidtrain.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
+from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
 from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans, write_json_atomically
-from cuboidtrain.heatmaps import prepare_batch
-from cuboidtrain.losses import combine, phase_losses
-from cuboidtrain.networks import CuboidNet, build_model
-from cuboidtrain.progress import Progress
-from cuboidtrain.spoolwatch import SpoolCensus
+from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.train.losses import combine, phase_losses
+from cuboidtrain.models.networks import CuboidNet, build_model
+from cuboidtrain.train.progress import Progress
+from cuboidtrain.train.spoolwatch import SpoolCensus
 from shared.spool import check_spool
 
 log = logging.getLogger(__name__)
@@ -379,7 +379,7 @@ def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, 
 
 def validate(model: CuboidNet, config: TrainConfig, device: torch.device) -> dict:
     from cuboidtrain.evaluate import evaluate  # evaluation pulls in nothing the loop needs otherwise
-    from cuboidtrain.options import FitOptions
+    from cuboidtrain.fit.options import FitOptions
 
     return evaluate(model, Path(config.val_spool), config.heatmap_sigma, FitOptions(device=device),
                     max_samples=config.val_samples)

@@ -1,4 +1,4 @@
-"""The localisation experiment (paper section 5.1, eq. 2, Figures 10-12).
+"""The localization experiment (paper section 5.1, eq. 2, Figures 10-12).
 
 Draw a street of N random buildings, a noisy, occluded silhouette of each from
 the generator, predict every building's ratios through the Fitter (or an oracle:
@@ -19,10 +19,10 @@ from cuboidgen.config import SceneConfig, load_scene
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.scene import uniform
 from cuboidgen.synth import make_sample, sample_seed
-from cuboidtrain.fitter import Fitter
+from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.localize import (EXTENTS, Building, accuracy, box_model, start_probabilities, street_ratios)
-from cuboidtrain.networks import CuboidNet
-from cuboidtrain.options import FitOptions
+from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.fit.options import FitOptions
 from shared.sample import Sample
 from shared.shapes import RATIO_KEYS
 

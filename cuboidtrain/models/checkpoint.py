@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cuboidtrain.config import TrainConfig
-from cuboidtrain.data import LoaderState
-from cuboidtrain.networks import CuboidNet
-from cuboidtrain.pdm import PointDistributionModel
+from cuboidtrain.train.config import TrainConfig
+from cuboidtrain.train.data import LoaderState
+from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.fit.pdm import PointDistributionModel
 from shared.files import atomic_path
 
 FORMAT = "cuboid-fit/checkpoint"  # a training run's state: weights, optimizer, loader, RNG (cuboidtrain run)
-MODEL_FORMAT = "cuboid-fit/model"  # weights, config and model card only (cuboidtrain.zoo.pack)
+MODEL_FORMAT = "cuboid-fit/model"  # weights, config and model card only (cuboidtrain.models.zoo.pack)
 VERSION = 1
 
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.config import PHASES, TrainConfig
-from cuboidtrain.data import SKIP_REASONS
-from cuboidtrain.status import Checkpoint, Freshness, TrainerStatus, Validation, write_status
+from cuboidtrain.train.config import PHASES, TrainConfig
+from cuboidtrain.train.data import SKIP_REASONS
+from cuboidtrain.train.status import Checkpoint, Freshness, TrainerStatus, Validation, write_status
 from shared.spool import foreign_names
 
 log = logging.getLogger(__name__)
@@ -185,7 +185,7 @@ class Progress:
             freshness=Freshness(**self.freshness),
             skipped=dict(self.skipped),
             spool_samples=self.watcher.count,
-            # samples the generator evicted before this trainer read them (cuboidtrain.spoolwatch)
+            # samples the generator evicted before this trainer read them (cuboidtrain.train.spoolwatch)
             spool_evicted_unread=getattr(self.watcher, "evicted_unread_total", None),
             foreign_files=self.foreign,
             eta_s=self._eta(rates["step_time_s"]),

@@ -1,8 +1,8 @@
 """Inference (paper 3.4): binary mask -> Refiner -> Estimator -> Tabulator -> keypoints.
 
-The pieces of the fit path (`cuboidtrain.fitter.Fitter` puts them together):
+The pieces of the fit path (`cuboidtrain.fit.fitter.Fitter` puts them together):
 each input image is read, split into components and framed at the model's
-resolution (`cuboidtrain.masks`); the chain runs there and the keypoints go back
+resolution (`cuboidtrain.fit.masks`); the chain runs there and the keypoints go back
 to the input's own pixels through the same Framing. The Refiner may be re-entered
 on its own binarised output (Figure 7: each pass removes more occlusion). With
 several models (one per shape class) the fit whose silhouette best explains the
@@ -19,10 +19,10 @@ import numpy as np
 import torch
 
 from shared.raster import rasterize
-from cuboidtrain.checkpoint import load_model
+from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.files import write_json_atomically
-from cuboidtrain.networks import CuboidNet
-from cuboidtrain.options import MAX_REFINE_STEPS
+from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.fit.options import MAX_REFINE_STEPS
 from shared.shapes import Shape, get_shape
 
 log = logging.getLogger(__name__)

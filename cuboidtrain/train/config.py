@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
-from cuboidtrain.options import check_choice, check_device
+from cuboidtrain.fit.options import check_choice, check_device
 from shared.shapes import get_shape
 
 
@@ -31,7 +31,7 @@ class TrainConfig:
     spool: str = "data_spool"
     shape: str = "box"
     size: int = 256  # px, the model's square input
-    arch: str = "compact"  # a name in cuboidtrain.networks.ARCHS: paper (three ResNet-18s), compact, tiny
+    arch: str = "compact"  # a name in cuboidtrain.models.networks.ARCHS: paper (three ResNet-18s), compact, tiny
     reframe: bool = True  # frame each sample as `infer` frames a mask (its visible pieces); any spool size
     steps: int | None = None  # train until this step (a run's steps count from 0; --resume continues the count)
     epochs: int | None = None  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
@@ -65,7 +65,7 @@ class TrainConfig:
         if self.phase not in PHASES:
             raise ValueError(f"--phase {self.phase!r}: expected one of {', '.join(PHASES)}")
         get_shape(self.shape)
-        from cuboidtrain.networks import check_arch  # networks imports this module
+        from cuboidtrain.models.networks import check_arch  # networks imports this module
 
         check_arch(self.arch)
         if self.size < 32 or self.size % 32:

@@ -1,6 +1,6 @@
 """The `compact` architecture: R, S and T built for accuracy per CPU-second.
 
-Same roles and legible outputs as the paper's networks (`cuboidtrain.networks`):
+Same roles and legible outputs as the paper's networks (`cuboidtrain.models.networks`):
 
 Refiner (R): mask (B, 1, H, W) -> clean mask (B, 1, H, W), tanh.
 Estimator (S): mask (B, 1, H, W) -> one Gaussian heat map per corner (B, N, H, W), sigmoid.
