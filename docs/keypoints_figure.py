@@ -3,7 +3,7 @@
 The boxes are not drawn by hand: each is a sample made by the generator itself
 (`cuboidgen.synth.make_sample`, from a scene whose ranges are single values), so the
 numbers and names in the picture are the ones the code gives (shared/shapes.py names,
-cuboidgen.scene's viewer-term naming, shared/raster.py's pixel-centre rule).
+shared/camera.py's viewer-term naming, shared/raster.py's pixel-centre rule).
 
     .venv/bin/python docs/keypoints_figure.py [--out docs/keypoints.png]
 """

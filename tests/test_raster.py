@@ -75,33 +75,3 @@ def test_box_silhouette_is_the_hull_of_its_corners(size, rng):
     k = rng.uniform(0, size - 1, size=(8, 2))
     mask = rasterize(BOX, k, size)
     assert mask.dtype == bool and mask.shape == (size, size) and mask.any()
-
-
-def test_the_pose_multiplied_out_matches_the_matrix_product(rng):
-    """scene.rotation and scene.to_camera multiply the pose out by hand: they must equal
-    tilt @ Rz(roll) @ Rx(pitch) @ Ry(yaw), with the mirror flip on x."""
-    from cuboidgen.scene import rotation, to_camera
-
-    def rx(t):
-        return np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
-
-    def ry(t):
-        return np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]])
-
-    def rz(t):
-        return np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
-
-    points = rng.uniform(-1, 1, size=(8, 3))
-    for _ in range(50):
-        pitch, yaw, roll, tilt = rng.uniform(-40, 40, size=4)
-        expected = rz(np.radians(roll)) @ rx(np.radians(pitch)) @ ry(np.radians(yaw))
-        assert np.allclose(rotation(pitch, yaw, roll), expected, atol=1e-12)
-        p = dict(pitch_deg=pitch, yaw_deg=yaw, roll_deg=roll, camera_pitch_deg=tilt, flip=bool(rng.random() < 0.5),
-                 offset_x=rng.uniform(-2, 2), offset_y=rng.uniform(0, 2), distance=rng.uniform(2, 10))
-        up = np.radians(tilt)
-        camera_tilt = np.array([[1, 0, 0], [0, np.cos(up), np.sin(up)], [0, -np.sin(up), np.cos(up)]])
-        linear = camera_tilt @ expected
-        offset = camera_tilt @ np.array([p["offset_x"], p["offset_y"], p["distance"]])
-        if p["flip"]:
-            linear[0], offset[0] = -linear[0], -offset[0]
-        assert np.allclose(to_camera(points, p), points @ linear.T + offset, atol=1e-12)

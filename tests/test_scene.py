@@ -10,8 +10,9 @@ import pytest
 
 from cuboidgen.config import PAPER, SCENES, STREET, load_scene, scene_from_dict
 from cuboidgen.occluders import OccluderLibrary
+from shared.camera import Cuboid
 from shared.raster import rasterize
-from cuboidgen.scene import frame, object_points, to_camera, viewer_order
+from cuboidgen.scene import frame
 from cuboidgen.synth import make_sample
 from shared.sample import encode
 from shared.shapes import BOX, TWOBOX
@@ -22,11 +23,9 @@ FRONT_ON = dict(width=1.0, height=1.0, depth=1.0, pitch_deg=0.0, yaw_deg=0.0, ro
 
 
 def project(shape, params, size, rng, scene=None):
-    camera = to_camera(object_points(shape, params), params)
-    image = camera[:, :2] / camera[:, 2:3]
-    order, _ = viewer_order(shape, camera, image)
-    keypoints, _ = frame(image[order], size, scene or centred(), rng)
-    return keypoints
+    named = Cuboid.from_params(params).named_corners(shape)
+    intrinsics, _ = frame(named.image, size, scene or centred(), rng)
+    return named.keypoints(intrinsics)
 
 
 def test_front_on_unit_cube_projects_to_known_pixels(rng):
