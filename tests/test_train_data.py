@@ -13,7 +13,9 @@ import pytest
 import torch
 
 from cuboidgen.config import PAPER_CLEAN
-from cuboidtrain.train.data import SKIP_REASONS, EpochPosition, EpochSampler, FreshnessMeter, LoaderState, SpoolBatches, make_loader
+from cuboidtrain.train.data import (
+    SKIP_REASONS, EpochPosition, EpochSampler, FreshnessMeter, LoaderState, SpoolBatches, make_loader,
+)
 from cuboidtrain.train.spoolwatch import SpoolCensus, parse_name, published_between
 from shared.sample import VERSION, encode
 from shared.shapes import get_shape
@@ -243,6 +245,31 @@ def test_epochs_done_counts_finished_epochs(tmp_path):
     assert sampler.epochs_done() == 2
     consume(sampler, batches=1)
     assert sampler.epochs_done() == 2
+
+
+def test_advance_names_the_whole_global_batch_and_end_epoch_finishes_the_epoch(tmp_path):
+    names = [sample_name(i) for i in range(10)]
+    ranks = [EpochSampler(tmp_path, 2, seed=3, rank=r, world=2, list_spool=lambda _s: names) for r in (0, 1)]
+    shares = [next(iter(s)) for s in ranks]
+    assert ranks[0].where() == EpochPosition(epoch=0, taken=0, batches=2)
+    meant = [s.advance() for s in ranks]
+    assert meant[0] == meant[1] == ranks[0].snapshot().order[0:4]  # every rank's share, in listing order
+    assert sorted(meant[0]) == sorted(shares[0] + shares[1])
+    assert ranks[0].where().taken == 1 and ranks[0].epochs_done() == 0
+    ranks[0].end_epoch()  # a stale listing: the rest of the epoch is given up
+    assert ranks[0].where() == EpochPosition(epoch=0, taken=2, batches=2) and ranks[0].epochs_done() == 1
+    next(iter(ranks[0]))
+    assert ranks[0].where() == EpochPosition(epoch=1, taken=0, batches=2)
+
+
+def test_a_snapshot_is_a_copy_the_sampler_does_not_move(tmp_path):
+    fill_spool(tmp_path, 6)
+    sampler = EpochSampler(tmp_path, 2, seed=0)
+    consume(sampler, batches=1)
+    saved = sampler.snapshot()
+    assert saved == LoaderState(epoch=0, order=saved.order, position=1, world=1) and len(saved.order) == 6
+    consume(sampler)
+    assert saved.position == 1 and saved.epoch == 0 and sampler.where().epoch == 1
 
 
 def test_resume_continues_with_the_batches_after_the_saved_position(tmp_path):
