@@ -61,16 +61,17 @@ def test_rank_samplers_split_one_listing_and_resume_at_the_same_place(tmp_path):
     samplers = [EpochSampler(tmp_path, 2, seed=5, rank=r, world=2, list_spool=lambda _s: names) for r in (0, 1)]
     epochs = [list(s) for s in samplers]
     assert len(epochs[0]) == len(epochs[1]) == 5 == len(samplers[0])
-    assert samplers[0].state == samplers[1].state  # one state: one checkpoint resumes every rank
+    assert samplers[0].snapshot() == samplers[1].snapshot()  # one state: one checkpoint resumes every rank
     assert sorted(n for e in epochs for b in e for n in b) == sorted(names)
-    saved = LoaderState(samplers[0].state.epoch, samplers[0].state.order, 2, world=2)
+    state = samplers[0].snapshot()
+    saved = LoaderState(state.epoch, state.order, 2, world=2)
     for r, epoch in enumerate(epochs):
         resumed = EpochSampler(tmp_path, 2, seed=5, rank=r, world=2, list_spool=lambda _s: names)
         resumed.resume_from(saved)
         assert list(resumed) == epoch[2:]
     single = EpochSampler(tmp_path, 2, seed=5, list_spool=lambda _s: names)
     single.resume_from(saved)  # 2 global batches of 4 = 4 batches of 2 on one rank
-    assert single.state.position == 4 and list(single) == [saved.order[i : i + 2] for i in range(8, 20, 2)]
+    assert single.where().taken == 4 and list(single) == [saved.order[i : i + 2] for i in range(8, 20, 2)]
 
 
 def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():

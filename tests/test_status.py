@@ -8,7 +8,7 @@ import os
 import pytest
 
 from cuboidtrain.train.status import (
-    FINISHED, Checkpoint, Freshness, TrainerStatus, Validation, read_status, trainer_died, write_status,
+    FINISHED, BatchFreshness, Checkpoint, TrainerStatus, Validation, read_status, trainer_died, write_status,
 )
 from tests.test_files import dead_pid
 
@@ -33,7 +33,7 @@ def test_status_json_keys_and_values_survive_a_round_trip():
     status = TrainerStatus.from_json(WRITTEN_BEFORE)
     assert status.to_json() == WRITTEN_BEFORE  # the same keys as ever, and nothing lost
     assert status.last_checkpoint == Checkpoint("runs/p1/last.pt", 100, 1.7e9 + 30)
-    assert status.val == Validation(100, 2.3, 1.9) and status.freshness == Freshness(35.2, 1.4)
+    assert status.val == Validation(100, 2.3, 1.9) and status.freshness == BatchFreshness(35.2, 1.4)
     assert TrainerStatus.from_json(json.loads(json.dumps(status.to_json()))) == status
 
 

@@ -264,12 +264,14 @@ def test_status_follows_steps_slower_than_the_publish_interval(tmp_path, monkeyp
     import torch
 
     from cuboidtrain.train import progress as progress_module
+    from cuboidtrain.train import publisher
     from cuboidtrain.train.config import TrainConfig
+    from cuboidtrain.train.data import EpochPosition
 
-    monkeypatch.setattr(progress_module, "PUBLISH_EVERY", 0.05)
-    monkeypatch.setattr(progress_module, "HEARTBEAT_EVERY", 0.01)
+    monkeypatch.setattr(publisher, "PUBLISH_EVERY", 0.05)
+    monkeypatch.setattr(publisher, "HEARTBEAT_EVERY", 0.01)
     config = TrainConfig(out=str(tmp_path), steps=4, arch="tiny")
-    sampler = type("Sampler", (), {"state": type("S", (), {"epoch": 0, "position": 0})(), "__len__": lambda s: 4})()
+    sampler = type("Sampler", (), {"where": lambda s: EpochPosition(epoch=0, taken=0, batches=4)})()
     losses = {"D_R": 1.0, "D_S": 1.0, "D_T": 1.0, "total": 3.0}
     with progress_module.Progress(config, torch.device("cpu"), _NoWatcher()) as progress:
         progress.begin(0, sampler)

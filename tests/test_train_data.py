@@ -1,4 +1,4 @@
-"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, Freshness, SpoolCensus."""
+"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, FreshnessMeter, SpoolCensus."""
 from __future__ import annotations
 
 import os
@@ -13,7 +13,9 @@ import pytest
 import torch
 
 from cuboidgen.config import PAPER_CLEAN
-from cuboidtrain.train.data import SKIP_REASONS, EpochSampler, Freshness, LoaderState, SpoolBatches, make_loader
+from cuboidtrain.train.data import (
+    SKIP_REASONS, EpochPosition, EpochSampler, FreshnessMeter, LoaderState, SpoolBatches, make_loader,
+)
 from cuboidtrain.train.spoolwatch import SpoolCensus, parse_name, published_between
 from shared.sample import VERSION, encode
 from shared.shapes import get_shape
@@ -41,7 +43,7 @@ def consume(sampler: EpochSampler, batches: int | None = None) -> list[list[str]
     taken = []
     for names in sampler:
         taken.append(names)
-        sampler.state.position += 1
+        sampler.advance()
         if batches is not None and len(taken) == batches:
             break
     return taken
@@ -202,7 +204,7 @@ def test_an_epoch_is_floor_n_over_batch_batches_of_distinct_spool_names(tmp_path
     assert all(len(b) == 3 for b in batches)
     flat = [n for b in batches for n in b]
     assert len(set(flat)) == 9 and set(flat) <= set(names)
-    assert sorted(sampler.state.order) == sorted(names)
+    assert sorted(sampler.snapshot().order) == sorted(names)
 
 
 def test_each_epoch_lists_the_spool_again(tmp_path):
@@ -215,9 +217,9 @@ def test_each_epoch_lists_the_spool_again(tmp_path):
     for name in first[:3]:
         os.unlink(tmp_path / name)
     epoch2 = [n for b in consume(sampler) for n in b]
-    assert sorted(sampler.state.order) == sorted(first[3:] + added)
+    assert sorted(sampler.snapshot().order) == sorted(first[3:] + added)
     assert set(epoch2) < set(first[3:] + added) and len(set(epoch2)) == 4  # 5 left, two batches of 2
-    assert sampler.state.epoch == 2
+    assert sampler.where().epoch == 2
 
 
 def test_epoch_order_is_seeded_and_changes_between_epochs(tmp_path):
@@ -237,12 +239,37 @@ def test_epochs_done_counts_finished_epochs(tmp_path):
     assert sampler.epochs_done() == 0
     consume(sampler, batches=2)  # 2 of 3 batches
     assert sampler.epochs_done() == 0
-    sampler.state.position += 1  # the trainer takes the third
+    sampler.advance()  # the trainer takes the third
     assert sampler.epochs_done() == 1
     consume(sampler)
     assert sampler.epochs_done() == 2
     consume(sampler, batches=1)
     assert sampler.epochs_done() == 2
+
+
+def test_advance_names_the_whole_global_batch_and_end_epoch_finishes_the_epoch(tmp_path):
+    names = [sample_name(i) for i in range(10)]
+    ranks = [EpochSampler(tmp_path, 2, seed=3, rank=r, world=2, list_spool=lambda _s: names) for r in (0, 1)]
+    shares = [next(iter(s)) for s in ranks]
+    assert ranks[0].where() == EpochPosition(epoch=0, taken=0, batches=2)
+    meant = [s.advance() for s in ranks]
+    assert meant[0] == meant[1] == ranks[0].snapshot().order[0:4]  # every rank's share, in listing order
+    assert sorted(meant[0]) == sorted(shares[0] + shares[1])
+    assert ranks[0].where().taken == 1 and ranks[0].epochs_done() == 0
+    ranks[0].end_epoch()  # a stale listing: the rest of the epoch is given up
+    assert ranks[0].where() == EpochPosition(epoch=0, taken=2, batches=2) and ranks[0].epochs_done() == 1
+    next(iter(ranks[0]))
+    assert ranks[0].where() == EpochPosition(epoch=1, taken=0, batches=2)
+
+
+def test_a_snapshot_is_a_copy_the_sampler_does_not_move(tmp_path):
+    fill_spool(tmp_path, 6)
+    sampler = EpochSampler(tmp_path, 2, seed=0)
+    consume(sampler, batches=1)
+    saved = sampler.snapshot()
+    assert saved == LoaderState(epoch=0, order=saved.order, position=1, world=1) and len(saved.order) == 6
+    consume(sampler)
+    assert saved.position == 1 and saved.epoch == 0 and sampler.where().epoch == 1
 
 
 def test_resume_continues_with_the_batches_after_the_saved_position(tmp_path):
@@ -259,7 +286,7 @@ def test_resume_continues_with_the_batches_after_the_saved_position(tmp_path):
     assert resumed.epochs_done() == 1
     os.unlink(tmp_path / enumerate_spool(tmp_path)[-1])  # the spool as the original saw it at epoch 1
     assert consume(resumed) == epoch1
-    assert resumed.state.epoch == 1
+    assert resumed.where().epoch == 1
 
 
 def test_resume_mid_order_from_a_saved_state_object(tmp_path):
@@ -268,9 +295,9 @@ def test_resume_mid_order_from_a_saved_state_object(tmp_path):
     sampler = EpochSampler(tmp_path, 2, seed=0)
     sampler.resume_from(LoaderState(epoch=5, order=order, position=3))
     assert consume(sampler) == [order[6:8]]
-    assert sampler.state.epoch == 5 and sampler.state.position == 4
+    assert sampler.where() == EpochPosition(epoch=5, taken=4, batches=4)
     consume(sampler)
-    assert sampler.state.epoch == 6
+    assert sampler.where().epoch == 6
 
 
 def test_a_spool_smaller_than_a_batch_times_out_naming_the_spool(tmp_path):
@@ -313,13 +340,13 @@ def test_make_loader_gives_the_same_batches_with_and_without_workers(tmp_path):
     assert [b["names"] for b in zero[0]] != [b["names"] for b in zero[1]]  # a new order each epoch
 
 
-# ---- Freshness ------------------------------------------------------------------------
+# ---- FreshnessMeter -------------------------------------------------------------------
 
 
 def test_freshness_counts_earlier_uses_and_ages_from_names():
     t0 = 1_700_000_000.0
     a, b, c = (sample_name(i, int(t0 * 1e9) + i * 1_000_000_000) for i in range(3))  # published t0, t0+1, t0+2
-    fresh = Freshness()
+    fresh = FreshnessMeter()
     age, reuse = fresh.observe([a, b], now=t0 + 10)
     assert age == pytest.approx(9.5) and reuse == 0.0
     age, reuse = fresh.observe([a, b], now=t0 + 20)

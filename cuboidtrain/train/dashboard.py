@@ -21,7 +21,7 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from cuboidtrain.train.status import FINISHED, Checkpoint, Freshness, TrainerStatus, Validation, read_status, trainer_died
+from cuboidtrain.train.status import FINISHED, BatchFreshness, Checkpoint, TrainerStatus, Validation, read_status, trainer_died
 from shared.console import ECHO_ROOM
 
 log = logging.getLogger(__name__)
@@ -164,7 +164,7 @@ def _validation(val: Validation | None) -> str:
 
 
 def _facts(s: TrainerStatus, now: float) -> Table:
-    fresh, skipped = s.freshness or Freshness(), s.skipped
+    fresh, skipped = s.freshness or BatchFreshness(), s.skipped
     updated = fmt_duration(now - s.updated) if s.updated is not None else DASH
     grid = Table.grid(padding=(0, 2))
     grid.add_row("throughput", f"{_num(s.samples_per_s, ',.1f')} samples/s, "
@@ -192,7 +192,7 @@ def render(status: TrainerStatus, now: float | None = None, width: int | None = 
 
 def log_line(status: TrainerStatus) -> str:
     """The main figures as one plain line, for log files and non-terminals."""
-    s, fresh, ckpt = status, status.freshness or Freshness(), status.last_checkpoint or Checkpoint()
+    s, fresh, ckpt = status, status.freshness or BatchFreshness(), status.last_checkpoint or Checkpoint()
     total = f"/{s.steps_total}" if s.steps_total else ""
     progress = f"step {_num(s.step, 'd')}{total} epoch {_num(s.epoch, 'd')}"
     if s.eta_s is not None:

@@ -4,7 +4,9 @@ The sampler runs in the main process. At each epoch's start it lists the spool,
 shuffles the names with a seed derived from (run seed, epoch) and yields
 batches of names; DataLoader workers turn a batch of names into packed arrays.
 So the loader's state is just (epoch, order, position): a checkpoint stores it
-and `--resume` continues with the very next batch.
+and `--resume` continues with the very next batch. Only the sampler moves that
+state; the trainer tells it what it did (`advance`, `end_epoch`) and asks where it
+stands (`where`, `snapshot`).
 
 A name may vanish (the generator evicted it) or hold bad bytes between listing
 and reading; such samples are skipped and counted, never a crash. Samples of
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -136,6 +138,15 @@ class LoaderState:
     world: int = 1  # ranks that shared each batch (torchrun); a resume with another world rescales position
 
 
+@dataclass(frozen=True, slots=True)
+class EpochPosition:
+    """Where the loader stands, as the status shows it: the epoch, its batches taken and in all."""
+
+    epoch: int
+    taken: int  # global batches of this epoch already trained on (LoaderState.position)
+    batches: int  # global batches in this epoch (len(EpochSampler))
+
+
 class WaitInterrupted(Exception):
     """A stop was asked for while the sampler waited for samples."""
 
@@ -156,22 +167,43 @@ class EpochSampler(Sampler):
         self.rank, self.world = rank, world
         self.list_spool = list_spool or spool_names
         self.interrupted = interrupted  # () -> bool, polled while waiting for samples
-        self.state = LoaderState(world=world)
+        # Only the sampler moves its state: the trainer says what it did (advance, end_epoch)
+        # and reads where it stands (where, snapshot).
+        self._state = LoaderState(world=world)
         self.on_listing = None  # called with each epoch's listing (the trainer's freshness and spool count)
-        self._resume = False  # True: the next iter() continues `state` instead of starting a new epoch
+        self._resume = False  # True: the next iter() continues `_state` instead of starting a new epoch
 
     def resume_from(self, state: LoaderState) -> None:
         if state.world != self.world:  # the same samples consumed, counted in this world's global batches
             log.warning("resuming a %d-rank run on %d ranks: position %d rescaled", state.world, self.world, state.position)
             state = LoaderState(state.epoch, state.order, state.position * state.world // self.world, self.world)
-        self.state, self._resume = state, True
+        self._state, self._resume = state, True
+
+    def advance(self) -> list[str]:
+        """The trainer took the next global batch: moves past it and returns the names that batch
+        was meant to hold (every rank's share, those found gone or unusable included)."""
+        s, span = self._state, self.batch_size * self.world
+        s.position += 1
+        return s.order[(s.position - 1) * span : s.position * span]
+
+    def end_epoch(self) -> None:
+        """Counts the epoch as trained to its end (a stale listing): the next iter() lists the spool afresh."""
+        self._state.position = len(self)
+
+    def where(self) -> EpochPosition:
+        """The epoch and how far into it the trainer is."""
+        return EpochPosition(self._state.epoch, self._state.position, len(self))
+
+    def snapshot(self) -> LoaderState:
+        """The state a checkpoint stores (a copy: the sampler moves on)."""
+        return replace(self._state, order=list(self._state.order))
 
     def __iter__(self):
         if not self._resume:
-            epoch = self.state.epoch + 1 if self.state.order else 0
-            self.state = LoaderState(epoch, self._shuffled(epoch), 0, self.world)
+            epoch = self._state.epoch + 1 if self._state.order else 0
+            self._state = LoaderState(epoch, self._shuffled(epoch), 0, self.world)
         self._resume = False
-        state = self.state
+        state = self._state
         if self.world == 1:
             for start in range(state.position * self.batch_size, len(state.order) - self.batch_size + 1, self.batch_size):
                 yield state.order[start : start + self.batch_size]
@@ -181,11 +213,11 @@ class EpochSampler(Sampler):
             yield from rank_batches(state.order, self.batch_size, self.rank, self.world, state.position)
 
     def __len__(self) -> int:
-        return len(self.state.order) // (self.batch_size * self.world)
+        return len(self._state.order) // (self.batch_size * self.world)
 
     def epochs_done(self) -> int:
         """Epochs trained to their end: the current one counts once its last batch is taken."""
-        s = self.state
+        s = self._state
         return s.epoch + (1 if s.order and s.position >= len(self) else 0)
 
     def _shuffled(self, epoch: int) -> list[str]:
@@ -246,8 +278,9 @@ def _as_is(batch: dict) -> dict:
     return batch  # SpoolBatches already returns tensors
 
 
-class Freshness:
-    """How fresh the samples trained on are: their age and how often each was used before."""
+class FreshnessMeter:
+    """Measures how fresh each batch trained on is (its samples' age, how often each was used
+    before) from a use count per sample name (the status shows the reading: status.BatchFreshness)."""
 
     def __init__(self):
         self.uses: dict[str, int] = {}

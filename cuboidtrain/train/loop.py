@@ -23,7 +23,7 @@ import torch
 
 from cuboidtrain.models.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import Freshness, WaitInterrupted, make_loader, spool_names
+from cuboidtrain.train.data import FreshnessMeter, WaitInterrupted, make_loader, spool_names
 from cuboidtrain.device import resolve_device
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
 from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans, write_json_atomically
@@ -244,7 +244,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                                   **_sampler_options(ranks, stop))
     if resume is not None and loader_state(resume) is not None:
         sampler.resume_from(loader_state(resume))
-    freshness = Freshness()
+    freshness = FreshnessMeter()
     started, sigma, first_step = time.monotonic(), config.heatmap_sigma, step
     wait, idle_since = IDLE_WAIT[0], None  # the next pause between unusable listings; since when none was usable
     # The spool's count, arrival rate and evictions come from the listings the sampler makes
@@ -264,18 +264,16 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                 for batch in loader:  # one epoch: the spool as listed now (this rank's share of it)
                     # 1. fetch: the time spent waiting for this batch is the data wait
                     waited = progress.fetched()
-                    sampler.state.position += 1
+                    taken = sampler.advance()
                     skipped, too_small = batch_facts(ranks, batch)
-                    # this global batch's names were read, but for those found gone (on this rank)
-                    span = config.batch_size * ranks.world
-                    census.read(set(sampler.state.order[(sampler.state.position - 1) * span:
-                                                        sampler.state.position * span]) - set(batch["vanished"]))
+                    # the names this global batch was meant to hold were read, but for those found gone (on this rank)
+                    census.read(set(taken) - set(batch["vanished"]))
                     unusable = {k: unusable.get(k, 0) + n for k, n in skipped.items()}
                     if stale(skipped, config.batch_size * ranks.world):
                         # The generator evicted most of this listing (it outruns the trainer):
                         # end the epoch and list the spool afresh rather than skip through it.
                         progress.skip(skipped)
-                        sampler.state.position = len(sampler)
+                        sampler.end_epoch()
                         went_stale = True
                         break
                     if too_small:  # BatchNorm needs two
@@ -370,7 +368,7 @@ def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, 
     path = out / LAST
     if ranks.main:
         try:
-            save_checkpoint(path, model, config, step, optimizer, sampler.state, progress.metrics())
+            save_checkpoint(path, model, config, step, optimizer, sampler.snapshot(), progress.metrics())
         except OSError as exc:  # a full disk, say: the last checkpoint is still whole (atomic replace)
             raise ValueError(f"checkpoint {path}: cannot write step {step} ({exc.strerror or exc}); "
                              f"the previous one is intact, --resume continues it") from None

@@ -1,6 +1,6 @@
 """The trainer's status: what a run reports about itself in OUT/status.json.
 
-The trainer (cuboidtrain.train.progress) writes it about once a second; the dashboard renders
+The trainer (cuboidtrain.train.publisher) writes it about once a second; the dashboard renders
 it; `watch` and the compose healthcheck read it back from another process. Every field
 may be None (or empty) while it is not known yet, and a file written by an older
 version may lack fields or hold ones no longer written: reading keeps what it knows.
@@ -40,7 +40,7 @@ class Validation:
 
 
 @dataclass(slots=True)
-class Freshness:
+class BatchFreshness:
     """How old the trained samples were and how often each was used, over the last step."""
 
     mean_age_s: float | None = None
@@ -48,7 +48,7 @@ class Freshness:
 
 
 # Fields holding one of the classes above: JSON objects, made typed again when read.
-_NESTED = {"last_checkpoint": Checkpoint, "val": Validation, "freshness": Freshness}
+_NESTED = {"last_checkpoint": Checkpoint, "val": Validation, "freshness": BatchFreshness}
 
 
 @dataclass(slots=True)
@@ -84,7 +84,7 @@ class TrainerStatus:
     data_wait_fraction: float | None = None  # of step time
     losses: dict[str, float] = field(default_factory=dict)  # smoothed, by loss name (D_R, ..., total)
     loss_history: dict[str, list[float]] = field(default_factory=dict)
-    freshness: Freshness | None = None
+    freshness: BatchFreshness | None = None
     skipped: dict[str, int] = field(default_factory=dict)  # samples skipped, by reason
     spool_samples: int | None = None
     spool_evicted_unread: int | None = None  # samples the generator evicted before this trainer read them
