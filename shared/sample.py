@@ -117,7 +117,8 @@ def _check_lengths(record: dict) -> None:
     try:
         n = get_shape(record["shape"]).num_keypoints
         size = int(record["size"])
-        expected = {"keypoints": n * 2 * np.dtype(KEYPOINT_DTYPE).itemsize, "noisy": (size * size + 7) // 8, "clean": (size * size + 7) // 8}
+        mask_bytes = (size * size + 7) // 8
+        expected = {"keypoints": n * 2 * np.dtype(KEYPOINT_DTYPE).itemsize, "noisy": mask_bytes, "clean": mask_bytes}
         for key, length in expected.items():
             if len(record[key]) != length:
                 raise ValueError(f"corrupt sample: {key} has {len(record[key])} bytes, expected {length}")
