@@ -35,7 +35,7 @@ from cuboidgen.config import PAPER
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.train.config import default_sigma
+from cuboidtrain.fit.codec import default_sigma
 from cuboidtrain.fit.export import OnnxPipeline, Pipeline, export_model
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import build_model

@@ -22,8 +22,7 @@ from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.config import PAPER
 from cuboidgen.synth import make_sample
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import make_loader
-from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.train.data import make_loader, prepare_batch
 from cuboidtrain.models.networks import build_model
 from cuboidtrain.device import resolve_device
 from cuboidtrain.train.loop import train_step

@@ -17,9 +17,8 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.train.data import SKIP_REASONS, SpoolBatches
+from cuboidtrain.train.data import SKIP_REASONS, SpoolBatches, prepare_batch
 from cuboidtrain.fit.fitter import Fitter
-from cuboidtrain.fit.heatmaps import prepare_batch
 from cuboidtrain.fit.chain import mask_iou
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
@@ -89,7 +88,7 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float) 
     x = prepare_batch(batch, fitter.device, sigma, model.size)
     out = fitter.run_chain(model, x["x1"])
     t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
-    decoded_alone = fitter.extractors[model.shape](x["x3"], t_alone)  # the extractor on perfect maps
+    decoded_alone = fitter.codecs[model.shape].decode(x["x3"], t_alone).keypoints  # the extractor on perfect maps
     return {
         "keypoint": keypoint_errors(out["keypoints"], x["x4"]).cpu(),  # (B, N)
         "ratio": (out["ratios"].float() - x["ratios"]).abs().cpu(),  # (B, R)

@@ -1,10 +1,11 @@
 """The training sample and its versioned byte format.
 
 This module is the only code that turns samples into bytes and back (STYLE.md).
-A sample is one msgpack map. Masks are bit-packed (`np.packbits`, row-major),
-keypoints are little-endian float64, so a 256x256 sample is about 17 KB.
-Heat maps are not stored: they are a function of the keypoints and the trainer
-renders them on its device.
+A sample is one msgpack map. Masks are bit-packed (`np.packbits`, row-major,
+BIT_ORDER within a byte), keypoints are little-endian float64, so a 256x256
+sample is about 17 KB. Heat maps are not stored: they are a function of the
+keypoints and the trainer renders them on its device, where it also unpacks the
+masks (in torch, by BIT_SHIFTS: the bit order is stated here and nowhere else).
 """
 from __future__ import annotations
 
@@ -17,6 +18,11 @@ from shared.shapes import get_shape
 
 FORMAT = "cuboid-fit/sample"
 VERSION = 1
+KEYPOINT_DTYPE = "<f8"  # little-endian float64, (N, 2) px row-major
+BIT_ORDER = "big"  # np.packbits' default: a byte's first pixel is its most significant bit
+# The right shift that brings each of a byte's 8 pixels, first pixel first, down to bit 0:
+# for unpacking without numpy (the trainer unpacks a batch on its device, in torch).
+BIT_SHIFTS = (7, 6, 5, 4, 3, 2, 1, 0) if BIT_ORDER == "big" else (0, 1, 2, 3, 4, 5, 6, 7)
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,31 +53,44 @@ def signed(mask: np.ndarray) -> np.ndarray:
     return np.where(mask, np.float32(1), np.float32(-1))
 
 
+def pack_mask(mask: np.ndarray) -> bytes:
+    """A (size, size) bool mask -> ceil(size^2 / 8) bytes, row-major, BIT_ORDER within a byte."""
+    return np.packbits(mask, bitorder=BIT_ORDER).tobytes()
+
+
+def unpack_mask(packed: bytes, size: int) -> np.ndarray:
+    """`pack_mask`'s bytes -> the (size, size) bool mask."""
+    bits = np.unpackbits(np.frombuffer(packed, np.uint8), count=size * size, bitorder=BIT_ORDER)
+    return bits.reshape(size, size).view(bool)
+
+
 def encode(sample: Sample) -> bytes:
     """Sample -> bytes."""
+    return msgpack.packb(to_record(sample), use_bin_type=True)
+
+
+def to_record(sample: Sample) -> dict:
+    """Sample -> the record `decode_record` gives for its bytes: masks packed, keypoints as bytes."""
     n = get_shape(sample.shape).num_keypoints
-    keypoints = np.ascontiguousarray(sample.keypoints, dtype="<f8")
+    keypoints = np.ascontiguousarray(sample.keypoints, dtype=KEYPOINT_DTYPE)
     if keypoints.shape != (n, 2):
         raise ValueError(f"keypoints have shape {keypoints.shape}, expected ({n}, 2) for {sample.shape!r}")
     for name in ("noisy", "clean"):
         mask = getattr(sample, name)
         if mask.shape != (sample.size, sample.size):
             raise ValueError(f"{name} mask is {mask.shape}, expected ({sample.size}, {sample.size})")
-    return msgpack.packb(
-        {
-            "format": FORMAT,
-            "version": VERSION,
-            "shape": sample.shape,
-            "size": sample.size,
-            "seed": sample.seed,
-            "keypoints": keypoints.tobytes(),
-            "ratios": sample.ratios,
-            "noisy": np.packbits(sample.noisy).tobytes(),
-            "clean": np.packbits(sample.clean).tobytes(),
-            "params": sample.params,
-        },
-        use_bin_type=True,
-    )
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "shape": sample.shape,
+        "size": sample.size,
+        "seed": sample.seed,
+        "keypoints": keypoints.tobytes(),
+        "ratios": sample.ratios,
+        "noisy": pack_mask(sample.noisy),
+        "clean": pack_mask(sample.clean),
+        "params": sample.params,
+    }
 
 
 def decode_record(data: bytes) -> dict:
@@ -98,7 +117,8 @@ def _check_lengths(record: dict) -> None:
     try:
         n = get_shape(record["shape"]).num_keypoints
         size = int(record["size"])
-        expected = {"keypoints": n * 16, "noisy": (size * size + 7) // 8, "clean": (size * size + 7) // 8}
+        mask_bytes = (size * size + 7) // 8
+        expected = {"keypoints": n * 2 * np.dtype(KEYPOINT_DTYPE).itemsize, "noisy": mask_bytes, "clean": mask_bytes}
         for key, length in expected.items():
             if len(record[key]) != length:
                 raise ValueError(f"corrupt sample: {key} has {len(record[key])} bytes, expected {length}")
@@ -106,19 +126,19 @@ def _check_lengths(record: dict) -> None:
         raise ValueError(f"corrupt sample: missing or malformed field {exc}") from None
 
 
-def unpack_mask(packed: bytes, size: int) -> np.ndarray:
-    return np.unpackbits(np.frombuffer(packed, np.uint8), count=size * size).reshape(size, size).view(bool)
-
-
 def decode(data: bytes) -> Sample:
     """Bytes -> Sample. Raises ValueError for corrupt bytes or another format version."""
-    r = decode_record(data)
+    return from_record(decode_record(data))
+
+
+def from_record(r: dict) -> Sample:
+    """A record of `decode_record` -> Sample: masks unpacked, keypoints (N, 2) float64."""
     n = get_shape(r["shape"]).num_keypoints
     return Sample(
         shape=r["shape"],
         size=r["size"],
         seed=r["seed"],
-        keypoints=np.frombuffer(r["keypoints"], "<f8").reshape(n, 2).copy(),
+        keypoints=np.frombuffer(r["keypoints"], KEYPOINT_DTYPE).reshape(n, 2).copy(),
         ratios=r["ratios"],
         noisy=unpack_mask(r["noisy"], r["size"]),
         clean=unpack_mask(r["clean"], r["size"]),
@@ -147,14 +167,15 @@ def collate(records: list[dict], unpack: bool = True) -> dict[str, np.ndarray]:
         # would hand back to the kernel and fault in again, page by page, every batch
         # (ten times slower on this VM).
         packed = b"".join([r["noisy"] for r in records] + [r["clean"] for r in records])
-        both = np.unpackbits(np.frombuffer(packed, np.uint8)).reshape(2, len(records), size, size)
+        both = np.unpackbits(np.frombuffer(packed, np.uint8), bitorder=BIT_ORDER).reshape(2, len(records), size, size)
         batch["noisy"], batch["clean"] = both[0], both[1]
     else:
         for key in ("noisy", "clean"):
             # bytearray: a writable buffer, so torch.from_numpy can share it without a warning
             packed = np.frombuffer(bytearray(b"".join([r[key] for r in records])), np.uint8).reshape(len(records), -1)
-            batch[key] = np.unpackbits(packed, axis=1, count=size * size).reshape(-1, size, size) if unpack else packed
-    keypoints = np.frombuffer(b"".join(r["keypoints"] for r in records), "<f8")
+            batch[key] = (np.unpackbits(packed, axis=1, count=size * size, bitorder=BIT_ORDER).reshape(-1, size, size)
+                          if unpack else packed)
+    keypoints = np.frombuffer(b"".join(r["keypoints"] for r in records), KEYPOINT_DTYPE)
     batch["keypoints"] = keypoints.reshape(len(records), geometry.num_keypoints, 2).astype(np.float32)
     batch["ratios"] = np.stack([geometry.ratio_vector(r["ratios"]) for r in records]).astype(np.float32)
     return batch

@@ -18,9 +18,8 @@ import torch
 
 from cuboidgen.daemon import run as generate
 from cuboidtrain.models.checkpoint import load_checkpoint, load_model
-from cuboidtrain.train.data import EpochSampler, LoaderState, SpoolBatches
+from cuboidtrain.train.data import EpochSampler, LoaderState, SpoolBatches, prepare_batch
 from cuboidtrain.train.distributed import rank_batches
-from cuboidtrain.fit.heatmaps import prepare_batch
 from cuboidtrain.train.losses import combine, phase_losses
 from tests.conftest import ARCH, tiny_config, tiny_model, train_config
 

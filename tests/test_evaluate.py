@@ -11,7 +11,7 @@ from torch import nn
 
 from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
-from cuboidtrain.fit.heatmaps import render_heatmaps
+from cuboidtrain.fit.codec import render_heatmaps
 from cuboidtrain.fit.options import FitOptions
 from shared.sample import encode, signed
 from shared.shapes import get_shape

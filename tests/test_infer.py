@@ -457,6 +457,6 @@ class TrueHeatmaps(nn.Module):
         self.points = points
 
     def forward(self, mask):
-        from cuboidtrain.fit.heatmaps import render_heatmaps
+        from cuboidtrain.fit.codec import render_heatmaps
 
         return render_heatmaps(torch.as_tensor(self.points(), dtype=torch.float32)[None], mask.shape[-1], 1.0)

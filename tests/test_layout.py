@@ -45,6 +45,115 @@ def test_shared_imports_neither_daemon():
         assert not {m.split(".")[0] for m in imported_modules(path)} & {"cuboidgen", "cuboidtrain"}, path
 
 
+# ---- the import graph ------------------------------------------------------------------
+
+PACKAGES = ("cuboidtrain", "shared", "cuboidgen")
+
+
+def module_files() -> dict[str, Path]:
+    """Every module of PACKAGES by its dotted name (a package by its `__init__.py`)."""
+    modules = {}
+    for package in PACKAGES:
+        for path in (ROOT / package).rglob("*.py"):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return modules
+
+
+def import_edges(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The modules of `modules` that module `name` imports, at its top or inside a function.
+
+    `from X import Y` is an import of the submodule X.Y where there is one, else of X;
+    `import X.Y` is an import of X.Y (the packages above it only run their `__init__`)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: up level - 1 packages from this module's own
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            targets = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else base for alias in node.names]
+        else:
+            continue
+        found.update(t for t in targets if t in modules and t != name)
+    return found
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle per strongly connected component of more than one module (Tarjan), each
+    as a path a -> b -> ... -> a, so a failure names the imports to cut."""
+    index, low, stack, on_stack, components = {}, {}, [], set(), []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in sorted(graph[node]):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = set()
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.add(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                components.append(component)
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return [_cycle_through(min(component), component, graph) for component in components]
+
+
+def _cycle_through(start: str, component: set[str], graph: dict[str, set[str]]) -> list[str]:
+    """The shortest import path from `start` back to itself inside `component` (breadth first)."""
+    came_from, frontier = {start: None}, [start]
+    while frontier:
+        following = []
+        for node in frontier:
+            for nxt in sorted(graph[node] & component):
+                if nxt == start:
+                    path = [node]
+                    while came_from[path[-1]] is not None:
+                        path.append(came_from[path[-1]])
+                    return [start, *reversed(path[:-1]), start] if node != start else [start, start]
+                if nxt not in came_from:
+                    came_from[nxt] = node
+                    following.append(nxt)
+        frontier = following
+    raise AssertionError(f"no cycle through {start}")
+
+
+def test_import_graph_sees_submodules_and_function_level_imports():
+    modules = module_files()
+    assert {"cuboidtrain.fit.fitter", "shared.sample", "cuboidgen.daemon", "cuboidtrain"} <= set(modules)
+    # `from cuboidtrain.fit.options import ...` at the top, and the zoo imported inside a method
+    fitter = import_edges("cuboidtrain.fit.fitter", modules["cuboidtrain.fit.fitter"], modules)
+    assert {"cuboidtrain.fit.options", "cuboidtrain.models.zoo"} <= fitter
+    # `from cuboidtrain.models import compact`: the submodule, not the package
+    assert "cuboidtrain.models.compact" in import_edges(
+        "cuboidtrain.models.networks", modules["cuboidtrain.models.networks"], modules)
+    assert import_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c", "a"]]
+    assert import_cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycles():
+    """A cycle works only while every module in it is imported in a lucky order; one moved
+    import turns it into an ImportError for half-initialised modules."""
+    modules = module_files()
+    graph = {name: import_edges(name, path, modules) for name, path in modules.items()}
+    assert [" -> ".join(cycle) for cycle in import_cycles(graph)] == []
+
+
 def readme_python_example() -> str:
     """The README's first ```python block in its "Python API" section."""
     text = (ROOT / "README.md").read_text()

@@ -17,7 +17,7 @@ from cuboidtrain.models.checkpoint import FORMAT, VERSION, load_checkpoint, load
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import LoaderState
 from cuboidtrain.fit.export import OnnxPipeline, export_model
-from cuboidtrain.fit.heatmaps import render_heatmaps
+from cuboidtrain.fit.codec import render_heatmaps
 from cuboidtrain.models.networks import ARCHS, Estimator, Refiner, Tabulator, build_model, check_arch
 from shared.shapes import get_shape
 

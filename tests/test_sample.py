@@ -3,7 +3,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.sample import VERSION, collate, decode, decode_record, encode, signed
+from shared.sample import (BIT_SHIFTS, VERSION, collate, decode, decode_record, encode, from_record, pack_mask,
+                           signed, to_record, unpack_mask)
 from tests.conftest import build_sample
 
 
@@ -16,6 +17,30 @@ def test_round_trip_keeps_every_field(shape, library):
     assert np.array_equal(back.keypoints, sample.keypoints)  # float64: exact
     assert back.ratios == sample.ratios and back.params == sample.params
     assert back == sample
+
+
+def test_the_record_is_what_decode_record_reads_and_from_record_gives_the_sample_back(library):
+    sample = build_sample(5, "twobox", library=library)
+    record = to_record(sample)
+    assert record == decode_record(encode(sample))
+    assert from_record(record) == sample
+
+
+@pytest.mark.parametrize("size", [8, 33, 48])  # 33: 1089 bits, the last byte padded with zeros
+def test_mask_packing_round_trips_and_is_numpys_packbits(size):
+    mask = np.random.default_rng(size).random((size, size)) < 0.3
+    packed = pack_mask(mask)
+    assert len(packed) == (size * size + 7) // 8 and packed == np.packbits(mask).tobytes()  # docs/contract.md
+    assert np.array_equal(unpack_mask(packed, size), mask) and unpack_mask(packed, size).dtype == bool
+
+
+def test_bit_shifts_bring_each_pixel_of_a_byte_down_in_pixel_order():
+    # BIT_SHIFTS is how code without numpy (the trainer's torch) reads shared's bit order.
+    for pixel in range(8):
+        mask = np.zeros((4, 4), bool)
+        mask.flat[pixel] = True
+        first = pack_mask(mask)[0]
+        assert [(first >> shift) & 1 for shift in BIT_SHIFTS] == [int(p == pixel) for p in range(8)]
 
 
 def test_a_256_px_sample_stays_under_20_kb(library):

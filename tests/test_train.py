@@ -15,8 +15,7 @@ import torch
 
 from cuboidtrain.models.checkpoint import load_checkpoint, load_model
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import SpoolBatches
-from cuboidtrain.fit.heatmaps import prepare_batch
+from cuboidtrain.train.data import SpoolBatches, prepare_batch
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.loop import learning_rate, run
 from shared.sample import encode

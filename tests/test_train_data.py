@@ -1,4 +1,5 @@
-"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, FreshnessMeter, SpoolCensus."""
+"""The trainer's side of the spool: SpoolBatches, EpochSampler, make_loader, FreshnessMeter, SpoolCensus,
+and prepare_batch (packed masks unpacked and heat maps rendered on the device)."""
 from __future__ import annotations
 
 import os
@@ -13,11 +14,13 @@ import pytest
 import torch
 
 from cuboidgen.config import PAPER_CLEAN
+from cuboidtrain.fit.codec import render_heatmaps
 from cuboidtrain.train.data import (
     SKIP_REASONS, EpochPosition, EpochSampler, FreshnessMeter, LoaderState, SpoolBatches, make_loader,
+    prepare_batch, unpack_masks,
 )
 from cuboidtrain.train.spoolwatch import SpoolCensus, parse_name, published_between
-from shared.sample import VERSION, encode
+from shared.sample import VERSION, encode, pack_mask, signed, unpack_mask
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter, enumerate_spool
 from tests.conftest import SIZE, build_sample, fill_spool
@@ -446,3 +449,62 @@ def test_census_on_a_real_spool_counts_samples_a_writer_evicted_unlisted(tmp_pat
     publish(tmp_path, [build_sample(s) for s in range(10, 20)], limit=4)  # a new writer: 10 published, 4 kept
     assert census.listed(enumerate_spool(tmp_path))["never_listed"] == 6
     assert census.count == 4
+
+
+# ---- unpack_masks ---------------------------------------------------------------------
+
+CPU = torch.device("cpu")
+
+
+@pytest.mark.parametrize("size", [32, 48, 33])  # 33: 1089 bits, the last byte padded
+def test_unpack_masks_inverts_numpy_packbits(size):
+    rng = np.random.default_rng(size)
+    masks = rng.random((3, size, size)) < 0.4
+    packed = np.packbits(masks.reshape(3, -1), axis=1)
+    assert packed.shape == (3, (size * size + 7) // 8)
+    out = unpack_masks(torch.from_numpy(packed), size)
+    assert out.shape == (3, 1, size, size) and out.dtype == torch.float32
+    assert torch.equal(out[:, 0], torch.from_numpy(signed(masks)))
+
+
+@pytest.mark.parametrize("size", [8, 33, 64])
+def test_unpack_masks_reads_shared_pack_mask_in_its_bit_order(size):
+    # The torch unpacking takes the bit order from shared.sample; a mask packed there comes back whole.
+    rng = np.random.default_rng(size + 1)
+    masks = rng.random((4, size, size)) < 0.5
+    masks[0] = False
+    masks[1] = False
+    masks[1, 0, 0] = True  # one pixel, the first: a bit order read backwards would put it elsewhere
+    packed = np.stack([np.frombuffer(pack_mask(m), np.uint8) for m in masks])
+    out = unpack_masks(torch.from_numpy(packed), size)
+    assert torch.equal(out[:, 0] > 0, torch.from_numpy(masks))
+    assert torch.equal(out[:, 0] > 0, torch.from_numpy(np.stack([unpack_mask(p.tobytes(), size) for p in packed])))
+
+
+# ---- prepare_batch --------------------------------------------------------------------
+
+
+def test_prepare_batch_gives_the_samples_own_masks_heatmaps_and_keypoints(tmp_path):
+    spool = tmp_path / "spool"
+    names = fill_spool(spool, 4)  # seeds 0..3, SIZE px boxes
+    seed_of = {name: seed for seed, name in enumerate(names)}
+    batch = SpoolBatches(spool, "box", SIZE)[names[::-1]]  # a batch in another order than published
+    assert batch["names"] == names[::-1]
+    sigma = 1.0
+    x = prepare_batch(batch, CPU, sigma, SIZE)
+    n = get_shape("box").num_keypoints
+    assert x["x1"].shape == x["x2"].shape == (4, 1, SIZE, SIZE)
+    assert x["x3"].shape == (4, n, SIZE, SIZE)
+    assert x["x4"].shape == (4, n, 2) and x["ratios"].shape == (4, 2)
+    for b, name in enumerate(batch["names"]):
+        sample = build_sample(seed_of[name])
+        assert torch.equal(x["x1"][b, 0], torch.from_numpy(signed(sample.noisy)))
+        assert torch.equal(x["x2"][b, 0], torch.from_numpy(signed(sample.clean)))
+        keypoints = torch.from_numpy(sample.keypoints).float()
+        assert torch.equal(x["x4"][b], keypoints)
+        ratios = get_shape("box").ratio_vector(sample.ratios)
+        assert torch.allclose(x["ratios"][b], torch.from_numpy(ratios).float())
+        for k, (kx, ky) in enumerate(sample.keypoints.tolist()):
+            want = (min(max(round(ky), 0), SIZE - 1), min(max(round(kx), 0), SIZE - 1))
+            assert divmod(int(x["x3"][b, k].argmax()), SIZE) == want, (name, k)
+    assert torch.equal(x["x3"], render_heatmaps(x["x4"], SIZE, sigma))

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from cuboidtrain.models.checkpoint import MODEL_FORMAT, load_checkpoint, load_model, save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.models.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
-from cuboidtrain.fit.extractors import make_extractor
+from cuboidtrain.fit.codec import make_codec
 from cuboidtrain.fit.pdm import MIN_SAMPLES
 from shared.sample import encode
 from shared.spool import SpoolWriter
@@ -106,7 +106,7 @@ def test_a_pdm_is_fitted_on_the_training_spool_and_travels_in_the_model_file(zoo
     assert all(torch.equal(before.state_dict()[k], v) for k, v in after.state_dict().items())  # weights stay
     truth = np.stack([build_sample(seed, "box", size=16).keypoints for seed in range(5)])
     assert np.allclose(after.pdm.project(truth, 16), truth, atol=1e-6)  # every component: exact
-    make_extractor("pdm", after)  # the extractor finds the file's shape model
+    make_codec("pdm", after)  # the codec finds the file's shape model
 
 
 def test_too_small_a_pdm_spool_is_a_one_line_error(zoo, tmp_path):

@@ -33,7 +33,7 @@ from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.device import resolve_device
 from cuboidtrain.evaluate import load_batches, measure, report
 from cuboidtrain.experiments.generated_pdm import with_pdm
-from cuboidtrain.fit.extractors import make_extractor
+from cuboidtrain.fit.codec import make_codec
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.fit.options import EXTRACTORS, FitOptions
@@ -195,7 +195,7 @@ def run_report(config: ReportConfig) -> dict:
         for shape, (model, ckpt, path) in main.items():
             log.info("report: %s", shape)
             results["models"][shape] = _describe(ckpt, path, finetune.get(shape), e2e.get(shape))
-            pdm = make_extractor("pdm", with_pdm(model))
+            pdm = make_codec("pdm", with_pdm(model))
             results["models"][shape]["pdm"] = {"components": pdm.active, "variance_fraction": pdm.components}
             results["shapes"][shape] = _shape_results(config, model, finetune.get(shape), e2e.get(shape),
                                                       Path(tmp), library, device)

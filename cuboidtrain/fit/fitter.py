@@ -24,9 +24,9 @@ import numpy as np
 import torch
 
 from cuboidtrain.device import resolve_device
-from cuboidtrain.fit.extractors import make_extractor
 from cuboidtrain.fit.chain import (DRIFT_IOU, border_warnings, chain, choose, confidence, error_record, load_models,
                                trust)
+from cuboidtrain.fit.codec import make_codec
 from cuboidtrain.fit.masks import components, frame, load_mask, silhouette, to_mask
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import MAX_REFINE_STEPS, FitOptions
@@ -72,8 +72,8 @@ class Fitter:
         self.options = (options or FitOptions()).validate()
         self.models = candidate_models(models, self.options.shape)
         self.device = resolve_device(self.options.device)
-        self.extractors = {m.shape: make_extractor(self.options.extractor, m, self.options.pdm_components)
-                           for m in self.models}
+        self.codecs = {m.shape: make_codec(self.options.extractor, m, self.options.pdm_components)
+                       for m in self.models}
         for model in self.models:
             model.to(self.device).eval()
 
@@ -135,7 +135,7 @@ class Fitter:
         keypoints), refine_steps, refine_converged."""
         out = chain(model, x1.to(self.device), self.options.refine_steps)
         return out | {"tabulated": out["keypoints"],
-                      "keypoints": self.extractors[model.shape](out["heatmaps"], out["keypoints"])}
+                      "keypoints": self.codecs[model.shape].decode(out["heatmaps"], out["keypoints"]).keypoints}
 
     def _read(self, mask: str | Path | np.ndarray) -> np.ndarray:
         if isinstance(mask, (str, Path)):

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from shared.shapes import SHAPES
 
 FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
-EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")  # cuboidtrain.fit.extractors
+EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")  # cuboidtrain.fit.codec.CODECS
 MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
 DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the model size per side
 DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px

@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from cuboidtrain.fit.codec import default_sigma
 from cuboidtrain.models import compact
-from cuboidtrain.train.config import default_sigma
 from shared.shapes import get_shape
 
 DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1

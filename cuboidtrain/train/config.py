@@ -11,10 +11,6 @@ from cuboidtrain.fit.options import check_choice, check_device
 from shared.shapes import get_shape
 
 
-def default_sigma(size: int) -> float:
-    """Heat-map std in px when none is given: size/128, at least 1 (2 px at 256)."""
-    return max(1.0, size / 128)
-
 # Phase 1 and 2 are the paper's scheme (3.3.2); the other two are its ablations (4.1.1).
 PHASES = {
     "1": "each network alone on ground-truth inputs (x1->R, x2->S, x3->T)",
@@ -100,6 +96,9 @@ class TrainConfig:
 
     @property
     def heatmap_sigma(self) -> float:
+        # Imported here: the codec is torch's, and the command line reads this module for --help.
+        from cuboidtrain.fit.codec import default_sigma
+
         return self.sigma if self.sigma is not None else default_sigma(self.size)
 
     @property

@@ -13,6 +13,10 @@ and reading; such samples are skipped and counted, never a crash. Samples of
 another shape class or size are skipped and counted too: a `mix` spool feeds a
 `box` and a `twobox` trainer at once.
 
+A batch leaves the loader with its masks still bit-packed (8x less to copy) and
+`prepare_batch` unpacks them on the training device, beside the heat maps it renders
+there (`cuboidtrain.fit.codec`): the paper's x1, x2, x3, x4.
+
 Under torchrun each rank takes its strided share of every global batch (see
 `cuboidtrain.train.distributed`); the state (epoch, order, position) is the same on
 every rank, so one checkpoint resumes them all.
@@ -28,9 +32,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from cuboidtrain.fit.codec import render_heatmaps
 from cuboidtrain.fit.masks import frame, silhouette, warp
 from cuboidtrain.fit.options import DEFAULT_MARGIN
-from shared.sample import collate, decode_record, unpack_mask
+from shared.sample import BIT_SHIFTS, Sample, collate, decode_record, from_record, to_record
 from shared.shapes import get_shape
 from shared.spool import enumerate_spool, name_time, read_sample_bytes
 
@@ -49,23 +54,21 @@ class CutOff(ValueError):
     """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
 
-def frame_as_infer(record: dict, size: int, margin: float = DEFAULT_MARGIN) -> dict:
+def frame_as_infer(sample: Sample, size: int, margin: float = DEFAULT_MARGIN) -> Sample:
     """The sample as `infer` would see it (train as you infer): the noisy mask's building
     (`cuboidtrain.fit.masks.silhouette`: its pieces, together) framed at `size` by
     `cuboidtrain.fit.masks.frame`, the clean mask and the keypoints carried by the same map. A
     generated sample is framed by its clean silhouette; a real mask can only be framed by what
     is visible of it."""
-    building = silhouette(unpack_mask(record["noisy"], record["size"]))
+    building = silhouette(sample.noisy)
     if building is None:
         raise CutOff("no visible piece to frame")
     framed, framing = frame(building, size, margin)
-    clean = warp(unpack_mask(record["clean"], record["size"]), framing)
-    keypoints = framing.to_model(np.frombuffer(record["keypoints"], "<f8").reshape(-1, 2))
+    keypoints = framing.to_model(sample.keypoints)
     reach = MAX_OUTSIDE * size
     if keypoints.min() < -0.5 - reach or keypoints.max() > size - 0.5 + reach:
         raise CutOff(f"a corner lies more than {reach:g} px outside the frame")
-    return record | {"size": size, "noisy": np.packbits(framed).tobytes(), "clean": np.packbits(clean).tobytes(),
-                     "keypoints": keypoints.astype("<f8").tobytes()}
+    return replace(sample, size=size, noisy=framed, clean=warp(sample.clean, framing), keypoints=keypoints)
 
 
 class SpoolBatches(Dataset):
@@ -117,7 +120,7 @@ class SpoolBatches(Dataset):
             return "other_shape", None
         if self.reframe == "always" or (self.reframe == "other-sizes" and record["size"] != self.size):
             try:
-                return None, frame_as_infer(record, self.size, self.margin)
+                return None, to_record(frame_as_infer(from_record(record), self.size, self.margin))
             except CutOff:
                 return "cut_off", None
         if record["size"] != self.size:
@@ -276,6 +279,30 @@ def make_loader(spool: str | Path, shape: str, size: int, batch_size: int, seed:
 
 def _as_is(batch: dict) -> dict:
     return batch  # SpoolBatches already returns tensors
+
+
+_BIT_SHIFTS = torch.tensor(BIT_SHIFTS, dtype=torch.uint8)  # shared.sample's bit order, one shift per pixel of a byte
+
+
+def unpack_masks(packed: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, ceil(size*size/8)) uint8 packed bits (`shared.sample.pack_mask`) -> (B, 1, size, size)
+    float32, +1 object / -1 background. In torch, so that it runs on the training device."""
+    bits = (packed.unsqueeze(-1) >> _BIT_SHIFTS.to(packed.device)) & 1  # (B, bytes, 8)
+    bits = bits.reshape(packed.shape[0], -1)[:, : size * size]
+    return bits.view(-1, 1, size, size).float() * 2 - 1
+
+
+def prepare_batch(batch: dict, device: torch.device, sigma: float, size: int) -> dict[str, torch.Tensor]:
+    """A loader batch -> the paper's x1 (noisy), x2 (clean), x3 (heat maps), x4 (keypoints), ratios."""
+    non_blocking = device.type == "cuda"
+    keypoints = batch["keypoints"].to(device, non_blocking=non_blocking)
+    return {
+        "x1": unpack_masks(batch["noisy"].to(device, non_blocking=non_blocking), size),
+        "x2": unpack_masks(batch["clean"].to(device, non_blocking=non_blocking), size),
+        "x3": render_heatmaps(keypoints, size, sigma),
+        "x4": keypoints,
+        "ratios": batch["ratios"].to(device, non_blocking=non_blocking),
+    }
 
 
 class FreshnessMeter:

@@ -23,11 +23,10 @@ import torch
 
 from cuboidtrain.models.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import FreshnessMeter, WaitInterrupted, make_loader, spool_names
+from cuboidtrain.train.data import FreshnessMeter, WaitInterrupted, make_loader, prepare_batch, spool_names
 from cuboidtrain.device import resolve_device
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
 from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans, write_json_atomically
-from cuboidtrain.fit.heatmaps import prepare_batch
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.progress import Progress

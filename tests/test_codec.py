@@ -1,5 +1,8 @@
-"""Keypoint extractors and the Point Distribution Model, on heat maps with known peaks."""
+"""The keypoint codec (heat maps from keypoints, keypoints read back by every extractor) and the
+Point Distribution Model, on heat maps with known peaks."""
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -8,14 +11,96 @@ import torch
 from cuboidgen.config import PAPER
 from cuboidgen.scene import draw_view
 from cuboidtrain.experiments.generated_pdm import generated_pdm
-from cuboidtrain.fit.extractors import argmax, centre_of_mass, dark, make_extractor
-from cuboidtrain.fit.heatmaps import render_heatmaps
+from cuboidtrain.fit.codec import (CODECS, Decoded, argmax, centre_of_mass, dark, default_sigma, make_codec,
+                                   render_heatmaps)
 from cuboidtrain.fit.options import EXTRACTORS, parse_components
 from cuboidtrain.fit.pdm import MIN_SAMPLES, PointDistributionModel
 from shared.shapes import get_shape
 from tests.conftest import tiny_model, with_generated_pdm
 
 SIZE = 64
+MAP_SIZE = 32  # px, the encoding tests'
+
+
+def random_keypoints(count: int, margin: float, seed: int = 0) -> torch.Tensor:
+    """(1, count, 2) sub-pixel keypoints at least `margin` px inside a MAP_SIZE px image."""
+    g = torch.Generator().manual_seed(seed)
+    return margin + torch.rand(1, count, 2, generator=g, dtype=torch.float64) * (MAP_SIZE - 1 - 2 * margin)
+
+
+# ---- encoding: render_heatmaps on the pixel-centre convention -------------------------------
+
+
+def test_peak_is_exactly_one_at_an_integer_keypoint_row_y_column_x():
+    keypoints = torch.tensor([[[5.0, 20.0], [20.0, 5.0], [0.0, 31.0]]])  # (x, y)
+    maps = render_heatmaps(keypoints, MAP_SIZE, sigma=1.5)
+    assert maps.shape == (1, 3, MAP_SIZE, MAP_SIZE) and maps.dtype == torch.float32
+    for n, (x, y) in enumerate(keypoints[0].long().tolist()):
+        assert maps[0, n, y, x] == 1.0  # row y, column x
+        assert maps[0, n].max() == 1.0
+        assert (maps[0, n] == 1.0).sum() == 1
+        assert divmod(int(maps[0, n].argmax()), MAP_SIZE) == (y, x)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0])
+def test_centre_of_mass_of_a_sub_pixel_map_is_the_keypoint(sigma):
+    # integers are pixel centres: the map's centre of mass over pixel centres j, i
+    # must be the keypoint itself, not the keypoint +- 0.5
+    keypoints = random_keypoints(20, margin=4 * sigma, seed=int(sigma * 10))
+    maps = render_heatmaps(keypoints, MAP_SIZE, sigma).double()[0]  # (20, H, W)
+    grid = torch.arange(MAP_SIZE, dtype=torch.float64)
+    mass = maps.sum(dim=(1, 2))
+    com_x = (maps * grid[None, None, :]).sum(dim=(1, 2)) / mass
+    com_y = (maps * grid[None, :, None]).sum(dim=(1, 2)) / mass
+    err = torch.stack([com_x, com_y], dim=1) - keypoints[0]
+    assert err.abs().max() < 0.01, err.abs().max()
+
+
+def test_argmax_pixel_is_the_rounded_keypoint():
+    keypoints = random_keypoints(20, margin=3.0, seed=7)
+    maps = render_heatmaps(keypoints, MAP_SIZE, sigma=1.0)[0]
+    for n, (x, y) in enumerate(keypoints[0].tolist()):
+        assert divmod(int(maps[n].argmax()), MAP_SIZE) == (round(y), round(x))
+
+
+@pytest.mark.parametrize("x, y", [(13.0, 9.0), (12.5, 20.5), (16.0, 10.5)])
+def test_map_is_symmetric_about_the_keypoint(x, y):
+    maps = render_heatmaps(torch.tensor([[[x, y]]]), MAP_SIZE, sigma=1.5)[0, 0]
+    r = 6  # px either side; the window's centre is the keypoint (a pixel centre or between two)
+    cols = slice(math.floor(x) - r, math.ceil(x) + r + 1)
+    rows = slice(math.floor(y) - r, math.ceil(y) + r + 1)
+    window = maps[rows, cols]
+    assert torch.equal(window, window.flip(0))
+    assert torch.equal(window, window.flip(1))
+    if (x, y) == (12.5, 20.5):  # between four pixel centres: all four hold the peak, 0.5 px away on each axis
+        peak = maps[20:22, 12:14]
+        assert torch.equal(peak, torch.full((2, 2), maps.max().item()))
+        assert maps.max().item() == pytest.approx(math.exp(-0.5 / (2 * 1.5**2)), rel=1e-6)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0, 3.0])
+def test_sigma_sets_the_width(sigma):
+    x, y = 15, 14
+    maps = render_heatmaps(torch.tensor([[[float(x), float(y)]]]), MAP_SIZE, sigma)[0, 0]
+    s = int(sigma)
+    for dx, dy in [(s, 0), (-s, 0), (0, s), (0, -s)]:
+        assert maps[y + dy, x + dx].item() == pytest.approx(math.exp(-0.5), rel=1e-6)
+    assert maps[y + s, x + s].item() == pytest.approx(math.exp(-1.0), rel=1e-6)
+    assert maps[y, x + 1].item() == pytest.approx(math.exp(-1 / (2 * sigma**2)), rel=1e-6)
+
+
+def test_each_keypoint_of_a_batch_gets_its_own_map():
+    keypoints = torch.tensor([[[3.0, 4.0], [10.0, 11.0]], [[30.0, 2.0], [0.0, 0.0]]])
+    maps = render_heatmaps(keypoints, MAP_SIZE, sigma=1.0)
+    assert maps.shape == (2, 2, MAP_SIZE, MAP_SIZE)
+    for b in range(2):
+        for n in range(2):
+            x, y = keypoints[b, n].long().tolist()
+            assert maps[b, n, y, x] == 1.0
+
+
+# ---- decoding ---------------------------------------------------------------------------
+
 
 
 def random_peaks(seed: int, count: int = 16, border: float = 6.0) -> torch.Tensor:
@@ -68,12 +153,45 @@ def test_peaks_at_the_border_and_flat_maps_give_finite_points_inside_the_image()
 def test_tabulator_extractor_passes_t_through_and_names_are_checked():
     model = with_generated_pdm(tiny_model("box", 32))
     tabulated = torch.rand(1, 8, 2)
-    assert make_extractor("tabulator", model)(torch.rand(1, 8, 32, 32), tabulated) is tabulated
+    assert make_codec("tabulator", model).decode(torch.rand(1, 8, 32, 32), tabulated).keypoints is tabulated
     with pytest.raises(ValueError, match="--extractor 'soft'.*tabulator, argmax, centre-of-mass, dark, pdm"):
-        make_extractor("soft", model)
+        make_codec("soft", model)
     for name in EXTRACTORS:
-        points = make_extractor(name, model)(render_heatmaps(tabulated * 31, 32, 1.0), tabulated)
+        points = make_codec(name, model).decode(render_heatmaps(tabulated * 31, 32, 1.0), tabulated).keypoints
         assert points.shape == (1, 8, 2)
+
+
+def test_the_registry_holds_every_extractor_the_options_offer():
+    assert tuple(CODECS) == EXTRACTORS  # options.EXTRACTORS is the command line's list, without torch
+    assert all(CODECS[name].name == name for name in CODECS)
+
+
+@pytest.mark.parametrize("name", EXTRACTORS)
+def test_every_codec_encodes_the_training_target_and_decodes_with_its_extractor(name):
+    model = with_generated_pdm(tiny_model("box", SIZE))
+    codec = make_codec(name, model)
+    truth = torch.from_numpy(generated_sets("box", 2, seed=4))  # valid boxes, which the PDM keeps
+    maps = codec.encode(truth)
+    assert torch.equal(maps, render_heatmaps(truth, SIZE, model.sigma))  # one encoding for all
+    decoded = codec.decode(maps, truth.float())
+    assert isinstance(decoded, Decoded) and decoded.keypoints.shape == decoded.scores.shape + (2,) == (2, 8, 2)
+    kernel = {"tabulator": lambda m: truth.float(), "argmax": argmax, "centre-of-mass": centre_of_mass,
+              "dark": lambda m: dark(m, sigma=model.sigma)}
+    if name in kernel:  # the codec is its extractor, nothing added
+        assert torch.equal(decoded.keypoints, kernel[name](maps))
+    assert distances(decoded.keypoints, truth).max() < (1.0 if name in ("argmax", "pdm") else 0.2)
+
+
+def test_scores_are_each_maps_peak():
+    codec = make_codec("argmax", tiny_model("box", SIZE))
+    maps = torch.cat([0.7 * render_heatmaps(random_peaks(1)[:1, :1], SIZE, 2.0), torch.zeros(1, 1, SIZE, SIZE)], 1)
+    scores = codec.decode(maps).scores
+    assert scores.shape == (1, 2) and scores[0, 1] == 0 and 0.6 < scores[0, 0] <= 0.7
+
+
+def test_default_sigma_is_size_over_128_and_at_least_a_pixel():
+    assert [default_sigma(s) for s in (64, 128, 256, 512)] == [1.0, 1.0, 2.0, 4.0]
+    assert tiny_model("box", 256).sigma == 2.0  # a model built without one takes the default
 
 
 # --- the Point Distribution Model ------------------------------------------------------------
@@ -145,7 +263,7 @@ def test_a_pdm_needs_enough_well_formed_sets():
 def test_twobox_pdm_and_extractor_on_true_maps():
     model = with_generated_pdm(tiny_model("twobox", SIZE))
     truth = torch.from_numpy(generated_sets("twobox", 4, seed=3))
-    points = make_extractor("pdm", model, pdm_components="0.999")(render_heatmaps(truth, SIZE, 1.0), None)
+    points = make_codec("pdm", model, pdm_components="0.999").decode(render_heatmaps(truth, SIZE, 1.0)).keypoints
     assert points.shape == truth.shape and distances(points, truth).mean() < 0.6
 
 
@@ -161,7 +279,7 @@ def test_the_cli_offers_every_extractor_and_the_library_default():
 
 def test_a_model_without_a_pdm_says_how_to_get_one():
     with pytest.raises(ValueError, match="carries no point distribution model.*--pdm-spool"):
-        make_extractor("pdm", tiny_model("box", 32))
+        make_codec("pdm", tiny_model("box", 32))
 
 
 def test_a_pdm_survives_its_trip_through_a_model_file(pdm):
