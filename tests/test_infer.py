@@ -263,6 +263,22 @@ def test_keypoints_outside_the_input_are_warned_about_and_lower_the_confidence(t
     assert outside["confidence"] < 0.75 * inside["confidence"]
 
 
+def test_the_stages_hand_on_typed_results_and_none_edits_another(tmp_path):
+    # The chosen Candidate keeps its own IoU; the Fit's lowered confidence and warnings are the
+    # Scores made from it (chain.score), and an explanation reads that same Candidate.
+    path = write_png(tmp_path / "m.png", rectangles((60, 80), (20, 15, 60, 45)))
+    framed, _ = frame(components(load_mask(Path(path)))[0], SIZE)
+    points = rect_keypoints(framed, 8)
+    points[[1, 3]] += (0, 3 * SIZE)  # two corners far below the image: guessed
+    fit = Fitter([stub_model("box", Identity(), points)], FitOptions(device="cpu")).fit(path)
+    candidate = fit.explanation.candidate
+    assert isinstance(candidate, Candidate) and candidate.shape == fit.shape == "box"
+    assert candidate.confidence == fit.candidates["box"] > fit.confidence  # lowered in the Fit, not in place
+    assert np.allclose(candidate.framing.to_input(candidate.keypoints), fit.keypoints)
+    assert np.array_equal(candidate.framed, framed) and fit.explanation.mask.shape == (60, 80)
+    assert any("outside the input image" in w for w in fit.warnings)
+
+
 def test_a_mask_that_fills_the_frame_is_not_confident(tmp_path):
     block = rectangles((60, 80), (20, 15, 60, 45))
     whole = fitted_record(tmp_path, block, lambda framed: rect_keypoints(framed, 8))
