@@ -1,7 +1,8 @@
 """Evaluation on a spool: the paper's average pixel error (Table 3) and what explains it.
 
-The whole chain T(S(R(x1))) runs in eval mode on the spool's samples of the
-model's shape class and size, in name order, at the model's resolution. Beside
+The whole chain T(S(R^K(x1))) runs as infer runs it (`Fitter.predict`), in eval
+mode, on the spool's samples of the model's shape class and size, in name
+order, at the model's resolution. Beside
 the paper's metric (mean Euclidean px distance between predicted and true
 keypoints) it reports the median, PCK, the ratios' error, the Refiner's IoU and
 the Tabulator alone on rendered heat maps x3, so a bad number can be traced to
@@ -19,7 +20,7 @@ import torch
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.train.data import SKIP_REASONS, SpoolBatches, prepare_batch
 from cuboidtrain.fit.fitter import Fitter
-from cuboidtrain.fit.chain import mask_iou
+from cuboidtrain.models.refine import mask_iou
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
 from shared.sample import decode_record
@@ -86,13 +87,13 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float) 
     """Per-sample errors of one batch, on the CPU, the keypoints read as the Fitter reads them
     (T's, or its extractor's off S's heat maps)."""
     x = prepare_batch(batch, fitter.device, sigma, model.size)
-    out = fitter.run_chain(model, x["x1"])
+    out = fitter.predict(model, x["x1"])  # the chain as infer runs it
     t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
     decoded_alone = fitter.codecs[model.shape].decode(x["x3"], t_alone).keypoints  # the extractor on perfect maps
     return {
-        "keypoint": keypoint_errors(out["keypoints"], x["x4"]).cpu(),  # (B, N)
-        "ratio": (out["ratios"].float() - x["ratios"]).abs().cpu(),  # (B, R)
-        "iou": mask_iou(out["refined"], x["x2"]).cpu(),  # (B,)
+        "keypoint": keypoint_errors(out.keypoints, x["x4"]).cpu(),  # (B, N)
+        "ratio": (out.ratios.float() - x["ratios"]).abs().cpu(),  # (B, R)
+        "iou": mask_iou(out.refined, x["x2"]).cpu(),  # (B,)
         "tabulator": keypoint_errors(t_alone, x["x4"]).cpu(),  # (B, N)
         "extractor": keypoint_errors(decoded_alone, x["x4"]).cpu(),  # (B, N)
     }

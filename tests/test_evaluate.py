@@ -13,6 +13,7 @@ from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
 from cuboidtrain.fit.codec import render_heatmaps
 from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.models.networks import ChainOutput
 from shared.sample import encode, signed
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter
@@ -123,15 +124,17 @@ class Oracle(nn.Module):
         self.truth = {s.noisy.tobytes(): s for s in samples}
         self.tabulator = CentroidTabulator()
 
-    def forward(self, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, mask: torch.Tensor, refine_steps: int | None = 1) -> ChainOutput:
         found = [self.truth[(m[0] > 0).numpy().tobytes()] for m in mask]
         geometry = get_shape(self.shape)
-        return {
-            "refined": torch.from_numpy(np.stack([signed(s.clean) for s in found]))[:, None],
-            "heatmaps": render_heatmaps(torch.tensor(np.stack([s.keypoints for s in found])), self.size, self.sigma),
-            "keypoints": torch.tensor(np.stack([s.keypoints for s in found]), dtype=torch.float32),
-            "ratios": torch.tensor(np.stack([geometry.ratio_vector(s.ratios) for s in found]), dtype=torch.float32),
-        }
+        keypoints = torch.tensor(np.stack([s.keypoints for s in found]), dtype=torch.float32)
+        return ChainOutput(
+            refined=torch.from_numpy(np.stack([signed(s.clean) for s in found]))[:, None],
+            heatmaps=render_heatmaps(torch.tensor(np.stack([s.keypoints for s in found])), self.size, self.sigma),
+            keypoints=keypoints, tabulated=keypoints,
+            ratios=torch.tensor(np.stack([geometry.ratio_vector(s.ratios) for s in found]), dtype=torch.float32),
+            refine_steps=1, refine_converged=True,
+        )
 
 
 def test_an_oracle_scores_perfectly(box_spool, box_samples):

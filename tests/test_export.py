@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from cuboidtrain.models.checkpoint import load_model, save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.fit.export import FORMAT, OUTPUTS, OnnxPipeline, read_metadata
-from cuboidtrain.fit.chain import refine
+from cuboidtrain.models.refine import refine
 from shared.sample import signed
 from shared.shapes import get_shape
 from tests.conftest import build_sample, tiny_model, train_config
@@ -57,13 +57,13 @@ def masks(shape: str, kind: str, batch: int) -> np.ndarray:
 
 
 def eager(model, mask: np.ndarray, steps: int) -> dict[str, np.ndarray]:
-    """infer's own chain in torch: refine (K passes), then S on R's output, then T."""
+    """infer's own chain in torch (CuboidNet.forward): K Refiner passes, then S on R's output, then T."""
     with torch.inference_mode():
-        refined, _, _ = refine(model, torch.from_numpy(mask), steps)
-        heatmaps = model.estimator(refined)
-        keypoints, ratios = model.tabulator(heatmaps)
-    return {"refined": refined.numpy(), "heatmaps": heatmaps.numpy(), "keypoints": keypoints.numpy(),
-            "ratios": ratios.numpy()}
+        out = model(torch.from_numpy(mask), steps)
+        alone, _, _ = refine(model.refiner, torch.from_numpy(mask), steps)
+    assert out.refine_steps == steps and torch.equal(out.refined, alone)
+    return {"refined": out.refined.numpy(), "heatmaps": out.heatmaps.numpy(), "keypoints": out.keypoints.numpy(),
+            "ratios": out.ratios.numpy()}
 
 
 def assert_close(onnx_out: dict, torch_out: dict) -> None:

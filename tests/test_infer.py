@@ -18,7 +18,8 @@ from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.chain import RICHER_SHAPE_MARGIN, choose, confidence, refine, silhouette
+from cuboidtrain.fit.chain import RICHER_SHAPE_MARGIN, Candidate, choose, confidence, model_silhouette
+from cuboidtrain.models.refine import refine
 from cuboidtrain.fit.masks import components, frame, load_mask
 from shared.sample import signed
 from shared.shapes import get_shape
@@ -164,9 +165,9 @@ def test_fit_with_one_step_is_the_chained_forward(random_models):
     result = Fitter([model], FitOptions(device="cpu")).fit_framed(model, framed)
     with torch.inference_mode():
         expected = model(torch.from_numpy(signed(framed))[None, None])
-    assert np.allclose(result["keypoints"], expected["keypoints"][0].numpy(), atol=1e-6)
-    assert result["refined"].shape == (SIZE, SIZE) and result["heatmaps"].shape == (8, SIZE, SIZE)
-    assert result["refine_steps"] == 1 and set(result["ratios"]) == {"depth_height", "width_height"}
+    assert np.allclose(result.keypoints, expected.keypoints[0].numpy(), atol=1e-6)
+    assert result.refined.shape == (SIZE, SIZE) and result.heatmaps.shape == (8, SIZE, SIZE)
+    assert result.refine_steps == 1 and set(result.ratios) == {"depth_height", "width_height"}
 
 
 # --- iterative refinement (Figure 7) -------------------------------------------
@@ -174,9 +175,9 @@ def test_fit_with_one_step_is_the_chained_forward(random_models):
 def test_a_stationary_refiner_stops_after_two_passes(tmp_path):
     model = stub_model("box", refiner=Identity())
     mask = torch.from_numpy(signed(rectangles((SIZE, SIZE), (4, 4, 20, 20))))[None, None]
-    refined, steps, converged = refine(model, mask, None)
+    refined, steps, converged = refine(model.refiner, mask, None)
     assert steps == 2 and converged and torch.equal(refined, mask)  # the second pass changed nothing
-    assert refine(model, mask, 5)[1] == 5
+    assert refine(model.refiner, mask, 5)[1] == 5
     path = write_png(tmp_path / "a.png", hexagon())
     assert infer_paths([path], [model], refine_steps=None)[0]["refine_steps"] == 2
 
@@ -184,10 +185,10 @@ def test_a_stationary_refiner_stops_after_two_passes(tmp_path):
 def test_an_eroding_refiner_runs_to_the_limit_on_binary_inputs(tmp_path):
     model = stub_model("box", refiner=(erode := Erode()))
     full = torch.ones(1, 1, SIZE, SIZE)  # 16 one-pixel peels to empty: every pass changes something
-    refined, steps, converged = refine(model, full, 20)
+    refined, steps, converged = refine(model.refiner, full, 20)
     assert steps == 20 and converged and not (refined > 0).any()  # a fixed K is what was asked for
     assert all(set(x.unique().tolist()) <= {-1.0, 1.0} for x in erode.inputs)  # the sign went back in, not 0.5
-    refined, steps, converged = refine(model, full, 5)
+    refined, steps, converged = refine(model.refiner, full, 5)
     assert steps == 5 and int((refined > 0).sum()) == (SIZE - 10) ** 2
     path = write_png(tmp_path / "a.png", hexagon())
     assert infer_paths([path], [model], refine_steps=3)[0]["refine_steps"] == 3
@@ -198,7 +199,7 @@ def test_auto_refinement_that_never_settles_keeps_the_first_pass_and_says_so(tmp
     # auto: the record says it did not converge, and the mask is R's first pass.
     model = stub_model("box", refiner=Erode())
     full = torch.ones(1, 1, SIZE, SIZE)
-    refined, steps, converged = refine(model, full, None, max_steps=5)
+    refined, steps, converged = refine(model.refiner, full, None, max_steps=5)
     assert not converged and steps == 1 and int((refined > 0).sum()) == (SIZE - 2) ** 2
     path = write_png(tmp_path / "a.png", hexagon())
     record = infer_paths([path], [model], refine_steps=None)[0]
@@ -218,7 +219,7 @@ def test_auto_refinement_decides_per_mask_in_a_batch():
     # eval refines batches: one mask that never settles must not hold back (or throw away)
     # the passes of one that did
     full = torch.ones(2, 1, SIZE, SIZE)
-    refined, steps, converged = refine(stub_model("box", refiner=FirstStillRestEroding()), full, None, max_steps=5)
+    refined, steps, converged = refine(FirstStillRestEroding(), full, None, max_steps=5)
     assert steps == 2 and not converged
     assert torch.equal(refined[0], full[0])  # settled after its second pass
     assert int((refined[1] > 0).sum()) == (SIZE - 2) ** 2  # never settled: its first pass
@@ -230,7 +231,7 @@ def test_confidence_is_high_for_the_true_keypoints_and_lower_when_perturbed():
     sample = build_sample(seed=3, shape="box", size=48)
     true = confidence("box", sample.keypoints, signed(sample.clean))
     assert true > 0.97
-    assert silhouette("box", sample.keypoints, 48).sum() > 0
+    assert model_silhouette("box", sample.keypoints, 48).sum() > 0
     rng = np.random.default_rng(0)
     for scale in (1.5, 4.0):
         perturbed = sample.keypoints + rng.normal(0, scale, sample.keypoints.shape)
@@ -262,6 +263,22 @@ def test_keypoints_outside_the_input_are_warned_about_and_lower_the_confidence(t
     assert outside["confidence"] < 0.75 * inside["confidence"]
 
 
+def test_the_stages_hand_on_typed_results_and_none_edits_another(tmp_path):
+    # The chosen Candidate keeps its own IoU; the Fit's lowered confidence and warnings are the
+    # Scores made from it (chain.score), and an explanation reads that same Candidate.
+    path = write_png(tmp_path / "m.png", rectangles((60, 80), (20, 15, 60, 45)))
+    framed, _ = frame(components(load_mask(Path(path)))[0], SIZE)
+    points = rect_keypoints(framed, 8)
+    points[[1, 3]] += (0, 3 * SIZE)  # two corners far below the image: guessed
+    fit = Fitter([stub_model("box", Identity(), points)], FitOptions(device="cpu")).fit(path)
+    candidate = fit.explanation.candidate
+    assert isinstance(candidate, Candidate) and candidate.shape == fit.shape == "box"
+    assert candidate.confidence == fit.candidates["box"] > fit.confidence  # lowered in the Fit, not in place
+    assert np.allclose(candidate.framing.to_input(candidate.keypoints), fit.keypoints)
+    assert np.array_equal(candidate.framed, framed) and fit.explanation.mask.shape == (60, 80)
+    assert any("outside the input image" in w for w in fit.warnings)
+
+
 def test_a_mask_that_fills_the_frame_is_not_confident(tmp_path):
     block = rectangles((60, 80), (20, 15, 60, 45))
     whole = fitted_record(tmp_path, block, lambda framed: rect_keypoints(framed, 8))
@@ -289,7 +306,7 @@ def test_auto_picks_the_model_with_the_higher_confidence(tmp_path, winner):
 def test_a_picture_that_cannot_be_made_is_a_warning_and_the_records_survive(tmp_path, random_models):
     good = write_png(tmp_path / "good.png", hexagon())
 
-    def broken(index, path, record, explanation):
+    def broken(index, path, fit):
         raise OSError(28, "No space left on device")
 
     [record] = infer_paths([good], random_models, explain=broken)
@@ -301,8 +318,15 @@ def test_a_picture_that_cannot_be_made_is_a_warning_and_the_records_survive(tmp_
     (0.90, 0.91, "box"), (0.90, 0.90 + RICHER_SHAPE_MARGIN, "box"), (0.90, 0.93, "twobox"), (0.95, 0.50, "box"),
 ])
 def test_the_twobox_must_explain_clearly_more_than_the_box(box, twobox, chosen):
-    fits = [({"shape": "twobox", "confidence": twobox}, None, None), ({"shape": "box", "confidence": box}, None, None)]
-    assert choose(fits)[0]["shape"] == chosen  # in any order of the models given
+    fits = [candidate("twobox", twobox), candidate("box", box)]
+    assert choose(fits).shape == chosen  # in any order of the models given
+    assert choose(fits[::-1]).shape == chosen
+
+
+def candidate(shape: str, confidence: float) -> Candidate:
+    n, empty = get_shape(shape).num_keypoints, np.zeros((SIZE, SIZE))
+    return Candidate(shape=shape, keypoints=np.zeros((n, 2)), ratios={}, confidence=confidence, refine_steps=1,
+                     refine_converged=True, refined=empty, heatmaps=np.zeros((n, SIZE, SIZE)), framed=empty > 0)
 
 
 def test_a_requested_shape_without_its_model_is_an_error(random_models):

@@ -18,7 +18,7 @@ from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import LoaderState
 from cuboidtrain.fit.export import OnnxPipeline, export_model
 from cuboidtrain.fit.codec import render_heatmaps
-from cuboidtrain.models.networks import ARCHS, Estimator, Refiner, Tabulator, build_model, check_arch
+from cuboidtrain.models.networks import ARCHS, ChainOutput, Estimator, Refiner, Tabulator, build_model, check_arch
 from shared.shapes import get_shape
 
 SHAPES = ["box", "twobox"]
@@ -81,19 +81,20 @@ def test_cuboidnet_forward_shapes_and_ranges(shape, arch):
     model = tiny_model(shape, arch).eval()
     with torch.no_grad():
         out = model(masks(2))
-    assert set(out) == {"refined", "heatmaps", "keypoints", "ratios"}
-    assert out["refined"].shape == (2, 1, SIZE, SIZE)
-    assert out["heatmaps"].shape == (2, n, SIZE, SIZE)
-    assert out["keypoints"].shape == (2, n, 2)
-    assert out["ratios"].shape == (2, r)
-    for name, value in out.items():
+    assert isinstance(out, ChainOutput) and (out.refine_steps, out.refine_converged) == (1, True)
+    assert out.refined.shape == (2, 1, SIZE, SIZE)
+    assert out.heatmaps.shape == (2, n, SIZE, SIZE)
+    assert out.keypoints.shape == (2, n, 2) and out.tabulated is out.keypoints  # no extractor here: T's
+    assert out.ratios.shape == (2, r)
+    for name in ("refined", "heatmaps", "keypoints", "ratios"):
+        value = getattr(out, name)
         assert value.dtype == torch.float32, name
         assert torch.isfinite(value).all(), name
-    assert out["refined"].min() >= -1 and out["refined"].max() <= 1
-    assert out["heatmaps"].min() >= 0 and out["heatmaps"].max() <= 1
+    assert out.refined.min() >= -1 and out.refined.max() <= 1
+    assert out.heatmaps.min() >= 0 and out.heatmaps.max() <= 1
     low, high = model.tabulator.keypoint_range()
-    assert out["keypoints"].min() >= low and out["keypoints"].max() <= high
-    assert (out["ratios"] > 0).all()
+    assert out.keypoints.min() >= low and out.keypoints.max() <= high
+    assert (out.ratios > 0).all()
 
 
 @pytest.mark.parametrize("arch", ARCH_NAMES)
@@ -146,7 +147,7 @@ def test_the_registry_builds_at_other_sizes(arch):
     model = build_model("box", 64, arch=arch).eval()
     with torch.no_grad():
         out = model(masks(2, 64))
-    assert out["heatmaps"].shape == (2, 8, 64, 64) and out["keypoints"].shape == (2, 8, 2)
+    assert out.heatmaps.shape == (2, 8, 64, 64) and out.keypoints.shape == (2, 8, 2)
 
 
 # ---- every parameter learns -----------------------------------------------------------
@@ -184,7 +185,7 @@ def test_onnxruntime_matches_torch_for_every_arch(arch, tmp_path):
     with torch.no_grad():
         want = model(x)
     for name, atol in (("refined", 1e-4), ("heatmaps", 1e-4), ("keypoints", 1e-3), ("ratios", 1e-4)):
-        np.testing.assert_allclose(got[name], want[name].numpy(), rtol=0, atol=atol, err_msg=f"{arch} {name}")
+        np.testing.assert_allclose(got[name], getattr(want, name).numpy(), rtol=0, atol=atol, err_msg=f"{arch} {name}")
 
 
 # ---- construction ---------------------------------------------------------------------
@@ -304,7 +305,7 @@ def test_checkpoint_round_trip_gives_the_same_weights_and_outputs(saved, shape):
     x = masks(2, seed=4)
     with torch.no_grad():
         want, got = model.eval()(x), loaded(x)
-    assert all(torch.equal(want[k], got[k]) for k in want)
+    assert all(torch.equal(getattr(want, k), getattr(got, k)) for k in ("refined", "heatmaps", "keypoints", "ratios"))
     assert ckpt["format"] == FORMAT and ckpt["version"] == VERSION
     assert (ckpt["shape"], ckpt["size"], ckpt["step"], ckpt["sigma"]) == (shape, SIZE, 7, 1.0)
     assert TrainConfig.from_dict(ckpt["config"]) == TrainConfig(shape=shape, size=SIZE, phase="2", steps=50, sigma=1.0)

@@ -70,6 +70,27 @@ def test_phase_2_chains_so_the_final_loss_reaches_every_network(spool):
     assert grads_by_network(model, losses["D_S"]) == {"refiner": True, "estimator": True, "tabulator": False}
 
 
+def test_the_chained_phases_run_the_one_chain_with_the_same_numbers_and_gradients(spool):
+    # CuboidNet.forward (the chain infer, eval and export run) must train exactly as R, S and T
+    # wired by hand: the sign it takes of the +-1 mask x1 changes no value and no gradient.
+    x, model = batch_of(spool), tiny_model("box", SIZE).train()
+    by_hand = tiny_model("box", SIZE).train()
+    refined = by_hand.refiner(x["x1"])
+    heatmaps = by_hand.estimator(refined)
+    keypoints, ratios = by_hand.tabulator(heatmaps)
+    squared_px = ((keypoints - x["x4"]) ** 2).sum(dim=-1).mean()
+    expected = {"D_R": torch.nn.functional.l1_loss(refined, x["x2"]),
+                "D_S": ((heatmaps - x["x3"]) ** 2).sum(dim=(-2, -1)).mean(),
+                "D_T": squared_px + torch.nn.functional.mse_loss(ratios, x["ratios"])}
+    losses = phase_losses(model, x, "2", ratio_weight=1.0)
+    for name in ("D_R", "D_S", "D_T"):
+        assert torch.equal(losses[name], expected[name]), name
+    combine(losses, "2", (1.0, 1.0, 1.0)).backward()
+    combine(expected, "2", (1.0, 1.0, 1.0)).backward()
+    for (name, p), q in zip(model.named_parameters(), by_hand.parameters()):
+        assert torch.equal(p.grad, q.grad), name
+
+
 def test_eq_1_weights_and_the_ablations_final_loss_only():
     losses = {"D_R": torch.tensor(1.0), "D_S": torch.tensor(10.0), "D_T": torch.tensor(100.0)}
     assert combine(losses, "2", (1.0, 1.0, 1.0)).item() == 111.0

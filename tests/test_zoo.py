@@ -48,8 +48,8 @@ def test_a_packed_model_gives_the_checkpoints_outputs_to_float16_precision(zoo):
     x = torch.from_numpy(np.where(build_sample(3).noisy, 1.0, -1.0).astype(np.float32))[None, None]
     with torch.no_grad():
         a, b = original(x), packed(x)
-    assert torch.allclose(a["heatmaps"], b["heatmaps"], atol=5e-3)
-    assert (a["keypoints"] - b["keypoints"]).abs().max() < 0.05  # px
+    assert torch.allclose(a.heatmaps, b.heatmaps, atol=5e-3)
+    assert (a.keypoints - b.keypoints).abs().max() < 0.05  # px
     assert all(v.dtype == torch.float16 for v in payload["model"].values() if v.is_floating_point())
 
 

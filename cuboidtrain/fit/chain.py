@@ -1,17 +1,18 @@
-"""Inference (paper 3.4): binary mask -> Refiner -> Estimator -> Tabulator -> keypoints.
+"""The fit path's steps around the chain and the typed results they hand on: candidates, their choice, their scores.
 
-The pieces of the fit path (`cuboidtrain.fit.fitter.Fitter` puts them together):
-each input image is read, split into components and framed at the model's
-resolution (`cuboidtrain.fit.masks`); the chain runs there and the keypoints go back
-to the input's own pixels through the same Framing. The Refiner may be re-entered
-on its own binarised output (Figure 7: each pass removes more occlusion). With
-several models (one per shape class) the fit whose silhouette best explains the
-input mask wins, the simpler class unless the richer one explains clearly more;
-that IoU is the record's `confidence`.
+The Fitter (`cuboidtrain.fit.fitter`) puts these together: each input image is
+read, split into components and framed at every model's resolution
+(`cuboidtrain.fit.masks`); the chain runs there (`CuboidNet.forward`, refinement
+in `cuboidtrain.models.refine`) and gives one `Candidate` per shape class. The
+candidate whose silhouette best explains the input mask wins (`choose`), the
+simpler class unless the richer one explains clearly more; that IoU, lowered
+where the fit is guessed (`score`), is the record's `confidence`. The stages
+hand each other frozen dataclasses: none edits another's result.
 """
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -22,87 +23,55 @@ from shared.raster import rasterize
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.files import write_json_atomically
 from cuboidtrain.models.networks import CuboidNet
+from cuboidtrain.models.refine import DRIFT_IOU
+from cuboidtrain.fit.masks import Framing
 from cuboidtrain.fit.options import MAX_REFINE_STEPS
 from shared.shapes import Shape, get_shape
 
 log = logging.getLogger(__name__)
 
-# "auto" distrusts a settled mask this far from the Refiner's first pass. On 300 noisy `paper`
-# masks the shipped models' later passes only hurt (box: 10.16 px at one pass, 11.09 at two;
-# auto 12.38 at 0.9, 10.43 at 0.99, 10.19 at 0.995; twobox 11.56, 11.89, 11.59, 11.56):
-# auto keeps a later pass only when it barely moved the mask.
-DRIFT_IOU = 0.995
 # A twobox can lay its two parts end to end and pass for a box, so it explains any box
 # silhouette about as well; it must beat the box by this much IoU to be chosen. On 240
 # mixed noisy 64 px samples (CPU recipe models), 0.02 gave 86% right against 82% at 0.
 RICHER_SHAPE_MARGIN = 0.02
 
 
-def binarise(refined: torch.Tensor) -> torch.Tensor:
-    """Tanh output -> the +-1 mask the Refiner was trained on (> 0 is object, as everywhere)."""
-    return torch.where(refined > 0, 1.0, -1.0).to(refined.dtype)
+@dataclass(frozen=True)
+class Candidate:
+    """One shape class's fit of one framed mask, at model resolution (`Fitter.fit_framed`)."""
+
+    shape: str
+    keypoints: np.ndarray  # (N, 2) model px, as the extractor read them
+    ratios: dict[str, float]
+    confidence: float  # IoU of the fitted silhouette with the framed input (`confidence`)
+    refine_steps: int  # Refiner passes run
+    refine_converged: bool
+    refined: np.ndarray  # (S, S) R's tanh output: what an explanation draws
+    heatmaps: np.ndarray  # (N, S, S) S's maps
+    framed: np.ndarray  # (S, S) bool: the framed input x1 the chain saw
+    framing: Framing | None = None  # input px <-> model px; None for a mask framed by the caller
 
 
-def refine(model: CuboidNet, mask_pm1: torch.Tensor, steps: int | None,
-           max_steps: int = MAX_REFINE_STEPS) -> tuple[torch.Tensor, int, bool]:
-    """Iterative refinement (Figure 7): (B, 1, S, S) +-1 masks -> (refined tanh output, passes
-    run, whether every mask converged).
+@dataclass(frozen=True)
+class Scores:
+    """How far the chosen candidate is trusted: its confidence lowered where the fit is guessed, and why."""
 
-    `steps=K` runs R K times, each pass on the sign of the previous output (R was
-    trained on binary inputs, not tanh values); K=0 hands the raw mask on. `None`
-    ("auto") repeats, per mask, until a pass flips none of its pixels. A mask whose
-    Refiner never settles within `max_steps` passes, or settles far from its first
-    pass (IoU below DRIFT_IOU: grown into a square, eaten away), is not trusted:
-    auto then keeps its first pass (one pass is what R was trained to do). A fixed K
-    always counts as converged. Passes run is the most any mask of the batch took.
-    """
-    if steps is not None:  # a count FitOptions has checked
-        refined = mask_pm1
-        for _ in range(steps):
-            refined = model.refiner(binarise(refined))
-        return refined, steps, True
-    batch = mask_pm1.shape[0]
-    settled_at = torch.zeros(batch, dtype=torch.long)  # 0: not settled yet
-    refined, first, result, previous = mask_pm1, None, None, None
-    for step in range(1, max_steps + 1):
-        refined = model.refiner(binarise(refined))
-        current = refined > 0
-        if first is None:
-            first, result = refined, refined.clone()
-        else:
-            settled = (current == previous).flatten(1).all(1) & (settled_at == 0)
-            result[settled], settled_at[settled] = refined[settled], step
-            if (settled_at > 0).all():
-                break
-        previous = current
-    trusted = (settled_at > 0) & (mask_iou(result, first) >= DRIFT_IOU)
-    result[~trusted], settled_at[~trusted] = first[~trusted], 1
-    return result, int(settled_at.max()), bool(trusted.all())
+    confidence: float  # in [0, 1]
+    warnings: tuple[str, ...]
 
 
-def mask_iou(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
-    """(B, 1, H, W) masks in +-1 (object > 0) -> (B,) IoU; two empty masks agree fully (1)."""
-    a, b = (refined > 0).flatten(1), (clean > 0).flatten(1)
-    inter, union = (a & b).sum(1).float(), (a | b).sum(1).float()
-    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
+@dataclass(frozen=True)
+class Explanation:
+    """What an explanation panel draws (`cuboidtrain.fit.explain`): the winning candidate and the input."""
+
+    candidate: Candidate
+    mask: np.ndarray  # (H, W) bool: the fitted component in the input's own pixels
 
 
-def chain(model: CuboidNet, x1: torch.Tensor, refine_steps: int | None = 1) -> dict:
-    """T(S(R^K(x1))), the inference chain of paper 3.4, on a (B, 1, S, S) +-1 batch, with K
-    Refiner passes (None: until settled). Returns refined, heatmaps, keypoints (T's), ratios
-    and the passes run."""
-    if refine_steps == 1:  # one pass on a binary mask is the model's own forward
-        return model(x1) | {"refine_steps": 1, "refine_converged": True}
-    refined, steps_run, converged = refine(model, x1, refine_steps)
-    heatmaps = model.estimator(refined)  # S sees R's tanh output, as in CuboidNet.forward and training
-    keypoints, ratios = model.tabulator(heatmaps)
-    return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios,
-            "refine_steps": steps_run, "refine_converged": converged}
-
-
-def silhouette(shape: str | Shape, keypoints: np.ndarray, size: int) -> np.ndarray:
+def model_silhouette(shape: str | Shape, keypoints: np.ndarray, size: int) -> np.ndarray:
     """The fitted cuboid's bool (S, S) silhouette: the union of its parts' convex hulls,
-    drawn by the generator's own rasteriser so a perfect fit reproduces a training mask."""
+    drawn by the generator's own rasteriser so a perfect fit reproduces a training mask.
+    (Not `masks.silhouette`, which picks the building out of an input mask.)"""
     geometry = get_shape(shape) if isinstance(shape, str) else shape
     return rasterize(geometry, np.asarray(keypoints, dtype=np.float64), size)
 
@@ -120,7 +89,7 @@ def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
     samples, choosing by the refined masks was right 80% of the time, by the input 86%).
     """
     target = np.asarray(mask.detach().cpu() if torch.is_tensor(mask) else mask).squeeze() > 0
-    fitted = silhouette(shape, keypoints, target.shape[-1])
+    fitted = model_silhouette(shape, keypoints, target.shape[-1])
     union = np.logical_or(fitted, target).sum()
     return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
 
@@ -163,30 +132,36 @@ def outside_keypoints(keypoints: np.ndarray, shape: tuple[int, int]) -> np.ndarr
     return np.flatnonzero((x < -0.5) | (x > width - 0.5) | (y < -0.5) | (y > height - 0.5))
 
 
-def trust(record: dict, mask: np.ndarray, keypoints: np.ndarray, shape: str) -> None:
-    """Lower the record's confidence, and say why, where the fit explains less than its IoU claims:
-    corners outside the input are guessed, a silhouette cut by the image's edge hides its outline
-    (a mask filling the frame shows none of it), and a Refiner that did not settle was not used."""
+def score(candidate: Candidate, mask: np.ndarray, keypoints: np.ndarray) -> Scores:
+    """The chosen candidate's confidence, lowered, and the warnings saying why, where the fit
+    explains less than its IoU claims: corners outside the input are guessed, a silhouette cut by
+    the image's edge hides its outline (a mask filling the frame shows none of it), and a Refiner
+    that did not settle was not used. `mask` is the input component, `keypoints` in its pixels."""
+    confidence, warnings = candidate.confidence, border_warnings(mask)
+    if not candidate.refine_converged:
+        warnings.append(f"refinement did not settle within {MAX_REFINE_STEPS} passes, or drifted "
+                        f"from its first pass (IoU < {DRIFT_IOU}): its first pass was used")
     outside = outside_keypoints(keypoints, mask.shape)
     if outside.size:
-        names = get_shape(shape).keypoint_names
-        record["warnings"].append(f"{outside.size} of {len(keypoints)} keypoints lie outside the input image "
-                                  f"({', '.join(names[i] for i in outside)}): guessed, not seen")
-        record["confidence"] *= 1 - outside.size / len(keypoints)
+        names = get_shape(candidate.shape).keypoint_names
+        warnings.append(f"{outside.size} of {len(keypoints)} keypoints lie outside the input image "
+                        f"({', '.join(names[i] for i in outside)}): guessed, not seen")
+        confidence *= 1 - outside.size / len(keypoints)
     cut = border_cut(mask)
-    record["confidence"] *= 1 - cut
+    confidence *= 1 - cut
     if cut >= 0.5:
-        record["warnings"].append(f"{100 * cut:.0f}% of the silhouette's outline lies on the image's edge: "
-                                  f"the mask may not show a building's outline at all")
+        warnings.append(f"{100 * cut:.0f}% of the silhouette's outline lies on the image's edge: "
+                        f"the mask may not show a building's outline at all")
+    return Scores(confidence=confidence, warnings=tuple(warnings))
 
 
-def choose(fits: list[tuple]) -> tuple:
-    """The best-explained fit: simplest class first (fewest keypoints), replaced by a richer one
-    only when its confidence is higher by more than RICHER_SHAPE_MARGIN."""
-    ordered = sorted(fits, key=lambda f: get_shape(f[0]["shape"]).num_keypoints)
+def choose(candidates: list[Candidate]) -> Candidate:
+    """The best-explained candidate: simplest class first (fewest keypoints), replaced by a richer
+    one only when its confidence is higher by more than RICHER_SHAPE_MARGIN."""
+    ordered = sorted(candidates, key=lambda c: get_shape(c.shape).num_keypoints)
     best = ordered[0]
     for candidate in ordered[1:]:
-        if candidate[0]["confidence"] > best[0]["confidence"] + RICHER_SHAPE_MARGIN:
+        if candidate.confidence > best.confidence + RICHER_SHAPE_MARGIN:
             best = candidate
     return best
 
@@ -195,6 +170,11 @@ def error_record(path: str, reason: str, all_components: bool) -> dict:
     record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
               "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
     return record | ({"component": None} if all_components else {})
+
+
+def no_explanation(exc: Exception) -> str:
+    """The record's warning for an explanation picture that could not be made, on one line."""
+    return "no explanation: " + " ".join(str(exc).split())
 
 
 def write_records(path: Path, records: list[dict]) -> None:

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import matplotlib
@@ -31,8 +33,12 @@ import numpy as np  # noqa: E402
 
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
+from cuboidtrain.fit.chain import no_explanation  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
+
+if TYPE_CHECKING:
+    from cuboidtrain.fit.fitter import Fit
 
 log = logging.getLogger(__name__)
 FRONT_COLOUR, BACK_COLOUR, POINT_COLOUR = "#ff7f0e", "#17becf", "#ffdd00"
@@ -124,11 +130,10 @@ def _heatmap_tiles(fig, grid, geometry: Shape, heatmaps: np.ndarray, keypoints: 
         ax.scatter([keypoints[k, 0]], [keypoints[k, 1]], s=40, marker="+", color="#00ff66", linewidths=1.2)
 
 
-def explanation_figure(explanation: dict, record: dict, photo: np.ndarray | None = None,
-                       photo_keypoints: np.ndarray | None = None):
+def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoints: np.ndarray | None = None):
     """The Figure 4 panel for one fitted component (see the module's docstring)."""
-    fit, geometry = explanation["fit"], get_shape(record["shape"])
-    keypoints = np.asarray(fit["keypoints"])  # model px
+    candidate, geometry = fit.explanation.candidate, get_shape(fit.shape)
+    keypoints = np.asarray(candidate.keypoints)  # model px
     columns = min(MAX_TILES_PER_ROW, geometry.num_keypoints)
     heat_rows = math.ceil(geometry.num_keypoints / columns)
     tops = 5 if photo is not None else 4
@@ -141,13 +146,13 @@ def explanation_figure(explanation: dict, record: dict, photo: np.ndarray | None
     top_grid = fig.add_gridspec(1, tops, top=top_edge, bottom=top_edge - big / height, left=0.01, right=0.99,
                                 wspace=0.06)
     tiles = [fig.add_subplot(top_grid[0, k]) for k in range(tops)]
-    _input_tile(tiles[0], explanation["mask"], geometry, np.asarray(record["keypoints"]))
-    size = fit["refined"].shape[0]
-    _show(tiles[1], explanation["framed"], f"framed input x1 ({size} x {size} px)", cmap="gray", vmin=0, vmax=1)
-    _show(tiles[2], fit["refined"] > 0, f"refined R(x1), {fit['refine_steps']} pass(es), with the fit",
+    _input_tile(tiles[0], fit.explanation.mask, geometry, input_keypoints(fit))
+    size = candidate.refined.shape[0]
+    _show(tiles[1], candidate.framed, f"framed input x1 ({size} x {size} px)", cmap="gray", vmin=0, vmax=1)
+    _show(tiles[2], candidate.refined > 0, f"refined R(x1), {candidate.refine_steps} pass(es), with the fit",
           cmap="gray", vmin=0, vmax=1)
     draw_fit(tiles[2], geometry, keypoints)
-    _show(tiles[3], fit["heatmaps"].sum(axis=0), "sum of heat maps S(R(x1)), with the keypoints", cmap="magma")
+    _show(tiles[3], candidate.heatmaps.sum(axis=0), "sum of heat maps S(R(x1)), with the keypoints", cmap="magma")
     draw_fit(tiles[3], geometry, keypoints, arrow=False)
     if photo is not None:
         _show(tiles[4], photo, "photo with the fit")
@@ -155,20 +160,25 @@ def explanation_figure(explanation: dict, record: dict, photo: np.ndarray | None
         mark_outside(tiles[4], *photo.shape[:2])
     heat_grid = fig.add_gridspec(heat_rows, columns, top=(small * heat_rows) / height, bottom=0.01,
                                  left=0.01, right=0.99, hspace=0.35, wspace=0.06)
-    _heatmap_tiles(fig, heat_grid, geometry, fit["heatmaps"], keypoints, fit["refined"])
-    fig.suptitle(_caption(record), fontsize=11, y=1 - 0.12 / height)
+    _heatmap_tiles(fig, heat_grid, geometry, candidate.heatmaps, keypoints, candidate.refined)
+    fig.suptitle(_caption(fit), fontsize=11, y=1 - 0.12 / height)
     return fig
 
 
-def _caption(record: dict) -> str:
-    ratios = record["ratios"]
+def input_keypoints(fit: Fit) -> np.ndarray:
+    """(N, 2) float64 keypoints in the input's pixels, as the record holds them."""
+    return np.asarray(fit.keypoints, dtype=np.float64)
+
+
+def _caption(fit: Fit) -> str:
+    ratios = fit.ratios
     if "depth_height" not in ratios:
         ratios = {f"{part}.{k}": v for part, values in ratios.items() for k, v in values.items()}
-    others = ", ".join(f"{s} {c:.2f}" for s, c in record["candidates"].items() if s != record["shape"])
-    text = (f"{Path(record['input']).name}: {record['shape']}, confidence {record['confidence']:.2f}"
+    others = ", ".join(f"{s} {c:.2f}" for s, c in fit.candidates.items() if s != fit.shape)
+    text = (f"{Path(fit.input).name}: {fit.shape}, confidence {fit.confidence:.2f}"
             + (f" (vs {others})" if others else "")
             + "   ratios " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
-    return text + ("\nwarning: " + record["warnings"][0] if record.get("warnings") else "")
+    return text + ("\nwarning: " + fit.warnings[0] if fit.warnings else "")
 
 
 def to_photo(points: np.ndarray, mask_shape: tuple[int, int], photo_shape: tuple[int, int]) -> np.ndarray:
@@ -192,7 +202,7 @@ def overlay_zoom(height: int, width: int) -> int:
     return max(1, math.ceil(MIN_OVERLAY / max(height, width)))
 
 
-def overlay_figure(photo: np.ndarray, record: dict, keypoints: np.ndarray):
+def overlay_figure(photo: np.ndarray, fit: Fit, keypoints: np.ndarray):
     """The fit over the photo: `overlay_zoom` figure pixels per photo pixel (one, from MIN_OVERLAY px up)."""
     height, width = photo.shape[:2]
     zoom, dpi = overlay_zoom(height, width), 100
@@ -201,8 +211,8 @@ def overlay_figure(photo: np.ndarray, record: dict, keypoints: np.ndarray):
     ax.imshow(photo, interpolation="nearest")
     ax.set_axis_off()
     scale = max(1.0, width * zoom / 640)
-    draw_fit(ax, get_shape(record["shape"]), keypoints, scale=scale)
-    ax.text(0.01 * width, 0.02 * height, f"{record['shape']} {record['confidence']:.2f}", color="white",
+    draw_fit(ax, get_shape(fit.shape), keypoints, scale=scale)
+    ax.text(0.01 * width, 0.02 * height, f"{fit.shape} {fit.confidence:.2f}", color="white",
             fontsize=10 * scale, va="top", bbox=dict(fc="black", alpha=0.6, lw=0))
     ax.set_xlim(-0.5, width - 0.5)
     ax.set_ylim(height - 0.5, -0.5)
@@ -227,15 +237,24 @@ class Explainer:
         self.written: list[Path] = []
         self.stems: dict[str, int] = {}  # picture name -> the input that took it
 
-    def __call__(self, index: int, path: str, record: dict, explanation: dict) -> None:
-        stem = self._stem(index, path) + (f"-{record['component']}" if record.get("component") is not None else "")
-        photo = self._photo(index, record)
-        on_photo = None
-        if photo is not None:
-            on_photo = to_photo(np.asarray(record["keypoints"]), explanation["mask"].shape, photo.shape[:2])
-            fig, dpi = overlay_figure(photo, record, on_photo)
-            self._save(fig, self.folder / f"{stem}-overlay.png", dpi=dpi)
-        self._save(explanation_figure(explanation, record, photo, on_photo), self.folder / f"{stem}.png", dpi=110)
+    def __call__(self, index: int, path: str, fit: Fit) -> tuple[str, ...]:
+        """Draw `fit` (input `index`, file `path`); the warnings for its record: a photo that cannot
+        be read, a picture that cannot be written."""
+        stem = self._stem(index, path) + (f"-{fit.component}" if fit.component is not None else "")
+        photo, notes = self._photo(index)
+        shown = replace(fit, warnings=fit.warnings + notes)  # the caption names the first warning
+        try:
+            on_photo = None
+            if photo is not None:
+                on_photo = to_photo(input_keypoints(fit), fit.explanation.mask.shape, photo.shape[:2])
+                fig, dpi = overlay_figure(photo, shown, on_photo)
+                self._save(fig, self.folder / f"{stem}-overlay.png", dpi=dpi)
+            self._save(explanation_figure(shown, photo, on_photo), self.folder / f"{stem}.png", dpi=110)
+        except (OSError, ValueError, RuntimeError) as exc:  # as Fitter.records' `draw`, keeping the notes
+            warning = no_explanation(exc)
+            log.warning("%s: %s", path, warning)
+            return notes + (warning,)
+        return notes
 
     def _stem(self, index: int, path: str) -> str:
         """The input's file stem; a second input of the same stem (a/x.png, b/x.png) gets its index too."""
@@ -244,16 +263,17 @@ class Explainer:
             stem = f"{stem}-input{index}"
         return stem
 
-    def _photo(self, index: int, record: dict) -> np.ndarray | None:
-        """Input `index`'s photo; one that cannot be decoded is a warning in its record, not a failure."""
+    def _photo(self, index: int) -> tuple[np.ndarray | None, tuple[str, ...]]:
+        """Input `index`'s photo (or None), and the warning when it cannot be decoded: a warning in
+        its record, not a failure."""
         if index >= len(self.photos) or self.photos[index] is None:
-            return None
+            return None, ()
         try:
-            return read_photo(self.photos[index])
+            return read_photo(self.photos[index]), ()
         except ValueError as error:
-            record["warnings"].append(f"no overlay: {error}")
-            log.warning("%s", record["warnings"][-1])
-            return None
+            warning = f"no overlay: {error}"
+            log.warning("%s", warning)
+            return None, (warning,)
 
     def _save(self, fig, path: Path, dpi: int) -> None:
         try:

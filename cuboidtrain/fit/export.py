@@ -1,10 +1,10 @@
-"""ONNX export of the whole pipeline (R, K times, then S and T) and an onnxruntime runner.
+"""ONNX export of the chain (CuboidNet.forward: R, K times, then S and T) and an onnxruntime runner.
 
 The exported graph takes the model-resolution mask in +-1, float32 (B, 1, S, S),
 with a dynamic batch axis, and gives `refined` (B, 1, S, S) tanh, `heatmaps`
 (B, N, S, S), `keypoints` (B, N, 2) in model px and `ratios` (B, R). The K
-Refiner passes are unrolled, each on the sign of the last (as `infer.refine`
-with steps=K). The model's metadata_props say what the file is (format,
+Refiner passes are unrolled, each on the sign of the last (as
+`cuboidtrain.models.refine.refine` with steps=K). The model's metadata_props say what the file is (format,
 version, shape class, size, sigma, keypoint and ratio names, refine steps,
 the source checkpoint's step); the runner checks them before it runs anything.
 """
@@ -19,7 +19,6 @@ import torch
 from torch import nn
 
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.fit.chain import binarise
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import parse_refine_steps
 from shared.files import atomic_path
@@ -35,19 +34,15 @@ MIN_OPSET, MAX_OPSET, DEFAULT_OPSET = 11, 20, 17
 
 
 class Pipeline(nn.Module):
-    """CuboidNet.forward with K Refiner passes, outputs as a tuple in OUTPUTS order."""
+    """CuboidNet.forward with K Refiner passes, tensor in, tensors out in OUTPUTS order (what a tracer takes)."""
 
     def __init__(self, model: CuboidNet, refine_steps: int):
         super().__init__()
         self.model, self.refine_steps = model, refine_steps
 
     def forward(self, mask: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        refined = mask  # K=0 hands the mask on, as infer.refine does
-        for _ in range(self.refine_steps):  # a Python loop: unrolled into K copies of R when traced
-            refined = self.model.refiner(binarise(refined))
-        heatmaps = self.model.estimator(refined)
-        keypoints, ratios = self.model.tabulator(heatmaps)
-        return refined, heatmaps, keypoints, ratios
+        out = self.model(mask, self.refine_steps)  # a fixed K: a Python loop, unrolled into K copies of R
+        return out.refined, out.heatmaps, out.keypoints, out.ratios
 
 
 def check_options(refine_steps: int, opset: int) -> None:

@@ -8,9 +8,10 @@ A Fitter is built once from models (the shipped ones, files, or CuboidNets in
 hand) and one FitOptions, checked there. `fit` takes a mask image file or an
 array and returns a `Fit`; `records` is `cuboidtrain infer`: one JSON record per
 input (docs/contract.md, "The infer record"), an unreadable input recorded as an
-error while the others go on. `run_chain` is where the Refiner passes, the
-Estimator, the Tabulator and the keypoint extractor meet, for `eval`'s batches
-as for one framed mask. `report` and `localize` fit through `fit` and `records`.
+error while the others go on. `predict` runs the model's chain (`CuboidNet.forward`)
+at the options' Refiner passes and reads the keypoints with the options' extractor,
+for `eval`'s batches as for one framed mask. `report` and `localize` fit through
+`fit` and `records`.
 """
 from __future__ import annotations
 
@@ -24,12 +25,12 @@ import numpy as np
 import torch
 
 from cuboidtrain.device import resolve_device
-from cuboidtrain.fit.chain import (DRIFT_IOU, border_warnings, chain, choose, confidence, error_record, load_models,
-                               trust)
+from cuboidtrain.fit.chain import (Candidate, Explanation, choose, confidence, error_record, load_models,
+                                   no_explanation, score)
 from cuboidtrain.fit.codec import make_codec
-from cuboidtrain.fit.masks import components, frame, load_mask, silhouette, to_mask
-from cuboidtrain.models.networks import CuboidNet
-from cuboidtrain.fit.options import MAX_REFINE_STEPS, FitOptions
+from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
+from cuboidtrain.models.networks import ChainOutput, CuboidNet
+from cuboidtrain.fit.options import FitOptions
 from shared.shapes import get_shape
 
 log = logging.getLogger(__name__)
@@ -49,8 +50,8 @@ class Fit:
     candidates: dict[str, float] = field(default_factory=dict)  # every shape class tried -> its confidence
     input: str | None = None  # the file, when one was read
     component: int | None = None  # 0 = largest; set with FitOptions(all_components=True)
-    # What an explanation draws (the winning fit's refined mask and heat maps, framed input, Framing).
-    explanation: dict | None = field(default=None, repr=False, compare=False)
+    # What an explanation draws (the winning candidate: refined mask, heat maps, framed input, Framing).
+    explanation: Explanation | None = field(default=None, repr=False, compare=False)
 
     @property
     def keypoint_names(self) -> tuple[str, ...]:
@@ -104,11 +105,11 @@ class Fitter:
         return self._fit_parts(mask, self.options.all_components)
 
     def records(self, paths: Sequence[str | Path],
-                explain: Callable[[int, str, dict, dict], None] | None = None) -> list[dict]:
+                explain: Callable[[int, str, Fit], Sequence[str]] | None = None) -> list[dict]:
         """`cuboidtrain infer`: the JSON records of the inputs, in input order (one per component
         with `all_components`). An input that cannot be fitted gets a record with `error` and no
-        keypoints, and the others still run. `explain(index, path, record, explanation)` draws
-        each fitted component (cuboidtrain.fit.explain.Explainer)."""
+        keypoints, and the others still run. `explain(index, path, fit)` draws each fitted
+        component (cuboidtrain.fit.explain.Explainer) and returns the warnings it adds to its record."""
         records = []
         with_component = self.options.all_components
         for index, path in enumerate(paths):
@@ -120,22 +121,19 @@ class Fitter:
                 records.append(error_record(str(path), reason, with_component))
                 continue
             for fitted in fits:
-                record = fitted.record(with_component)
-                for warning in record["warnings"]:
+                for warning in fitted.warnings:
                     log.warning("%s: %s", path, warning)
                 if explain is not None:
-                    draw(explain, index, str(path), record, fitted.explanation)
-                records.append(record)
+                    fitted = replace(fitted, warnings=fitted.warnings + draw(explain, index, str(path), fitted))
+                records.append(fitted.record(with_component))
         return records
 
     @torch.inference_mode()
-    def run_chain(self, model: CuboidNet, x1: torch.Tensor) -> dict:
-        """T(S(R^K(x1))) on a (B, 1, S, S) +-1 batch, with the keypoints read by the extractor:
-        refined, heatmaps, keypoints, ratios (T's, whatever reads the keypoints), tabulated (T's
-        keypoints), refine_steps, refine_converged."""
-        out = chain(model, x1.to(self.device), self.options.refine_steps)
-        return out | {"tabulated": out["keypoints"],
-                      "keypoints": self.codecs[model.shape].decode(out["heatmaps"], out["keypoints"]).keypoints}
+    def predict(self, model: CuboidNet, x1: torch.Tensor) -> ChainOutput:
+        """The chain T(S(R^K(x1))) on a (B, 1, S, S) +-1 batch, K the options' Refiner passes, its
+        `keypoints` read by the options' extractor (`tabulated` keeps T's)."""
+        out = model(x1.to(self.device), self.options.refine_steps)
+        return replace(out, keypoints=self.codecs[model.shape].decode(out.heatmaps, out.tabulated).keypoints)
 
     def _read(self, mask: str | Path | np.ndarray) -> np.ndarray:
         if isinstance(mask, (str, Path)):
@@ -160,41 +158,40 @@ class Fitter:
     def _fit_component(self, mask: np.ndarray, name: str | None) -> Fit:
         """Frame one component for every candidate model and keep the best-explained fit,
         its keypoints mapped back to the input's pixels."""
-        fits = []
+        candidates = []
         for model in self.models:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
-            fits.append((self.fit_framed(model, framed), framed, framing))
-        best, framed, framing = choose(fits)
-        keypoints = framing.to_input(best["keypoints"])
-        record = {"confidence": best["confidence"], "warnings": border_warnings(mask)}
-        if not best["refine_converged"]:
-            record["warnings"].append(f"refinement did not settle within {MAX_REFINE_STEPS} passes, or drifted "
-                                      f"from its first pass (IoU < {DRIFT_IOU}): its first pass was used")
-        trust(record, mask, keypoints, best["shape"])
-        return Fit(shape=best["shape"], keypoints=keypoints, ratios=best["ratios"], confidence=record["confidence"],
-                   refine_steps=best["refine_steps"], refine_converged=best["refine_converged"],
-                   warnings=tuple(record["warnings"]), candidates={r["shape"]: r["confidence"] for r, _, _ in fits},
-                   input=name, explanation={"fit": best, "framed": framed, "framing": framing, "mask": mask})
+            candidates.append(self.fit_framed(model, framed, framing))
+        best = choose(candidates)
+        keypoints = best.framing.to_input(best.keypoints)
+        scores = score(best, mask, keypoints)
+        return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios, confidence=scores.confidence,
+                   refine_steps=best.refine_steps, refine_converged=best.refine_converged, warnings=scores.warnings,
+                   candidates={c.shape: c.confidence for c in candidates}, input=name,
+                   explanation=Explanation(candidate=best, mask=mask))
 
-    def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray) -> dict:
-        """One framed bool (S, S) mask at model resolution: keypoints (N, 2) model px, ratios,
-        confidence, refine passes, and what an explanation draws (refined, heatmaps)."""
+    def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None) -> Candidate:
+        """One framed bool (S, S) mask at model resolution -> its Candidate: keypoints (N, 2) model
+        px, ratios, confidence, refine passes, and what an explanation draws (refined, heatmaps).
+        `framing`, the map back to the input's pixels, is carried along."""
         if framed_mask.shape != (model.size, model.size):
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
         x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
-        out = self.run_chain(model, x1)
-        keypoints = out["keypoints"][0].double().cpu().numpy()
+        out = self.predict(model, x1)
+        keypoints = out.keypoints[0].double().cpu().numpy()
         geometry = get_shape(model.shape)
-        return {
-            "shape": model.shape,
-            "keypoints": keypoints,
-            "ratios": geometry.ratio_dict(out["ratios"][0].cpu().tolist()),
-            "confidence": confidence(geometry, keypoints, framed_mask),
-            "refine_steps": out["refine_steps"],
-            "refine_converged": out["refine_converged"],
-            "refined": out["refined"][0, 0].float().cpu().numpy(),
-            "heatmaps": out["heatmaps"][0].float().cpu().numpy(),
-        }
+        return Candidate(
+            shape=model.shape,
+            keypoints=keypoints,
+            ratios=geometry.ratio_dict(out.ratios[0].cpu().tolist()),
+            confidence=confidence(geometry, keypoints, framed_mask),
+            refine_steps=out.refine_steps,
+            refine_converged=out.refine_converged,
+            refined=out.refined[0, 0].float().cpu().numpy(),
+            heatmaps=out.heatmaps[0].float().cpu().numpy(),
+            framed=framed_mask,
+            framing=framing,
+        )
 
 
 def candidate_models(models: Sequence[CuboidNet], shape: str) -> list[CuboidNet]:
@@ -209,10 +206,12 @@ def candidate_models(models: Sequence[CuboidNet], shape: str) -> list[CuboidNet]
     return chosen
 
 
-def draw(explain, index: int, path: str, record: dict, explanation: dict) -> None:
-    """Call the explanation writer; a picture that cannot be made is a warning, never a lost record."""
+def draw(explain, index: int, path: str, fit: Fit) -> tuple[str, ...]:
+    """Call the explanation writer; the warnings it adds. A picture that cannot be made is a
+    warning, never a lost record."""
     try:
-        explain(index, path, record, explanation)
+        return tuple(explain(index, path, fit))
     except (OSError, ValueError, RuntimeError) as exc:  # a full disk, an unwritable folder, matplotlib
-        record["warnings"].append("no explanation: " + " ".join(str(exc).split()))
-        log.warning("%s: %s", path, record["warnings"][-1])
+        warning = no_explanation(exc)
+        log.warning("%s: %s", path, warning)
+        return (warning,)

@@ -1,4 +1,4 @@
-"""The three networks of paper 3.2 and the registry of architectures that build them.
+"""The three networks of paper 3.2, the registry of architectures that build them, and CuboidNet, which chains them.
 
 `paper` is the paper's: all three on torchvision's ResNet-18 (below). `compact`
 (cuboidtrain.models.compact) keeps the roles and outputs at a fraction of the cost.
@@ -6,6 +6,9 @@
 Refiner (R): FCN, mask (B, 1, H, W) -> refined mask (B, 1, H, W), tanh.
 Estimator (S): FCN, mask (B, 1, H, W) -> heat maps (B, N, H, W), sigmoid.
 Tabulator (T): CNN, heat maps (B, N, H, W) -> keypoints (B, N, 2) in px and ratios (B, R).
+
+`CuboidNet.forward` is the chain T(S(R^K(mask))), written once: training, eval,
+infer and the ONNX export all run it, and it returns a `ChainOutput`.
 
 The FCNs are U-Nets: the ResNet-18 encoder runs at strides 2..32 and a decoder
 climbs back with a skip connection at every stride, down to a full-resolution
@@ -15,6 +18,7 @@ heat maps are sharp at the pixel, which the sub-pixel target needs.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -23,6 +27,7 @@ from torch import nn
 
 from cuboidtrain.fit.codec import default_sigma
 from cuboidtrain.models import compact
+from cuboidtrain.models.refine import refine
 from shared.shapes import get_shape
 
 DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1
@@ -181,8 +186,22 @@ def _compact(num_keypoints: int, num_ratios: int, size: int, widths: tuple[int, 
             compact.CompactTabulator(num_keypoints, num_ratios, size, widths))
 
 
+@dataclass(frozen=True, eq=False)  # eq=False: tensors have no single truth value
+class ChainOutput:
+    """What the chain T(S(R^K(mask))) gives for a (B, 1, S, S) batch, with grads where they flowed."""
+
+    refined: torch.Tensor  # (B, 1, S, S) R's tanh output after K passes (the mask itself when K = 0)
+    heatmaps: torch.Tensor  # (B, N, S, S) S's maps, in (0, 1)
+    keypoints: torch.Tensor  # (B, N, 2) px: T's, or whatever read them off the heat maps (Fitter.predict)
+    tabulated: torch.Tensor  # (B, N, 2) px: T's own, whatever reads `keypoints`
+    ratios: torch.Tensor  # (B, R) T's
+    refine_steps: int  # Refiner passes run: the most any mask of the batch took
+    refine_converged: bool  # every mask settled (always True for a fixed K)
+
+
 class CuboidNet(nn.Module):
-    """R, S and T for one shape class at one size; `forward` chains them (inference, phase 2)."""
+    """R, S and T for one shape class at one size; `forward` chains them (training phase 2 on,
+    eval, infer, export)."""
 
     def __init__(self, shape: str, size: int, sigma: float | None = None, arch: str = DEFAULT_ARCH):
         super().__init__()
@@ -195,11 +214,15 @@ class CuboidNet(nn.Module):
         self.refiner, self.estimator, self.tabulator = ARCHS[arch](
             geometry.num_keypoints, len(geometry.ratio_names), size)
 
-    def forward(self, mask: torch.Tensor) -> dict[str, torch.Tensor]:
-        refined = self.refiner(mask)
-        heatmaps = self.estimator(refined)
+    def forward(self, mask: torch.Tensor, refine_steps: int | None = 1) -> ChainOutput:
+        """T(S(R^K(mask))) (paper 3.4) on a (B, 1, S, S) +-1 batch, K = `refine_steps` passes of
+        R, each on the sign of the last (None: until settled, `cuboidtrain.models.refine`).
+        One pass is what training chains: the sign of a +-1 mask is that mask, value for value."""
+        refined, steps_run, converged = refine(self.refiner, mask, refine_steps)
+        heatmaps = self.estimator(refined)  # S sees R's tanh output, not its sign, as in training's chained phases
         keypoints, ratios = self.tabulator(heatmaps)
-        return {"refined": refined, "heatmaps": heatmaps, "keypoints": keypoints, "ratios": ratios}
+        return ChainOutput(refined=refined, heatmaps=heatmaps, keypoints=keypoints, tabulated=keypoints,
+                           ratios=ratios, refine_steps=steps_run, refine_converged=converged)
 
 
 def build_model(shape: str, size: int, seed: int = 0, sigma: float | None = None,

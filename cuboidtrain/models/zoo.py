@@ -47,16 +47,16 @@ def default_checkpoints(given: list[Path] | None, shapes: tuple[str, ...] = SHIP
     return list(given) if given else [shipped_path(shape) for shape in shapes]
 
 
-def run_chain(checkpoint: dict) -> list[dict]:
+def init_lineage(checkpoint: dict) -> list[dict]:
     """The checkpoint and those it was initialised from (its config's `init`), newest first.
     Each still on disk adds its steps and wall time to the model card. A model file ends the
-    chain: its card already holds the phases before it (a continued shipped model)."""
-    chain, seen = [checkpoint], set()
-    while ("card" not in chain[-1] and (init := chain[-1]["config"].get("init")) and init not in seen
+    lineage: its card already holds the phases before it (a continued shipped model)."""
+    lineage, seen = [checkpoint], set()
+    while ("card" not in lineage[-1] and (init := lineage[-1]["config"].get("init")) and init not in seen
            and Path(init).is_file()):
         seen.add(init)
-        chain.append(load_checkpoint(init))
-    return chain
+        lineage.append(load_checkpoint(init))
+    return lineage
 
 
 def wall_time_s(run_folder: Path) -> float | None:
@@ -82,10 +82,10 @@ def git_commit() -> str | None:
 
 def make_card(checkpoint_path: Path, checkpoint: dict, scenes: list[str], validation: dict | None,
               recipe: str | None) -> dict:
-    chain = run_chain(checkpoint)
+    lineage = init_lineage(checkpoint)
     config = checkpoint["config"]
     phases = []
-    for ckpt in reversed(chain):  # oldest first
+    for ckpt in reversed(lineage):  # oldest first
         if "card" in ckpt:  # a model file this run continued: its phases, as its card tells them
             phases.extend(ckpt["card"]["phases"])
             continue

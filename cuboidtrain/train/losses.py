@@ -1,4 +1,4 @@
-"""The paper's loss terms (3.3.2) and how each phase wires them.
+"""The paper's loss terms (3.3.2) and how each training phase wires them to R, S and T.
 
 D_R: L1 between the refined mask and the clean one, mean over pixels.
 D_S: squared L2 between predicted and rendered heat maps, summed over a map's
@@ -34,15 +34,16 @@ def phase_losses(model: CuboidNet, x: dict[str, torch.Tensor], phase: str, ratio
 
     Phase 1 feeds every network its ground-truth input (x1 -> R, x2 -> S, x3 -> T):
     three independent problems whose gradients never meet. Every other phase
-    chains T(S(R(x1))); which terms count is decided by the weights (`combine`).
+    runs the chain T(S(R(x1))) (`CuboidNet.forward`, as eval and infer run it);
+    which terms count is decided by the weights (`combine`).
     """
     if phase == "1":
         refined = model.refiner(x["x1"])
         heatmaps = model.estimator(x["x2"])
         keypoints, ratios = model.tabulator(x["x3"])
     else:
-        out = model(x["x1"])
-        refined, heatmaps, keypoints, ratios = out["refined"], out["heatmaps"], out["keypoints"], out["ratios"]
+        out = model(x["x1"], refine_steps=1)
+        refined, heatmaps, keypoints, ratios = out.refined, out.heatmaps, out.keypoints, out.ratios
     return {
         "D_R": refiner_loss(refined, x["x2"]),
         "D_S": estimator_loss(heatmaps, x["x3"]),
