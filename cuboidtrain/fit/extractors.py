@@ -29,6 +29,7 @@ import torch.nn.functional as F
 
 from cuboidtrain.fit.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, check_choice, parse_components
 from cuboidtrain.fit.pdm import PointDistributionModel
+from shared.errors import UsageError
 
 
 def tabulator(heatmaps: torch.Tensor, tabulated: torch.Tensor) -> torch.Tensor:
@@ -136,7 +137,7 @@ def make_extractor(name: str, model, pdm_components: str | int | float = DEFAULT
         return lambda heatmaps, tabulated=None: dark(heatmaps, tabulated, model.sigma)
     if name == "pdm":
         if getattr(model, "pdm", None) is None:
-            raise ValueError(f"--extractor pdm: this {model.shape} model carries no point distribution model; "
+            raise UsageError(f"--extractor pdm: this {model.shape} model carries no point distribution model; "
                              f"pack it with `cuboidtrain models pack --pdm-spool SPOOL` (the spool it trained on)")
         return PdmExtractor(model.pdm, parse_components(pdm_components))
     return {"tabulator": tabulator, "argmax": argmax, "centre-of-mass": centre_of_mass}[name]
