@@ -13,7 +13,8 @@ from rich.console import Console
 from rich.table import Table
 
 from cuboidgen.config import GEN_SHAPES, SCENES, GenConfig
-from shared.console import Commands, choices, console, fail, setup_logging
+from shared.console import Commands, choices, console, setup_logging
+from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import atomic_path
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
@@ -55,19 +56,16 @@ def run(
     from cuboidgen.daemon import run as run_daemon
 
     setup_logging()
-    try:
-        config = GenConfig(
-            spool=spool, limit=limit, max_samples=max_samples, workers=workers, size=size, shape=shape.value,
-            seed=seed, scene=load_scene(scene), occluders=occluders, dashboard=dashboard, fsync=fsync,
-            evict_every=evict_every, max_rate=max_rate,
-        ).validate()
-        if occluders is not None:
-            from cuboidgen.occluders import OccluderLibrary
+    config = GenConfig(
+        spool=spool, limit=limit, max_samples=max_samples, workers=workers, size=size, shape=shape.value,
+        seed=seed, scene=load_scene(scene), occluders=occluders, dashboard=dashboard, fsync=fsync,
+        evict_every=evict_every, max_rate=max_rate,
+    ).validate()
+    if occluders is not None:
+        from cuboidgen.occluders import OccluderLibrary
 
-            OccluderLibrary.from_dir(occluders)  # fail now, in one line, not in every worker
-        run_daemon(config)
-    except ValueError as exc:
-        fail(str(exc))
+        OccluderLibrary.from_dir(occluders)  # fail now, in one line, not in every worker
+    run_daemon(config)
 
 
 @app.command()
@@ -80,10 +78,8 @@ def preview(
     """Draw the newest samples: noisy input | clean mask with keypoints, indices and wireframe."""
     from cuboidgen.preview import newest_samples, render_grid
 
-    try:
-        path = render_grid(newest_samples(spool, count), out, columns)
-    except ValueError as exc:
-        fail(str(exc))
+    check_outputs(("--out", out))
+    path = render_grid(newest_samples(spool, count), out, columns)
     console.print(f"wrote {path}")
 
 
@@ -95,10 +91,7 @@ def inspect(
     """Count samples, corrupt files, shapes, sizes, bytes and ages in a spool."""
     from shared.inspect import inspect_spool
 
-    try:
-        report = inspect_spool(spool)
-    except ValueError as exc:
-        fail(str(exc))
+    report = inspect_spool(spool)
     if as_json:
         typer.echo(json.dumps(report, indent=2))
         return
@@ -120,9 +113,9 @@ def health(
 
     try:
         if max_age <= 0:
-            raise ValueError(f"--max-age {max_age}: expected a positive number of seconds")
+            raise UsageError(f"--max-age {max_age}: expected a positive number of seconds")
         report = freshness(spool, host_tag() if mine else None)
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:  # unhealthy, not the one-line error: a healthcheck's answer is 0 or 1
         unhealthy(str(exc))
     whose = f" from host {report['host']}" if report["host"] else ""
     if report["newest"] is None:
@@ -153,7 +146,7 @@ def scenes(name: Optional[str] = typer.Argument(None, help="Show one preset's ra
             typer.echo(f"{preset.name}: {kind}")
         return
     if name not in SCENES:
-        fail(f"scene {name!r}: expected one of {', '.join(SCENES)}")
+        raise UsageError(f"scene {name!r}: expected one of {', '.join(SCENES)}")
     typer.echo(json.dumps(asdict(SCENES[name]), indent=2))
 
 
@@ -169,6 +162,7 @@ def bench(
     from cuboidgen.bench import run_benchmarks
 
     setup_logging()
+    check_outputs(("--json", json_out))
     results = run_benchmarks(size=size, samples=samples, repeats=repeats, where=str(where))
     text = json.dumps(results, indent=2)
     if json_out:
@@ -188,10 +182,8 @@ def occluders_extract(
     from cuboidgen.occluders import extract_cityscapes
 
     setup_logging()
-    try:
-        counts = extract_cityscapes(cityscapes, out, classes=classes or None, min_pixels=min_pixels)
-    except ValueError as exc:
-        fail(str(exc))
+    check_writable("--out", out, folder=True)
+    counts = extract_cityscapes(cityscapes, out, classes=classes or None, min_pixels=min_pixels)
     for name, n in sorted(counts.items()):
         typer.echo(f"{name}: {n}")
     typer.echo(f"total: {sum(counts.values())} cutouts in {out}")
@@ -206,10 +198,8 @@ def occluders_preview(
     from cuboidgen.occluders import OccluderLibrary
     from cuboidgen.preview import render_occluders
 
-    try:
-        path = render_occluders(OccluderLibrary.load(occluders), out)
-    except ValueError as exc:
-        fail(str(exc))
+    check_outputs(("--out", out))
+    path = render_occluders(OccluderLibrary.load(occluders), out)
     console.print(f"wrote {path}")
 
 

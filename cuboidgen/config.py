@@ -12,6 +12,7 @@ import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+from shared.errors import UsageError
 from shared.shapes import SHAPES
 from shared.spool import EVICT_EVERY
 
@@ -68,12 +69,12 @@ class SceneConfig:
         for f in fields(self):
             value = getattr(self, f.name)
             if isinstance(value, tuple) and (len(value) != 2 or value[0] > value[1]):
-                raise ValueError(f"scene {self.name!r}: {f.name} = {value!r}, expected a range (min, max) with min <= max")
+                raise UsageError(f"scene {self.name!r}: {f.name} = {value!r}, expected a range (min, max) with min <= max")
         for name in ("flip_probability", "grounded_probability", "centre_jitter"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"scene {self.name!r}: {name} = {getattr(self, name)}, expected a value in [0, 1]")
+                raise UsageError(f"scene {self.name!r}: {name} = {getattr(self, name)}, expected a value in [0, 1]")
         if min(self.width + self.height + self.depth) <= 0 or self.distance[0] <= 0:
-            raise ValueError(f"scene {self.name!r}: extents and distance must be positive")
+            raise UsageError(f"scene {self.name!r}: extents and distance must be positive")
         return self
 
 
@@ -108,23 +109,23 @@ def load_scene(name_or_path: str) -> SceneConfig:
         return SCENES[name_or_path]
     path = Path(name_or_path)
     if not path.is_file():
-        raise ValueError(f"scene {name_or_path!r}: expected a preset ({', '.join(SCENES)}) or a .json/.toml file")
+        raise UsageError(f"scene {name_or_path!r}: expected a preset ({', '.join(SCENES)}) or a .json/.toml file")
     try:
         text = path.read_text()
         data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
     except (OSError, ValueError) as exc:
-        raise ValueError(f"scene file {path}: cannot parse it ({exc})") from None
+        raise UsageError(f"scene file {path}: cannot parse it ({exc})") from None
     return scene_from_dict(data, default_name=path.stem)
 
 
 def scene_from_dict(data: dict, default_name: str = "custom") -> SceneConfig:
     base = SCENES.get(data.pop("base", "paper"))
     if base is None:
-        raise ValueError(f"scene base must be one of {sorted(SCENES)}")
+        raise UsageError(f"scene base must be one of {sorted(SCENES)}")
     known = {f.name for f in fields(SceneConfig)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise ValueError(f"scene: unknown field(s) {unknown}; expected some of {sorted(known)}")
+        raise UsageError(f"scene: unknown field(s) {unknown}; expected some of {sorted(known)}")
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
     values.setdefault("name", default_name)
     return replace(base, **values).validate()
@@ -155,19 +156,19 @@ class GenConfig:
 
     def validate(self) -> "GenConfig":
         if self.limit < 0:
-            raise ValueError(f"--limit {self.limit}: expected 0 (retain the spool) or a positive sample count")
+            raise UsageError(f"--limit {self.limit}: expected 0 (retain the spool) or a positive sample count")
         if self.max_samples is not None and self.max_samples < 1:
-            raise ValueError(f"--max-samples {self.max_samples}: expected a positive count")
+            raise UsageError(f"--max-samples {self.max_samples}: expected a positive count")
         if self.workers < 1:
-            raise ValueError(f"--workers {self.workers}: expected at least 1")
+            raise UsageError(f"--workers {self.workers}: expected at least 1")
         if not 16 <= self.size <= 4096:
-            raise ValueError(f"--size {self.size}: expected 16 to 4096 px")
+            raise UsageError(f"--size {self.size}: expected 16 to 4096 px")
         if self.shape not in GEN_SHAPES:
-            raise ValueError(f"--shape {self.shape!r}: expected one of {', '.join(GEN_SHAPES)}")
+            raise UsageError(f"--shape {self.shape!r}: expected one of {', '.join(GEN_SHAPES)}")
         if self.evict_every < 1:
-            raise ValueError(f"--evict-every {self.evict_every}: expected at least 1")
+            raise UsageError(f"--evict-every {self.evict_every}: expected at least 1")
         if self.max_rate is not None and not self.max_rate > 0:  # `not >` also refuses NaN
-            raise ValueError(f"--max-rate {self.max_rate}: expected a positive number of samples a second")
+            raise UsageError(f"--max-rate {self.max_rate}: expected a positive number of samples a second")
         self.scene.validate()
         return self
 

@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from shared.errors import UsageError  # noqa: E402
 from shared.files import save_figure  # noqa: E402
 from shared.sample import Sample, decode  # noqa: E402
 from shared.shapes import get_shape  # noqa: E402
@@ -51,7 +52,7 @@ def draw_wireframe(ax, sample: Sample, label: bool = True) -> None:
 def render_grid(samples: list[Sample], out: Path, columns: int = 4) -> Path:
     """Write the grid: two panels per sample (noisy input | clean + keypoints)."""
     if not samples:
-        raise ValueError("no samples to preview: the spool holds no decodable sample")
+        raise UsageError("no samples to preview: the spool holds no decodable sample")
     rows = -(-len(samples) // columns)
     fig, axes = blank_grid(rows, 2 * columns, (4.2 * columns, 2.3 * rows))
     for i, sample in enumerate(samples):
@@ -72,7 +73,7 @@ def render_grid(samples: list[Sample], out: Path, columns: int = 4) -> Path:
 def render_occluders(library, out: Path, columns: int = 10) -> Path:
     """Tile every cutout of an occluder library, labelled with its kind."""
     if not len(library):
-        raise ValueError("the occluder library is empty")
+        raise UsageError("the occluder library is empty")
     rows = -(-len(library) // columns)
     fig, axes = blank_grid(rows, columns, (1.3 * columns, 1.5 * rows))
     for ax, mask, name in zip(axes.ravel(), library.masks, library.names):

@@ -8,9 +8,10 @@ from typing import Optional
 
 import typer
 
-from cuboidtrain.train.config import LR_SCHEDULES, PHASES
+from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
 from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
 from shared.console import Commands, choices, console, fail, setup_logging
+from shared.errors import UsageError, check_outputs, check_writable
 from shared.shapes import SHAPES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
@@ -23,69 +24,70 @@ FitShape = choices("FitShape", FIT_SHAPES)
 ExtractorChoice = choices("ExtractorChoice", EXTRACTORS)
 ScheduleChoice = choices("ScheduleChoice", LR_SCHEDULES)
 FIT = FitOptions()  # the fitting commands' defaults are the library's: stated once, in FitOptions
+TRAIN = TrainConfig()  # `run`'s too, in TrainConfig (but --out's, which follows --phase)
 
 
 @app.command()
 def run(
-    phase: PhaseChoice = typer.Option(PhaseChoice["1"], envvar="CUBOIDTRAIN_PHASE", help="1: each network alone; 2: chained with all losses; e2e / finetune: the paper's ablations (final loss only)."),
-    spool: Path = typer.Option(Path("data_spool"), envvar="CUBOIDTRAIN_SPOOL", help="Spool folder, enumerated afresh every epoch."),
-    shape: ShapeChoice = typer.Option(ShapeChoice["box"], envvar="CUBOIDTRAIN_SHAPE", help="Shape class of the model."),
-    size: int = typer.Option(256, envvar="CUBOIDTRAIN_SIZE", help="Model input size in px (a multiple of 32)."),
-    arch: str = typer.Option("compact", envvar="CUBOIDTRAIN_ARCH", help="Architecture of R, S and T: compact (the shipped models'), paper (three ResNet-18s, Table 3), tiny (tests)."),
-    reframe: bool = typer.Option(True, "--reframe/--no-reframe", envvar="CUBOIDTRAIN_REFRAME", help="Frame each sample as infer frames a mask (its visible pieces), from a spool of any size; --no-reframe: train on the spool's own framing, whose size must be --size."),
-    steps: Optional[int] = typer.Option(None, envvar="CUBOIDTRAIN_STEPS", help="Train until this step (neither --steps nor --epochs: until stopped)."),
-    epochs: Optional[int] = typer.Option(None, envvar="CUBOIDTRAIN_EPOCHS", help="Or this many epochs over the spool."),
-    batch_size: int = typer.Option(32, envvar="CUBOIDTRAIN_BATCH_SIZE", help="Samples per step."),
-    lr: float = typer.Option(1e-3, envvar="CUBOIDTRAIN_LR", help="Adam learning rate."),
-    lr_schedule: ScheduleChoice = typer.Option(ScheduleChoice["constant"], envvar="CUBOIDTRAIN_LR_SCHEDULE", help="constant, or cosine (decays to lr/100 at --steps)."),
-    max_minutes: Optional[float] = typer.Option(None, envvar="CUBOIDTRAIN_MAX_MINUTES", help="Stop, with a checkpoint, after this many minutes."),
-    max_wait: Optional[float] = typer.Option(None, metavar="SECONDS", envvar="CUBOIDTRAIN_MAX_WAIT", help="Give up (exit 1) after waiting this long for a usable sample: an empty spool, or none of its samples fit (default: wait on)."),
-    weight_decay: float = typer.Option(1e-5, envvar="CUBOIDTRAIN_WEIGHT_DECAY", help="Adam's L2 penalty."),
-    sigma: Optional[float] = typer.Option(None, envvar="CUBOIDTRAIN_SIGMA", help="Heat-map Gaussian std in px (default size/128, at least 1)."),
-    alpha_r: float = typer.Option(1.0, envvar="CUBOIDTRAIN_ALPHA_R", help="Phase 2 weight of D_R."),
-    alpha_s: float = typer.Option(1.0, envvar="CUBOIDTRAIN_ALPHA_S", help="Phase 2 weight of D_S."),
-    alpha_t: float = typer.Option(1.0, envvar="CUBOIDTRAIN_ALPHA_T", help="Phase 2 weight of D_T."),
-    ratio_weight: float = typer.Option(1.0, envvar="CUBOIDTRAIN_RATIO_WEIGHT", help="Weight of the ratio term in D_T."),
-    init: Optional[Path] = typer.Option(None, envvar="CUBOIDTRAIN_INIT", help="Start from this checkpoint's weights (phase 2, finetune)."),
+    phase: PhaseChoice = typer.Option(PhaseChoice[TRAIN.phase], envvar="CUBOIDTRAIN_PHASE", help="1: each network alone; 2: chained with all losses; e2e / finetune: the paper's ablations (final loss only)."),
+    spool: Path = typer.Option(Path(TRAIN.spool), envvar="CUBOIDTRAIN_SPOOL", help="Spool folder, enumerated afresh every epoch."),
+    shape: ShapeChoice = typer.Option(ShapeChoice[TRAIN.shape], envvar="CUBOIDTRAIN_SHAPE", help="Shape class of the model."),
+    size: int = typer.Option(TRAIN.size, envvar="CUBOIDTRAIN_SIZE", help="Model input size in px (a multiple of 32)."),
+    arch: str = typer.Option(TRAIN.arch, envvar="CUBOIDTRAIN_ARCH", help="Architecture of R, S and T: compact (the shipped models'), paper (three ResNet-18s, Table 3), tiny (tests)."),
+    reframe: bool = typer.Option(TRAIN.reframe, "--reframe/--no-reframe", envvar="CUBOIDTRAIN_REFRAME", help="Frame each sample as infer frames a mask (its visible pieces), from a spool of any size; --no-reframe: train on the spool's own framing, whose size must be --size."),
+    steps: Optional[int] = typer.Option(TRAIN.steps, envvar="CUBOIDTRAIN_STEPS", help="Train until this step (neither --steps nor --epochs: until stopped)."),
+    epochs: Optional[int] = typer.Option(TRAIN.epochs, envvar="CUBOIDTRAIN_EPOCHS", help="Or this many epochs over the spool."),
+    batch_size: int = typer.Option(TRAIN.batch_size, envvar="CUBOIDTRAIN_BATCH_SIZE", help="Samples per step."),
+    lr: float = typer.Option(TRAIN.lr, envvar="CUBOIDTRAIN_LR", help="Adam learning rate."),
+    lr_schedule: ScheduleChoice = typer.Option(ScheduleChoice[TRAIN.lr_schedule], envvar="CUBOIDTRAIN_LR_SCHEDULE", help="constant, or cosine (decays to lr/100 at --steps)."),
+    max_minutes: Optional[float] = typer.Option(TRAIN.max_minutes, envvar="CUBOIDTRAIN_MAX_MINUTES", help="Stop, with a checkpoint, after this many minutes."),
+    max_wait: Optional[float] = typer.Option(TRAIN.max_wait, metavar="SECONDS", envvar="CUBOIDTRAIN_MAX_WAIT", help="Give up (exit 1) after waiting this long for a usable sample: an empty spool, or none of its samples fit (default: wait on)."),
+    weight_decay: float = typer.Option(TRAIN.weight_decay, envvar="CUBOIDTRAIN_WEIGHT_DECAY", help="Adam's L2 penalty."),
+    sigma: Optional[float] = typer.Option(TRAIN.sigma, envvar="CUBOIDTRAIN_SIGMA", help="Heat-map Gaussian std in px (default size/128, at least 1)."),
+    alpha_r: float = typer.Option(TRAIN.alpha_r, envvar="CUBOIDTRAIN_ALPHA_R", help="Phase 2 weight of D_R."),
+    alpha_s: float = typer.Option(TRAIN.alpha_s, envvar="CUBOIDTRAIN_ALPHA_S", help="Phase 2 weight of D_S."),
+    alpha_t: float = typer.Option(TRAIN.alpha_t, envvar="CUBOIDTRAIN_ALPHA_T", help="Phase 2 weight of D_T."),
+    ratio_weight: float = typer.Option(TRAIN.ratio_weight, envvar="CUBOIDTRAIN_RATIO_WEIGHT", help="Weight of the ratio term in D_T."),
+    init: Optional[Path] = typer.Option(TRAIN.init, envvar="CUBOIDTRAIN_INIT", help="Start from this checkpoint's weights (phase 2, finetune)."),
     out: Optional[Path] = typer.Option(None, envvar="CUBOIDTRAIN_OUT", help="Run folder (default runs/p1, runs/p2, runs/e2e, runs/finetune)."),
-    resume: bool = typer.Option(False, envvar="CUBOIDTRAIN_RESUME", help="Continue OUT/last.pt exactly: weights, optimizer, step, data order, RNG."),
-    checkpoint_every: int = typer.Option(500, envvar="CUBOIDTRAIN_CHECKPOINT_EVERY", help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
-    log_every: int = typer.Option(10, envvar="CUBOIDTRAIN_LOG_EVERY", help="Steps between records in OUT/metrics.jsonl."),
-    loader_workers: int = typer.Option(2, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool."),
-    seed: int = typer.Option(0, envvar="CUBOIDTRAIN_SEED", help="Seed of the initial weights and the epoch order."),
-    device: str = typer.Option("auto", envvar="CUBOIDTRAIN_DEVICE", help="auto (CUDA when present), cpu, cuda or cuda:N."),
-    threads: Optional[int] = typer.Option(None, envvar="CUBOIDTRAIN_THREADS", help="CPU threads for torch (default: all cores)."),
-    amp: bool = typer.Option(True, "--amp/--no-amp", envvar="CUBOIDTRAIN_AMP", help="bfloat16 autocast on CUDA (ignored on the CPU)."),
-    dashboard: bool = typer.Option(True, "--dashboard/--no-dashboard", envvar="CUBOIDTRAIN_DASHBOARD", help="Live dashboard (else log lines)."),
-    val_spool: Optional[Path] = typer.Option(None, envvar="CUBOIDTRAIN_VAL_SPOOL", help="Validation spool, evaluated every --val-every steps."),
-    val_every: int = typer.Option(1000, envvar="CUBOIDTRAIN_VAL_EVERY", help="Steps between validations."),
-    val_samples: int = typer.Option(256, envvar="CUBOIDTRAIN_VAL_SAMPLES", help="Validation samples per evaluation."),
+    resume: bool = typer.Option(TRAIN.resume, envvar="CUBOIDTRAIN_RESUME", help="Continue OUT/last.pt exactly: weights, optimizer, step, data order, RNG."),
+    checkpoint_every: int = typer.Option(TRAIN.checkpoint_every, envvar="CUBOIDTRAIN_CHECKPOINT_EVERY", help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
+    log_every: int = typer.Option(TRAIN.log_every, envvar="CUBOIDTRAIN_LOG_EVERY", help="Steps between records in OUT/metrics.jsonl."),
+    loader_workers: int = typer.Option(TRAIN.loader_workers, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool."),
+    seed: int = typer.Option(TRAIN.seed, envvar="CUBOIDTRAIN_SEED", help="Seed of the initial weights and the epoch order."),
+    device: str = typer.Option(TRAIN.device, envvar="CUBOIDTRAIN_DEVICE", help="auto (CUDA when present), cpu, cuda or cuda:N."),
+    threads: Optional[int] = typer.Option(TRAIN.threads, envvar="CUBOIDTRAIN_THREADS", help="CPU threads for torch (default: all cores)."),
+    amp: bool = typer.Option(TRAIN.amp, "--amp/--no-amp", envvar="CUBOIDTRAIN_AMP", help="bfloat16 autocast on CUDA (ignored on the CPU)."),
+    dashboard: bool = typer.Option(TRAIN.dashboard, "--dashboard/--no-dashboard", envvar="CUBOIDTRAIN_DASHBOARD", help="Live dashboard (else log lines)."),
+    val_spool: Optional[Path] = typer.Option(TRAIN.val_spool, envvar="CUBOIDTRAIN_VAL_SPOOL", help="Validation spool, evaluated every --val-every steps."),
+    val_every: int = typer.Option(TRAIN.val_every, envvar="CUBOIDTRAIN_VAL_EVERY", help="Steps between validations."),
+    val_samples: int = typer.Option(TRAIN.val_samples, envvar="CUBOIDTRAIN_VAL_SAMPLES", help="Validation samples per evaluation."),
 ) -> None:
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
-    from cuboidtrain.train.config import TrainConfig
     from cuboidtrain.train.dashboard import Dashboard
     from cuboidtrain.train.loop import NoUsableSamples
     from cuboidtrain.train.loop import run as run_training
+    from shared.spool import check_spool
 
     setup_logging()
+    config = TrainConfig(
+        phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe,
+        steps=steps, epochs=epochs,
+        batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
+        alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
+        out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
+        resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
+        seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
+        val_every=val_every, val_samples=val_samples,
+    ).validate()
+    if not spool.exists():
+        raise UsageError(f"--spool {spool}: no such folder (start `cuboidgen run --spool {spool} --size {size}` first)")
+    check_spool(spool, readable=True)  # the trainer's own check (not a folder, unreadable), before --out's
+    check_writable("--out", config.out, folder=True)
     try:
-        config = TrainConfig(
-            phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe,
-            steps=steps, epochs=epochs,
-            batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
-            alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
-            out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
-            resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
-            seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
-            val_every=val_every, val_samples=val_samples,
-        ).validate()
-        if not spool.exists():  # other spool faults (not a folder, unreadable) are the trainer's one-line errors
-            raise ValueError(f"--spool {spool}: no such folder (start `cuboidgen run --spool {spool} --size {size}` first)")
         with Dashboard(live=dashboard and sys.stdout.isatty()) as board:
             status = run_training(config, dashboard=board)
-    except ValueError as exc:
-        fail(str(exc))
-    except NoUsableSamples as exc:
+    except NoUsableSamples as exc:  # not a bad value: the spool may yet fill; exit 1, as a timeout
         fail(str(exc), code=1)
     if status.get("rank", 0) == 0:  # under torchrun rank 0 speaks for the run
         ckpt = status["last_checkpoint"]
@@ -118,13 +120,10 @@ def evaluate(
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
-    try:
-        options = FitOptions(refine_steps=refine_steps, extractor=extractor.value, pdm_components=pdm_components,
-                             device=device).validate()
-        checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
-        result = evaluate_checkpoint(checkpoint, spool, options, batch_size=batch_size, max_samples=max_samples)
-    except ValueError as exc:
-        fail(str(exc))
+    options = FitOptions(refine_steps=refine_steps, extractor=extractor.value, pdm_components=pdm_components,
+                         device=device).validate()
+    checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
+    result = evaluate_checkpoint(checkpoint, spool, options, batch_size=batch_size, max_samples=max_samples)
     typer.echo(json.dumps(result, indent=2) if as_json else format_report(result))
 
 
@@ -139,8 +138,6 @@ def watch(
 
     try:
         code = watch_run(out, interval=interval, once=once)
-    except ValueError as exc:
-        fail(str(exc))
     except KeyboardInterrupt:
         code = 0
     raise typer.Exit(code)
@@ -171,19 +168,17 @@ def infer(
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
-    try:
-        options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
-                             pdm_components=pdm_components, all_components=all_components, label_id=label_id,
-                             device=device).validate()
-        explainer = make_explainer(explain, overlay, len(paths))
-        fitter = Fitter.from_files(default_checkpoints(checkpoint, options.shapes), options)
-        records = fitter.records(paths, explain=explainer)
-        if json_out == "-":
-            typer.echo(json.dumps(records, indent=2))
-        else:
-            write_records(Path(json_out), records)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
+                         pdm_components=pdm_components, all_components=all_components, label_id=label_id,
+                         device=device).validate()
+    check_outputs(("--json", json_out))
+    explainer = make_explainer(explain, overlay, len(paths))
+    fitter = Fitter.from_files(default_checkpoints(checkpoint, options.shapes), options)
+    records = fitter.records(paths, explain=explainer)
+    if json_out == "-":
+        typer.echo(json.dumps(records, indent=2))
+    else:
+        write_records(Path(json_out), records)
     if explainer is not None:
         count = len(explainer.written)
         console.print(f"{count} picture{'' if count == 1 else 's'} in {explain}", highlight=False)
@@ -194,14 +189,15 @@ def infer(
 
 
 def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
-    """The explanation writer for --explain/--overlay, or None; bad combinations are ValueErrors."""
+    """The explanation writer for --explain/--overlay, or None; bad combinations are UsageErrors."""
     if photos and folder is None:
-        raise ValueError("--overlay needs --explain DIR: the folder its pictures go to")
+        raise UsageError("--overlay needs --explain DIR: the folder its pictures go to")
     if photos and len(photos) != inputs:
-        raise ValueError(f"--overlay given {len(photos)} times for {inputs} inputs: expected one photo per input, "
+        raise UsageError(f"--overlay given {len(photos)} times for {inputs} inputs: expected one photo per input, "
                          f"in the same order")
     if folder is None:
         return None
+    check_writable("--explain", folder, folder=True)
     from cuboidtrain.fit.explain import Explainer  # matplotlib: only when pictures are wanted
 
     return Explainer(folder, photos)
@@ -220,11 +216,9 @@ def export(
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
-    try:
-        checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
-        meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    check_outputs(("--onnx", onnx))
+    checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
+    meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
     console.print(f"{onnx}: {meta['shape']} model, {meta['size']} px, {meta['refine_steps']} Refiner pass(es), "
                   f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False)
 
@@ -254,19 +248,17 @@ def localize(
     from cuboidtrain.fit.chain import load_models
 
     out = localize_setup(json_out, threads)
-    try:
-        options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
-        paths = loc.mask_sequence(masks, mask_args)
-        if not paths:
-            raise ValueError("--street: expected masks (--masks A B C) to locate in it")
-        result = loc.localize_masks(loc.read_street(street), paths, load_models(box_checkpoints(checkpoint)), options,
-                                    temperature=temperature)
-        out.print(figures.ranking_table(result))
-        if bars:
-            figures.plot_ranking(bars, result)
-        figures.write_json(json_out, result)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
+    check_outputs(("--json", json_out), ("--bars", bars))
+    paths = loc.mask_sequence(masks, mask_args)
+    if not paths:
+        raise UsageError("--street: expected masks (--masks A B C) to locate in it")
+    result = loc.localize_masks(loc.read_street(street), paths, load_models(box_checkpoints(checkpoint)), options,
+                                temperature=temperature)
+    out.print(figures.ranking_table(result))
+    if bars:
+        figures.plot_ranking(bars, result)
+    figures.write_json(json_out, result)
 
 
 @app.command("localize-experiment")
@@ -299,25 +291,23 @@ def localize_experiment(
     from cuboidtrain.fit.chain import load_models
 
     out = localize_setup(json_out, threads)
-    try:
-        options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
-        config = experiment.ExperimentConfig(
-            buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
-            mask_size=mask_size, oracle=oracle, oracle_noise=oracle_noise,
-            example_m=example_m, example_start=example_start, temperature=temperature).validate()
-        checkpoint = [] if oracle else box_checkpoints(checkpoint)
-        result = experiment.run_experiment(config, models=load_models(checkpoint),
-                                           checkpoints=[str(c) for c in checkpoint], options=options)
-        out.print(figures.accuracy_table(result))
-        if csv_out:
-            figures.write_csv(csv_out, result)
-        if heatmap:
-            figures.plot_accuracy(heatmap, result)
-        if bars:
-            figures.plot_example(bars, result)
-        figures.write_json(json_out, result)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
+    config = experiment.ExperimentConfig(
+        buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
+        mask_size=mask_size, oracle=oracle, oracle_noise=oracle_noise,
+        example_m=example_m, example_start=example_start, temperature=temperature).validate()
+    check_outputs(("--json", json_out), ("--csv", csv_out), ("--heatmap", heatmap), ("--bars", bars))
+    checkpoint = [] if oracle else box_checkpoints(checkpoint)
+    result = experiment.run_experiment(config, models=load_models(checkpoint),
+                                       checkpoints=[str(c) for c in checkpoint], options=options)
+    out.print(figures.accuracy_table(result))
+    if csv_out:
+        figures.write_csv(csv_out, result)
+    if heatmap:
+        figures.plot_accuracy(heatmap, result)
+    if bars:
+        figures.plot_example(bars, result)
+    figures.write_json(json_out, result)
 
 
 def localize_setup(json_out: Optional[str], threads: Optional[int]):
@@ -363,19 +353,17 @@ def report(
     setup_logging()
     if threads:
         torch.set_num_threads(threads)
-    try:
-        checkpoint = default_checkpoints(checkpoint)
-        config = ReportConfig(
-            checkpoints=tuple(map(str, checkpoint)), clean_spools=tuple(map(str, clean_spool)),
-            noisy_spools=tuple(map(str, noisy_spool)), finetune=tuple(map(str, finetune)), e2e=tuple(map(str, e2e)),
-            out=str(out), samples=samples, sweep_samples=sweep_samples, seed=seed, device=device,
-        )
-        results = run_report(config)
-        localization = out / "localization.md"
-        command = "cuboidtrain report " + shlex.join(sys.argv[2:])
-        written = write_report(results, out, command, localization if localization.is_file() else None)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    check_writable("--out", out, folder=True)
+    checkpoint = default_checkpoints(checkpoint)
+    config = ReportConfig(
+        checkpoints=tuple(map(str, checkpoint)), clean_spools=tuple(map(str, clean_spool)),
+        noisy_spools=tuple(map(str, noisy_spool)), finetune=tuple(map(str, finetune)), e2e=tuple(map(str, e2e)),
+        out=str(out), samples=samples, sweep_samples=sweep_samples, seed=seed, device=device,
+    )
+    results = run_report(config)
+    localization = out / "localization.md"
+    command = "cuboidtrain report " + shlex.join(sys.argv[2:])
+    written = write_report(results, out, command, localization if localization.is_file() else None)
     console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False)
 
 
@@ -394,10 +382,7 @@ def models(
         return
     from cuboidtrain.models.zoo import cards
 
-    try:
-        found = cards(folder)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    found = cards(folder)
     if as_json:
         typer.echo(json.dumps(found, indent=2))
     else:
@@ -435,11 +420,9 @@ def models_pack(
     """Write a model file (weights, config, card; no optimizer state) from a training checkpoint."""
     from cuboidtrain.models.zoo import pack, validation_for
 
-    try:
-        figures = validation_for(validation, checkpoint) if validation else None
-        card = pack(checkpoint, out, scene, figures, recipe, half, pdm_spool)
-    except (ValueError, OSError) as exc:
-        fail(str(exc))
+    check_outputs(("--out", out))
+    figures = validation_for(validation, checkpoint) if validation else None
+    card = pack(checkpoint, out, scene, figures, recipe, half, pdm_spool)
     console.print(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "
                   f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False)
 

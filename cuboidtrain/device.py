@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 
 from cuboidtrain.fit.options import check_device
+from shared.errors import UsageError
 
 
 def resolve_device(device: str | torch.device) -> torch.device:
@@ -13,5 +14,5 @@ def resolve_device(device: str | torch.device) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: CUDA is not available on this machine")
+        raise UsageError(f"--device {device}: CUDA is not available on this machine")
     return torch.device(name)

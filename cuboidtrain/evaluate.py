@@ -23,6 +23,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.refine import mask_iou
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
+from shared.errors import UsageError
 from shared.sample import decode_record
 from shared.shapes import get_shape
 from shared.spool import check_spool, enumerate_spool, read_sample_bytes
@@ -61,7 +62,7 @@ def load_batches(spool: Path, shape: str, size: int, batch_size: int, max_sample
             batches.append(batch)
             kept += len(batch["names"])
     if not kept:
-        raise ValueError(_nothing_to_evaluate(spool, shape, size, names))
+        raise UsageError(_nothing_to_evaluate(spool, shape, size, names))
     if any(skipped.values()):
         log.info("evaluation on %s skipped %s", spool, {k: v for k, v in skipped.items() if v})
     return batches, skipped
@@ -155,9 +156,9 @@ def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, o
 
 def _check_counts(batch_size: int, max_samples: int | None) -> None:
     if batch_size < 1:
-        raise ValueError(f"batch size {batch_size}: expected a positive integer")
+        raise UsageError(f"batch size {batch_size}: expected a positive integer")
     if max_samples is not None and max_samples < 1:
-        raise ValueError(f"max samples {max_samples}: expected a positive integer or None (all)")
+        raise UsageError(f"max samples {max_samples}: expected a positive integer or None (all)")
 
 
 def evaluate_checkpoint(checkpoint: Path, spool: Path, options: FitOptions | None = None, batch_size: int = 32,

@@ -26,6 +26,7 @@ import numpy as np
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import FitOptions
+from shared.errors import UsageError
 from shared.shapes import RATIO_KEYS
 
 log = logging.getLogger(__name__)
@@ -63,22 +64,22 @@ def read_street(path: str | Path) -> list[Building]:
     try:
         data = json.loads(path.read_text())
     except OSError as exc:
-        raise ValueError(f"--street {path}: cannot read it ({exc.strerror or exc})") from None
+        raise UsageError(f"--street {path}: cannot read it ({exc.strerror or exc})") from None
     except ValueError as exc:
-        raise ValueError(f"--street {path}: not JSON ({exc})") from None
+        raise UsageError(f"--street {path}: not JSON ({exc})") from None
     return street_from_dict(data, source=str(path))
 
 
 def street_from_dict(data, source: str = "street") -> list[Building]:
     if not isinstance(data, dict):
-        raise ValueError(f"{source}: a JSON {type(data).__name__}, expected an object with format, version and buildings")
+        raise UsageError(f"{source}: a JSON {type(data).__name__}, expected an object with format, version and buildings")
     if data.get("format") != STREET_FORMAT:
-        raise ValueError(f"{source}: format {data.get('format')!r}, expected {STREET_FORMAT!r}")
+        raise UsageError(f"{source}: format {data.get('format')!r}, expected {STREET_FORMAT!r}")
     if data.get("version") != STREET_VERSION:
-        raise ValueError(f"{source}: version {data.get('version')!r}, expected {STREET_VERSION}")
+        raise UsageError(f"{source}: version {data.get('version')!r}, expected {STREET_VERSION}")
     buildings = data.get("buildings")
     if not isinstance(buildings, list) or not buildings:
-        raise ValueError(f"{source}: buildings = {buildings!r}, expected a non-empty list of "
+        raise UsageError(f"{source}: buildings = {buildings!r}, expected a non-empty list of "
                          f"{{\"name\", \"width\", \"height\", \"depth\"}} objects")
     return [building_from_dict(b, f"{source}: buildings[{k}]", default_name=f"#{k + 1}")
             for k, b in enumerate(buildings)]
@@ -86,18 +87,18 @@ def street_from_dict(data, source: str = "street") -> list[Building]:
 
 def building_from_dict(data, where: str, default_name: str) -> Building:
     if not isinstance(data, dict):
-        raise ValueError(f"{where} = {data!r}, expected an object with width, height and depth")
+        raise UsageError(f"{where} = {data!r}, expected an object with width, height and depth")
     extents = {}
     for key in EXTENTS:
         if key not in data:
-            raise ValueError(f"{where}: missing key {key!r} (expected width, height and depth, in any one unit)")
+            raise UsageError(f"{where}: missing key {key!r} (expected width, height and depth, in any one unit)")
         value = data[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-            raise ValueError(f"{where}.{key} = {value!r}, expected a positive number")
+            raise UsageError(f"{where}.{key} = {value!r}, expected a positive number")
         extents[key] = float(value)
     name = data.get("name", default_name)
     if not isinstance(name, str):
-        raise ValueError(f"{where}.name = {name!r}, expected a string")
+        raise UsageError(f"{where}.name = {name!r}, expected a string")
     return Building(name=name, **extents)
 
 
@@ -144,9 +145,9 @@ def accuracy(true: np.ndarray, predicted: np.ndarray, max_m: int, top_l: int) ->
     N-m+1 true sub-sequences (candidates: every start 0..N-m)."""
     n = len(np.asarray(true))
     if not 1 <= max_m <= n:
-        raise ValueError(f"--max-m {max_m}: expected 1 to the number of buildings ({n})")
+        raise UsageError(f"--max-m {max_m}: expected 1 to the number of buildings ({n})")
     if top_l < 1:
-        raise ValueError(f"--top-l {top_l}: expected 1 or more")
+        raise UsageError(f"--top-l {top_l}: expected 1 or more")
     acc = np.empty((max_m, top_l))
     for m, squared in subsequence_distances(true, predicted, max_m):
         ranks = true_ranks(squared)  # squared distances order (and tie) as the distances do
@@ -160,9 +161,9 @@ def start_probabilities(true: np.ndarray, predicted: np.ndarray, temperature: fl
     true, predicted = np.asarray(true, np.float64), np.asarray(predicted, np.float64)
     m = len(predicted)
     if not 1 <= m <= len(true):
-        raise ValueError(f"{m} predicted buildings for a street of {len(true)}: expected 1 to {len(true)}")
+        raise UsageError(f"{m} predicted buildings for a street of {len(true)}: expected 1 to {len(true)}")
     if not temperature > 0:
-        raise ValueError(f"--temperature {temperature}: expected a positive number")
+        raise UsageError(f"--temperature {temperature}: expected a positive number")
     windows = np.lib.stride_tricks.sliding_window_view(true, m, axis=0)  # (N-m+1, R, m)
     distances = np.sqrt(((windows - predicted.T[None]) ** 2).sum(axis=(1, 2)))
     logits = -distances / temperature
@@ -189,7 +190,7 @@ def box_model(models: list[CuboidNet]) -> CuboidNet:
     for model in models:
         if model.shape == "box":
             return model
-    raise ValueError(f"--checkpoint: localization needs a box model (a street's buildings are single boxes); "
+    raise UsageError(f"--checkpoint: localization needs a box model (a street's buildings are single boxes); "
                      f"got {', '.join(m.shape for m in models) or 'none'}")
 
 
@@ -199,15 +200,15 @@ def localize_masks(street: list[Building], masks: list[str], models: list[Cuboid
     their predicted ratios (fitted by the box model, as `infer --shape box` fits them) and
     every start position ranked by probability."""
     if len(masks) > len(street):
-        raise ValueError(f"{len(masks)} masks for a street of {len(street)} buildings: "
+        raise UsageError(f"{len(masks)} masks for a street of {len(street)} buildings: "
                          f"expected at most as many masks as buildings")
     if not temperature > 0:
-        raise ValueError(f"--temperature {temperature}: expected a positive number")
+        raise UsageError(f"--temperature {temperature}: expected a positive number")
     options = replace(options or FitOptions(), shape="box")
     records = Fitter([box_model(models)], options).records(masks)
     for record in records:
         if record["error"] is not None:
-            raise ValueError(f"{record['error']} (every mask is needed: the sequence cannot have a gap)")
+            raise UsageError(f"{record['error']} (every mask is needed: the sequence cannot have a gap)")
     predicted = np.array([[r["ratios"][k] for k in RATIO_KEYS] for r in records])
     return {
         "format": "cuboid-fit/localization", "version": 1, "temperature": temperature,
@@ -223,6 +224,6 @@ def mask_sequence(option_values: list[str], arguments: list[str]) -> list[str]:
     --masks with extra arguments has no clear order and is refused."""
     option_values, arguments = list(option_values or []), list(arguments or [])
     if len(option_values) > 1 and arguments:
-        raise ValueError(f"masks {option_values + arguments}: give them as --masks A B C (in street order) "
+        raise UsageError(f"masks {option_values + arguments}: give them as --masks A B C (in street order) "
                          f"or each after its own --masks, not both")
     return option_values + arguments

@@ -9,6 +9,8 @@ from rich.console import Console
 from rich.logging import RichHandler
 from typer.core import TyperGroup
 
+from shared.errors import UsageError
+
 
 def choices(name: str, values) -> type[Enum]:
     """A click choice of a library's own list, so the command line and the library cannot drift apart."""
@@ -38,11 +40,13 @@ def fail(message: str, code: int = 2) -> None:
 
 
 class Commands(TyperGroup):
-    """A command line whose option errors give the message alone.
+    """A command line whose errors give the message alone, in one line.
 
-    typer checks a value with pydantic and passes on pydantic's wording of a rejected
-    one, "Value error, '3' is not one of ...": the prefix is dropped here, where the
-    subcommand's options are parsed (`Typer(cls=Commands)`)."""
+    The one place both command lines (`Typer(cls=Commands)`) report what the user got wrong:
+    a UsageError (a bad option, file, model, mask, spool) or an OSError (a path that cannot be
+    read or written) from any subcommand becomes `fail`'s one line and exit 2. typer checks a
+    value with pydantic and passes on pydantic's wording of a rejected one, "Value error, '3'
+    is not one of ...": the prefix is dropped here, where the subcommand's options are parsed."""
 
     def invoke(self, ctx):
         try:
@@ -50,6 +54,8 @@ class Commands(TyperGroup):
         except typer.BadParameter as exc:
             exc.message = plain_message(exc.message)
             raise
+        except (UsageError, OSError) as exc:
+            fail(str(exc))
 
 
 def plain_message(message: str) -> str:

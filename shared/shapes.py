@@ -14,6 +14,8 @@ from functools import cached_property
 
 import numpy as np
 
+from shared.errors import UsageError
+
 DEPTHS = ("BACK", "FRONT")
 WIDTHS = ("RIGHT", "LEFT")
 HEIGHTS = ("TOP", "BOTTOM")
@@ -130,4 +132,4 @@ def get_shape(name: str) -> Shape:
     try:
         return SHAPES[name]
     except KeyError:
-        raise ValueError(f"unknown shape {name!r}: expected one of {sorted(SHAPES)}") from None
+        raise UsageError(f"unknown shape {name!r}: expected one of {sorted(SHAPES)}") from None

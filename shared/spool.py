@@ -51,6 +51,7 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
+from shared.errors import UsageError
 # TMP_PREFIX is the spool's too: inspect counts the temporary files by it.
 from shared.files import TMP_PREFIX, host_tag, sweep_orphans, temporary_name  # noqa: F401
 
@@ -70,7 +71,7 @@ _READ = os.O_RDONLY | getattr(os, "O_CLOEXEC", 0)
 _REWRITE = os.O_WRONLY | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
 
 
-class SpoolError(ValueError):
+class SpoolError(UsageError):
     """The spool folder cannot be used (missing, not a folder, not writable)."""
 
 

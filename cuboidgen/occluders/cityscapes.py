@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from shared.errors import UsageError
 from shared.files import atomic_path
 
 # The package's one logger name, as before it was split into modules: log settings and tests name it.
@@ -27,20 +28,20 @@ def _resolve_classes(classes) -> dict[str, int]:
     names = list(DEFAULT_CLASSES) if classes is None else [classes] if isinstance(classes, str) else list(classes)
     for name in names:
         if name not in DEFAULT_CLASSES:
-            raise ValueError(f"occluder class {name!r}: unknown (expected one of {', '.join(DEFAULT_CLASSES)})")
+            raise UsageError(f"occluder class {name!r}: unknown (expected one of {', '.join(DEFAULT_CLASSES)})")
     return {n: DEFAULT_CLASSES[n] for n in names}
 
 
 def _label_files(root: Path, splits) -> list[Path]:
     gt, layout = root / "gtFine", f"expected ROOT/gtFine/<split>/<city>/*{_LABEL_SUFFIX}"
     if not gt.is_dir():
-        raise ValueError(f"cityscapes root {root}: no gtFine folder ({layout})")
+        raise UsageError(f"cityscapes root {root}: no gtFine folder ({layout})")
     missing = [s for s in splits if not (gt / s).is_dir()]
     if missing:
         log.info("cityscapes: splits %s not under %s; skipped", missing, gt)
     files = [p for s in splits if s not in missing for p in sorted((gt / s).glob(f"*/*{_LABEL_SUFFIX}"))]
     if not files:
-        raise ValueError(f"cityscapes root {root}: no labelIds files for splits {list(splits)} ({layout})")
+        raise UsageError(f"cityscapes root {root}: no labelIds files for splits {list(splits)} ({layout})")
     return files
 
 

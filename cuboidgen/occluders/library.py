@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from cuboidgen.occluders.urban_elements import KINDS, draw_element, tight_crop
+from shared.errors import UsageError
 from shared.files import TMP_PREFIX
 
 # The package's one logger name, as before it was split into modules: log settings and tests name it.
@@ -59,15 +60,15 @@ class OccluderLibrary:
     def from_dir(cls, path) -> "OccluderLibrary":
         folder = Path(path)
         if not folder.is_dir():
-            raise ValueError(f"occluders folder {folder}: no such folder")
+            raise UsageError(f"occluders folder {folder}: no such folder")
         files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".png"
                         and not p.name.startswith(TMP_PREFIX)),
                        key=lambda p: p.name)
         if not files:
-            raise ValueError(f"occluders folder {folder}: no PNG files (expected RGBA or binary PNG cutouts)")
+            raise UsageError(f"occluders folder {folder}: no PNG files (expected RGBA or binary PNG cutouts)")
         loaded = [(p.stem, m) for p in files if (m := _read_cutout(p)) is not None]
         if not loaded:
-            raise ValueError(f"occluders folder {folder}: none of its {len(files)} PNG files is usable "
+            raise UsageError(f"occluders folder {folder}: none of its {len(files)} PNG files is usable "
                              "(expected RGBA or binary PNG cutouts with some foreground)")
         log.info("loaded %d occluders from %s", len(loaded), folder)
         return cls([m for _, m in loaded], [n for n, _ in loaded], str(folder))

@@ -23,6 +23,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.localize import (EXTENTS, Building, accuracy, box_model, start_probabilities, street_ratios)
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import FitOptions
+from shared.errors import UsageError
 from shared.sample import Sample
 from shared.shapes import RATIO_KEYS
 
@@ -47,7 +48,7 @@ def predict_ratios(masks: list[np.ndarray], fitter: Fitter) -> np.ndarray:
     predicted = []
     for k, mask in enumerate(masks):
         if not mask.any():
-            raise ValueError(f"building {k + 1}: its silhouette is empty (occluded away)")
+            raise UsageError(f"building {k + 1}: its silhouette is empty (occluded away)")
         ratios = fitter.fit(mask).ratios
         predicted.append([ratios[key] for key in RATIO_KEYS])
     return np.array(predicted).reshape(len(masks), len(RATIO_KEYS))
@@ -77,25 +78,25 @@ class ExperimentConfig:
 
     def validate(self) -> "ExperimentConfig":
         if self.buildings < 1:
-            raise ValueError(f"--buildings {self.buildings}: expected 1 or more")
+            raise UsageError(f"--buildings {self.buildings}: expected 1 or more")
         if not 1 <= self.max_m <= self.buildings:
-            raise ValueError(f"--max-m {self.max_m}: expected 1 to --buildings ({self.buildings})")
+            raise UsageError(f"--max-m {self.max_m}: expected 1 to --buildings ({self.buildings})")
         if self.top_l < 1:
-            raise ValueError(f"--top-l {self.top_l}: expected 1 or more")
+            raise UsageError(f"--top-l {self.top_l}: expected 1 or more")
         if self.streets < 1:
-            raise ValueError(f"--streets {self.streets}: expected 1 or more")
+            raise UsageError(f"--streets {self.streets}: expected 1 or more")
         if not self.oracle_noise >= 0:
-            raise ValueError(f"--oracle-noise {self.oracle_noise}: expected 0 or more (a relative std)")
+            raise UsageError(f"--oracle-noise {self.oracle_noise}: expected 0 or more (a relative std)")
         if self.mask_size is not None and not 16 <= self.mask_size <= 4096:
-            raise ValueError(f"--mask-size {self.mask_size}: expected 16 to 4096 px")
+            raise UsageError(f"--mask-size {self.mask_size}: expected 16 to 4096 px")
         if not 1 <= self.example_m <= self.buildings:
-            raise ValueError(f"--example-m {self.example_m}: expected 1 to --buildings ({self.buildings})")
+            raise UsageError(f"--example-m {self.example_m}: expected 1 to --buildings ({self.buildings})")
         last = self.buildings - self.example_m + 1
         if self.example_start is not None and not 1 <= self.example_start <= last:
-            raise ValueError(f"--example-start {self.example_start}: expected 1 to {last} "
+            raise UsageError(f"--example-start {self.example_start}: expected 1 to {last} "
                              f"(a sub-sequence of {self.example_m} in {self.buildings} buildings)")
         if not self.temperature > 0:
-            raise ValueError(f"--temperature {self.temperature}: expected a positive number")
+            raise UsageError(f"--temperature {self.temperature}: expected a positive number")
         load_scene(self.scene)
         return self
 

@@ -37,6 +37,7 @@ from cuboidtrain.fit.codec import make_codec
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.fit.options import EXTRACTORS, FitOptions
+from shared.errors import UsageError
 from shared.sample import encode
 from shared.spool import SpoolWriter, check_spool
 
@@ -62,12 +63,12 @@ class ReportConfig:
 
     def validate(self) -> "ReportConfig":
         if not self.checkpoints:
-            raise ValueError("no --checkpoint: give the trained model of at least one shape class")
+            raise UsageError("no --checkpoint: give the trained model of at least one shape class")
         if not self.clean_spools:
-            raise ValueError("no --clean-spool: Table 3 is measured on clean validation masks")
+            raise UsageError("no --clean-spool: Table 3 is measured on clean validation masks")
         for name, value in (("--samples", self.samples), ("--sweep-samples", self.sweep_samples)):
             if value < 1:
-                raise ValueError(f"{name} {value}: expected a positive number of samples")
+                raise UsageError(f"{name} {value}: expected a positive number of samples")
         for spool in self.clean_spools + self.noisy_spools:
             check_spool(Path(spool))
         return self
@@ -79,7 +80,7 @@ def load_by_shape(paths: tuple[str, ...], role: str) -> dict[str, tuple[CuboidNe
     for path in paths:
         model, ckpt = load_model(path)
         if model.shape in models:
-            raise ValueError(f"{role} {path}: a second {model.shape!r} model ({models[model.shape][2]} is one already)")
+            raise UsageError(f"{role} {path}: a second {model.shape!r} model ({models[model.shape][2]} is one already)")
         models[model.shape] = (model, ckpt, str(path))
     return models
 
@@ -213,10 +214,10 @@ def check_ablations(main: dict, ablations: dict[str, dict]) -> None:
     for role, models in ablations.items():
         for shape, (model, _, path) in models.items():
             if shape not in main:
-                raise ValueError(f"{role} {path}: a {shape} model, but no --checkpoint of that shape to compare with")
+                raise UsageError(f"{role} {path}: a {shape} model, but no --checkpoint of that shape to compare with")
             trained = main[shape][0]
             if (model.size, model.sigma) != (trained.size, trained.sigma):
-                raise ValueError(f"{role} {path}: a {model.size} px model with sigma {model.sigma}, expected "
+                raise UsageError(f"{role} {path}: a {model.size} px model with sigma {model.sigma}, expected "
                                  f"{trained.size} px and sigma {trained.sigma} like {main[shape][2]}")
 
 
@@ -224,7 +225,7 @@ def _shape_results(config: ReportConfig, model: CuboidNet, finetune, e2e, workdi
                    device: torch.device) -> dict:
     clean = read_validation(config.clean_spools, model, config.samples)
     if clean is None:
-        raise ValueError(f"no {model.shape} {model.size} px samples in any --clean-spool "
+        raise UsageError(f"no {model.shape} {model.size} px samples in any --clean-spool "
                          f"({', '.join(config.clean_spools)})")
     noisy = read_validation(config.noisy_spools, model, config.samples)
     out = {

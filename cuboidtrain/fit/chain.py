@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from shared.errors import UsageError
 from shared.raster import rasterize
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.files import write_json_atomically
@@ -100,7 +101,7 @@ def load_models(paths: list[Path]) -> list[CuboidNet]:
     for path in paths:
         model, _ = load_model(path)
         if model.shape in seen:
-            raise ValueError(f"--checkpoint {path}: a second {model.shape!r} model ({seen[model.shape]} is one "
+            raise UsageError(f"--checkpoint {path}: a second {model.shape!r} model ({seen[model.shape]} is one "
                              f"already); give at most one checkpoint per shape class")
         seen[model.shape] = path
         models.append(model)

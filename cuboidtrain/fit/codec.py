@@ -33,6 +33,7 @@ import torch.nn.functional as F
 
 from cuboidtrain.fit.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, check_choice, parse_components
 from cuboidtrain.fit.pdm import PointDistributionModel
+from shared.errors import UsageError
 
 
 def default_sigma(size: int) -> float:
@@ -222,7 +223,7 @@ class PdmCodec(HeatmapCodec):
         shape variance to keep (in (0, 1)); the PDM is the one saved in the model file
         (`model.pdm`), fitted on the keypoints it was trained on."""
         if getattr(model, "pdm", None) is None:
-            raise ValueError(f"--extractor pdm: this {model.shape} model carries no point distribution model; "
+            raise UsageError(f"--extractor pdm: this {model.shape} model carries no point distribution model; "
                              f"pack it with `cuboidtrain models pack --pdm-spool SPOOL` (the spool it trained on)")
         return cls(model.size, model.sigma, model.pdm, parse_components(pdm_components))
 
@@ -237,5 +238,5 @@ CODECS: dict[str, type[HeatmapCodec]] = {
 
 
 def make_codec(name: str, model, pdm_components: str | int | float = DEFAULT_PDM_COMPONENTS) -> HeatmapCodec:
-    """The codec `name` (`--extractor`) for `model`; an unknown name is a ValueError naming the choices."""
+    """The codec `name` (`--extractor`) for `model`; an unknown name is a UsageError naming the choices."""
     return CODECS[check_choice("--extractor", name, EXTRACTORS)].for_model(model, pdm_components)

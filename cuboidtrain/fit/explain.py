@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
 from cuboidtrain.fit.chain import no_explanation  # noqa: E402
+from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
 
@@ -193,7 +194,7 @@ def read_photo(path: Path) -> np.ndarray:
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else np.zeros(0, np.uint8)
     image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if image is None:
-        raise ValueError(f"--overlay {path}: cannot read it as an image (expected a PNG or JPG photo)")
+        raise UsageError(f"--overlay {path}: cannot read it as an image (expected a PNG or JPG photo)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
@@ -230,9 +231,9 @@ class Explainer:
         self.folder, self.photos = Path(folder), list(photos or [])
         missing = [str(p) for p in self.photos if p is not None and not Path(p).is_file()]
         if missing:
-            raise ValueError(f"--overlay {missing[0]}: no such file")
+            raise UsageError(f"--overlay {missing[0]}: no such file")
         if self.folder.exists() and not self.folder.is_dir():
-            raise ValueError(f"--explain {self.folder}: not a folder")
+            raise UsageError(f"--explain {self.folder}: not a folder")
         self.folder.mkdir(parents=True, exist_ok=True)
         self.written: list[Path] = []
         self.stems: dict[str, int] = {}  # picture name -> the input that took it

@@ -21,6 +21,7 @@ from torch import nn
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import parse_refine_steps
+from shared.errors import UsageError
 from shared.files import atomic_path
 from shared.shapes import get_shape
 
@@ -48,7 +49,7 @@ class Pipeline(nn.Module):
 def check_options(refine_steps: int, opset: int) -> None:
     parse_refine_steps(refine_steps, allow_auto=False)  # a traced graph runs a fixed number of passes
     if not MIN_OPSET <= opset <= MAX_OPSET:
-        raise ValueError(f"--opset {opset}: expected {MIN_OPSET} to {MAX_OPSET}")
+        raise UsageError(f"--opset {opset}: expected {MIN_OPSET} to {MAX_OPSET}")
 
 
 def metadata(model: CuboidNet, sigma: float, refine_steps: int, step: int | None) -> dict[str, str]:
@@ -114,11 +115,11 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"ONNX model {path}: no such file")
+        raise UsageError(f"ONNX model {path}: no such file")
     try:
         proto = onnx.load(str(path), load_external_data=False)
     except Exception as exc:  # protobuf raises DecodeError, others for truncated files
-        raise ValueError(f"ONNX model {path}: cannot read it ({type(exc).__name__})") from None
+        raise UsageError(f"ONNX model {path}: cannot read it ({type(exc).__name__})") from None
     props = {p.key: p.value for p in proto.metadata_props}
     check_metadata(path, props)
     return props
@@ -126,17 +127,17 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 
 def check_metadata(path: Path, props: dict[str, str], shape: str | None = None, size: int | None = None) -> None:
     if props.get("format") != FORMAT:
-        raise ValueError(f"ONNX model {path}: not a cuboid-fit export (format {props.get('format')!r}, "
+        raise UsageError(f"ONNX model {path}: not a cuboid-fit export (format {props.get('format')!r}, "
                          f"expected {FORMAT!r})")
     if props.get("version") != str(VERSION):
-        raise ValueError(f"ONNX model {path}: format version {props.get('version')!r}, expected {VERSION}")
+        raise UsageError(f"ONNX model {path}: format version {props.get('version')!r}, expected {VERSION}")
     geometry = get_shape(props["shape"])
     if json.loads(props["keypoint_names"]) != list(geometry.keypoint_names):
-        raise ValueError(f"ONNX model {path}: its {props['shape']} keypoint names differ from shared.shapes'")
+        raise UsageError(f"ONNX model {path}: its {props['shape']} keypoint names differ from shared.shapes'")
     if shape is not None and props["shape"] != shape:
-        raise ValueError(f"ONNX model {path}: a {props['shape']!r} model, expected {shape!r}")
+        raise UsageError(f"ONNX model {path}: a {props['shape']!r} model, expected {shape!r}")
     if size is not None and int(props["size"]) != size:
-        raise ValueError(f"ONNX model {path}: a {props['size']} px model, expected {size} px")
+        raise UsageError(f"ONNX model {path}: a {props['size']} px model, expected {size} px")
 
 
 def short(exc: Exception, limit: int = 240) -> str:
@@ -163,9 +164,9 @@ class OnnxPipeline:
 
         self.path = Path(path)
         if not self.path.is_file():
-            raise ValueError(f"ONNX model {self.path}: no such file")
+            raise UsageError(f"ONNX model {self.path}: no such file")
         if threads is not None and threads < 1:
-            raise ValueError(f"threads {threads}: expected 1 or more")
+            raise UsageError(f"threads {threads}: expected 1 or more")
         options = ort.SessionOptions()
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.intra_op_num_threads = threads or 0  # 0: onnxruntime picks (all cores)
@@ -175,7 +176,7 @@ class OnnxPipeline:
         try:
             self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # InvalidProtobuf, Fail, ... for a foreign or truncated file
-            raise ValueError(f"ONNX model {self.path}: onnxruntime cannot load it ({short(exc)})") from None
+            raise UsageError(f"ONNX model {self.path}: onnxruntime cannot load it ({short(exc)})") from None
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         check_metadata(self.path, self.metadata, shape, size)
         self.shape, self.size = self.metadata["shape"], int(self.metadata["size"])

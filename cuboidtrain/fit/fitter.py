@@ -31,6 +31,7 @@ from cuboidtrain.fit.codec import make_codec
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.fit.options import FitOptions
+from shared.errors import UsageError
 from shared.shapes import get_shape
 
 log = logging.getLogger(__name__)
@@ -149,7 +150,7 @@ class Fitter:
             building = silhouette(mask)
             parts = [] if building is None else [building]
         if not parts:
-            raise ValueError(f"{name or 'mask'}: no component of at least 16 px")
+            raise UsageError(f"{name or 'mask'}: no component of at least 16 px")
         fits = [self._fit_component(part, name) for part in parts]
         if all_components:
             fits = [replace(f, component=k) for k, f in enumerate(fits)]
@@ -198,10 +199,10 @@ def candidate_models(models: Sequence[CuboidNet], shape: str) -> list[CuboidNet]
     """The models to try for `shape`: all of them for auto, else the one of that class."""
     given = [m.shape for m in models]
     if len(set(given)) != len(given):
-        raise ValueError(f"two models of the same shape class ({', '.join(given)}): give one per shape")
+        raise UsageError(f"two models of the same shape class ({', '.join(given)}): give one per shape")
     chosen = [m for m in models if shape == "auto" or m.shape == shape]
     if not chosen:
-        raise ValueError(f"--shape {shape}: no {shape} model among the checkpoints given "
+        raise UsageError(f"--shape {shape}: no {shape} model among the checkpoints given "
                          f"({', '.join(given) or 'none'})")
     return chosen
 

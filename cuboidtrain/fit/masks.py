@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from cuboidtrain.fit.options import DEFAULT_MARGIN
+from shared.errors import UsageError
 
 
 def load_mask(path: Path, label_id: int | None = None) -> np.ndarray:
@@ -36,16 +37,16 @@ def to_mask(image: np.ndarray, label_id: int | None = None, source: str = "mask"
     if image.dtype == bool:
         image = image.astype(np.uint8)
     if image.ndim not in (2, 3) or image.size == 0:
-        raise ValueError(f"{source}: an array of shape {image.shape}, expected an (H, W) or (H, W, C) image")
+        raise UsageError(f"{source}: an array of shape {image.shape}, expected an (H, W) or (H, W, C) image")
     if label_id is not None:
         if image.ndim != 2:
-            raise ValueError(f"{source}: a label id needs a single-channel label map, "
+            raise UsageError(f"{source}: a label id needs a single-channel label map, "
                              f"got a {image.shape[2]}-channel image")
         mask = image == label_id
         if not mask.any():
             labels = np.unique(image).tolist()
             present = ", ".join(map(str, labels[:12])) + (", ..." if len(labels) > 12 else "")
-            raise ValueError(f"{source}: label {label_id} not found in the label map "
+            raise UsageError(f"{source}: label {label_id} not found in the label map "
                              f"(labels present: {present})")
         return mask
     if image.ndim == 3 and image.shape[2] == 4 and image[..., 3].min() != image[..., 3].max():
@@ -57,7 +58,7 @@ def to_mask(image: np.ndarray, label_id: int | None = None, source: str = "mask"
         # Half the maximum serves 0/1 and 0/255 masks alike and drops JPEG ringing near black.
         mask = grey > grey.max() / 2 if grey.max() > 0 else np.zeros(grey.shape, bool)
     if not mask.any():
-        raise ValueError(f"{source}: empty mask: no object pixels")
+        raise UsageError(f"{source}: empty mask: no object pixels")
     return mask
 
 
@@ -69,11 +70,11 @@ def _read(path: Path) -> np.ndarray:
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as error:
-        raise ValueError(f"{path}: cannot read image ({error.strerror or error})") from None
+        raise UsageError(f"{path}: cannot read image ({error.strerror or error})") from None
     _check_pixels(path, declared_size(data.tobytes()[:65536]))  # before decoding allocates it
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
-        raise ValueError(f"{path}: cannot read image (not a PNG or JPG OpenCV can decode)")
+        raise UsageError(f"{path}: cannot read image (not a PNG or JPG OpenCV can decode)")
     _check_pixels(path, (image.shape[1], image.shape[0]))  # formats whose header we do not read
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[..., 0]
@@ -82,7 +83,7 @@ def _read(path: Path) -> np.ndarray:
 
 def _check_pixels(path: Path, size: tuple[int, int] | None) -> None:
     if size is not None and size[0] * size[1] > MAX_PIXELS:
-        raise ValueError(f"{path}: image of {size[0]} x {size[1]} px is too large: at most {MAX_PIXELS:,} px "
+        raise UsageError(f"{path}: image of {size[0]} x {size[1]} px is too large: at most {MAX_PIXELS:,} px "
                          f"(downscale the mask first; the model sees it at 64-256 px anyway)")
 
 

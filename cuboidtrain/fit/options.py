@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, replace
 
+from shared.errors import UsageError
 from shared.shapes import SHAPES
 
 FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
@@ -22,7 +23,7 @@ DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 component
 def check_choice(option: str, value: str, choices) -> str:
     """`value` if it is one of `choices`, else a ValueError naming the option and the choices."""
     if value not in choices:
-        raise ValueError(f"{option} {value!r}: expected one of {', '.join(choices)}")
+        raise UsageError(f"{option} {value!r}: expected one of {', '.join(choices)}")
     return value
 
 
@@ -31,7 +32,7 @@ def check_device(device) -> str:
     is there is `cuboidtrain.device.resolve_device`'s to say, when a model moves)."""
     name = str(device)
     if name not in ("auto", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", name):
-        raise ValueError(f"--device {device!r}: expected auto, cpu, cuda or cuda:N")
+        raise UsageError(f"--device {device!r}: expected auto, cpu, cuda or cuda:N")
     return name
 
 
@@ -45,7 +46,7 @@ def parse_refine_steps(value: int | str | None, allow_auto: bool = True) -> int 
     except (TypeError, ValueError):
         steps = -1
     if steps < 0 or (isinstance(value, float) and value != steps):
-        raise ValueError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more)"
+        raise UsageError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more)"
                          + (" or auto" if allow_auto else ""))
     return steps
 
@@ -61,7 +62,7 @@ def parse_components(value: str | int | float) -> int | float:
         return int(number)
     if 0 < number < 1:
         return number
-    raise ValueError(f"PDM components {value!r}: expected a count of components (1, 2, ...) "
+    raise UsageError(f"PDM components {value!r}: expected a count of components (1, 2, ...) "
                      f"or a fraction of the shape variance to keep, between 0 and 1")
 
 
@@ -82,9 +83,9 @@ class FitOptions:
         check_choice("--shape", self.shape, FIT_SHAPES)
         check_choice("--extractor", self.extractor, EXTRACTORS)
         if not 0 <= self.margin < 0.5:
-            raise ValueError(f"--margin {self.margin}: expected a fraction in [0, 0.5)")
+            raise UsageError(f"--margin {self.margin}: expected a fraction in [0, 0.5)")
         if self.label_id is not None and not 0 <= self.label_id <= 65535:
-            raise ValueError(f"--label-id {self.label_id}: expected a label from 0 to 65535")
+            raise UsageError(f"--label-id {self.label_id}: expected a label from 0 to 65535")
         return replace(self, refine_steps=parse_refine_steps(self.refine_steps),
                        pdm_components=parse_components(self.pdm_components), device=check_device(self.device))
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.errors import UsageError
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 
@@ -76,7 +77,7 @@ class PointDistributionModel:
             explained = np.cumsum(self.variances) / self.variances.sum()
             return int(np.searchsorted(explained, components) + 1)
         if not 1 <= components <= total:
-            raise ValueError(f"PDM components {components}: expected 1 to {total} for this shape class")
+            raise UsageError(f"PDM components {components}: expected 1 to {total} for this shape class")
         return int(components)
 
     def project(self, keypoints: np.ndarray, components: int | float) -> np.ndarray:
@@ -110,6 +111,6 @@ def spool_keypoints(spool: Path, shape: str, count: int = 2000) -> np.ndarray:
             if len(sets) == count:
                 break
     if len(sets) < MIN_SAMPLES:
-        raise ValueError(f"spool {spool}: {len(sets)} {shape} samples, a point distribution model needs "
+        raise UsageError(f"spool {spool}: {len(sets)} {shape} samples, a point distribution model needs "
                          f"at least {MIN_SAMPLES}")
     return np.stack(sets).astype(np.float64)

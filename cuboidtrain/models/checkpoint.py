@@ -18,6 +18,7 @@ from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import LoaderState
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.pdm import PointDistributionModel
+from shared.errors import UsageError
 from shared.files import atomic_path
 
 FORMAT = "cuboid-fit/checkpoint"  # a training run's state: weights, optimizer, loader, RNG (cuboidtrain run)
@@ -69,26 +70,26 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
     """The checkpoint's dict, checked; ValueError names what is wrong with it."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"checkpoint {path}: no such file")
+        raise UsageError(f"checkpoint {path}: no such file")
     try:
         # weights_only=False: the payload holds RNG states (numpy arrays, tuples); only load your own files
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # torch raises many types for a truncated or foreign file
         if not _torch_file(path):  # a PNG, a text file: say what it is not, not what pickle tripped on
-            raise ValueError(f"checkpoint {path}: cannot read it: not a cuboid-fit checkpoint "
+            raise UsageError(f"checkpoint {path}: cannot read it: not a cuboid-fit checkpoint "
                              f"(not a file that torch.save writes)") from None
-        raise ValueError(f"checkpoint {path}: cannot read it ({type(exc).__name__}: {exc})") from None
+        raise UsageError(f"checkpoint {path}: cannot read it ({type(exc).__name__}: {exc})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") not in (FORMAT, MODEL_FORMAT):
-        raise ValueError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r} "
+        raise UsageError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r} "
                          f"or {MODEL_FORMAT!r})")
     if ckpt.get("version") != VERSION:
-        raise ValueError(f"checkpoint {path}: format version {ckpt.get('version')!r}, expected {VERSION}")
+        raise UsageError(f"checkpoint {path}: format version {ckpt.get('version')!r}, expected {VERSION}")
     if shape is not None and ckpt["shape"] != shape:
-        raise ValueError(f"checkpoint {path}: a {ckpt['shape']!r} model, expected {shape!r}")
+        raise UsageError(f"checkpoint {path}: a {ckpt['shape']!r} model, expected {shape!r}")
     if size is not None and ckpt["size"] != size:
-        raise ValueError(f"checkpoint {path}: a {ckpt['size']} px model, expected {size} px")
+        raise UsageError(f"checkpoint {path}: a {ckpt['size']} px model, expected {size} px")
     if arch is not None and checkpoint_arch(ckpt) != arch:
-        raise ValueError(f"checkpoint {path}: a {checkpoint_arch(ckpt)!r} arch model, expected {arch!r} (--arch)")
+        raise UsageError(f"checkpoint {path}: a {checkpoint_arch(ckpt)!r} arch model, expected {arch!r} (--arch)")
     return ckpt
 
 

@@ -28,6 +28,7 @@ from torch import nn
 from cuboidtrain.fit.codec import default_sigma
 from cuboidtrain.models import compact
 from cuboidtrain.models.refine import refine
+from shared.errors import UsageError
 from shared.shapes import get_shape
 
 DECODER_WIDTHS = (256, 128, 64, 32, 16)  # channels at strides 16, 8, 4, 2, 1
@@ -159,7 +160,7 @@ def register_arch(name: str):
 
 def check_arch(name: str) -> str:
     if name not in ARCHS:
-        raise ValueError(f"arch {name!r}: expected one of {', '.join(ARCHS)}")
+        raise UsageError(f"arch {name!r}: expected one of {', '.join(ARCHS)}")
     return name
 
 

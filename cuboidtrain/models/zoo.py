@@ -22,6 +22,7 @@ import torch
 
 from cuboidtrain.models.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
 from cuboidtrain.fit.pdm import PointDistributionModel, spool_keypoints
+from shared.errors import UsageError
 from shared.files import atomic_path
 
 SHIPPED_SHAPES = ("box", "twobox")
@@ -34,10 +35,10 @@ def models_dir() -> Path:
 def shipped_path(shape: str) -> Path:
     """The shipped model file of a shape class; a one-line error when it is missing."""
     if shape not in SHIPPED_SHAPES:
-        raise ValueError(f"shape {shape!r}: shipped models exist for {', '.join(SHIPPED_SHAPES)}")
+        raise UsageError(f"shape {shape!r}: shipped models exist for {', '.join(SHIPPED_SHAPES)}")
     path = models_dir() / f"{shape}.pt"
     if not path.is_file():
-        raise ValueError(f"shipped model {path}: no such file (reinstall cuboid-fit, set CUBOID_MODELS, "
+        raise UsageError(f"shipped model {path}: no such file (reinstall cuboid-fit, set CUBOID_MODELS, "
                          f"or give --checkpoint)")
     return path
 
@@ -123,7 +124,7 @@ def pack(checkpoint_path: Path, out: Path, scenes: list[str], validation: dict |
     elif pdm_spool is not None:
         payload, card = checkpoint, checkpoint["card"]
     else:
-        raise ValueError(f"{checkpoint_path}: already a model file; pack a training checkpoint (last.pt), "
+        raise UsageError(f"{checkpoint_path}: already a model file; pack a training checkpoint (last.pt), "
                          f"or give --pdm-spool to fit its shape model again")
     if pdm_spool is not None:
         sets = spool_keypoints(pdm_spool, checkpoint["shape"])
@@ -143,7 +144,7 @@ def validation_for(bench_json: Path, checkpoint_path: Path) -> dict:
                                 if k in row}
                    for row in result["rows"] if row["shape"] == shape}
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"--validation {bench_json}: not a bench_accuracy.py JSON ({exc})") from None
+        raise UsageError(f"--validation {bench_json}: not a bench_accuracy.py JSON ({exc})") from None
     return {"units": "mean corner error, px at 256 px, through infer", "sets": figures,
             "shape_selection": result.get("selection", {}), "benchmark": result.get("command")}
 

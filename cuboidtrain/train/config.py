@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields, replace
 
 from cuboidtrain.fit.options import check_choice, check_device
+from shared.errors import UsageError
 from shared.shapes import get_shape
 
 
@@ -59,38 +60,38 @@ class TrainConfig:
 
     def validate(self) -> "TrainConfig":
         if self.phase not in PHASES:
-            raise ValueError(f"--phase {self.phase!r}: expected one of {', '.join(PHASES)}")
+            raise UsageError(f"--phase {self.phase!r}: expected one of {', '.join(PHASES)}")
         get_shape(self.shape)
         from cuboidtrain.models.networks import check_arch  # networks imports this module
 
         check_arch(self.arch)
         if self.size < 32 or self.size % 32:
-            raise ValueError(f"--size {self.size}: expected a multiple of 32, at least 32 (ResNet-18 halves it 5 times)")
+            raise UsageError(f"--size {self.size}: expected a multiple of 32, at least 32 (ResNet-18 halves it 5 times)")
         if self.steps is not None and self.epochs is not None:
-            raise ValueError("give --steps or --epochs, not both")
+            raise UsageError("give --steps or --epochs, not both")
         for name in ("steps", "epochs", "batch_size", "checkpoint_every", "log_every", "val_every", "val_samples"):
             value = getattr(self, name)
             if value is not None and value < 1:
-                raise ValueError(f"--{name.replace('_', '-')} {value}: expected a positive integer")
+                raise UsageError(f"--{name.replace('_', '-')} {value}: expected a positive integer")
         check_choice("--lr-schedule", self.lr_schedule, LR_SCHEDULES)
         if self.lr_schedule == "cosine" and self.steps is None:
-            raise ValueError("--lr-schedule cosine needs --steps N: the step it decays to")
+            raise UsageError("--lr-schedule cosine needs --steps N: the step it decays to")
         if self.max_minutes is not None and self.max_minutes <= 0:
-            raise ValueError(f"--max-minutes {self.max_minutes}: expected a positive number")
+            raise UsageError(f"--max-minutes {self.max_minutes}: expected a positive number")
         if self.max_wait is not None and self.max_wait <= 0:
-            raise ValueError(f"--max-wait {self.max_wait}: expected a positive number of seconds")
+            raise UsageError(f"--max-wait {self.max_wait}: expected a positive number of seconds")
         if self.threads is not None and self.threads < 1:
-            raise ValueError(f"--threads {self.threads}: expected a positive integer")
+            raise UsageError(f"--threads {self.threads}: expected a positive integer")
         if self.loader_workers < 0:
-            raise ValueError(f"--loader-workers {self.loader_workers}: expected 0 or more")
+            raise UsageError(f"--loader-workers {self.loader_workers}: expected 0 or more")
         if self.sigma is not None and self.sigma <= 0:
-            raise ValueError(f"--sigma {self.sigma}: expected a positive number of px")
+            raise UsageError(f"--sigma {self.sigma}: expected a positive number of px")
         if self.lr <= 0 or self.weight_decay < 0:
-            raise ValueError(f"--lr {self.lr} / --weight-decay {self.weight_decay}: expected lr > 0, decay >= 0")
+            raise UsageError(f"--lr {self.lr} / --weight-decay {self.weight_decay}: expected lr > 0, decay >= 0")
         if self.phase == "finetune" and not (self.init or self.resume):
-            raise ValueError("--phase finetune needs --init CKPT: the trained model to fine-tune")
+            raise UsageError("--phase finetune needs --init CKPT: the trained model to fine-tune")
         if self.phase == "e2e" and self.init:
-            raise ValueError("--phase e2e trains from scratch: drop --init (or use --phase finetune)")
+            raise UsageError("--phase e2e trains from scratch: drop --init (or use --phase finetune)")
         check_device(self.device)
         return self
 

@@ -50,7 +50,7 @@ MAX_OUTSIDE = 0.125
 REFRAME_MODES = ("never", "always", "other-sizes")
 
 
-class CutOff(ValueError):
+class CutOff(Exception):
     """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
 

@@ -31,6 +31,7 @@ from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.progress import Progress
 from cuboidtrain.train.spoolwatch import SpoolCensus
+from shared.errors import UsageError
 from shared.spool import check_spool
 
 log = logging.getLogger(__name__)
@@ -121,7 +122,7 @@ def build_state(config: TrainConfig, device: torch.device) -> tuple[CuboidNet, t
     if config.resume:
         resume = load_checkpoint(Path(config.out) / LAST, config.shape, config.size, config.arch)
         if resume["config"]["phase"] != config.phase:
-            raise ValueError(f"--resume: {config.out}/{LAST} is phase {resume['config']['phase']}, not {config.phase}")
+            raise UsageError(f"--resume: {config.out}/{LAST} is phase {resume['config']['phase']}, not {config.phase}")
         model.load_state_dict(resume["model"])
     elif config.init:
         model.load_state_dict(load_checkpoint(config.init, config.shape, config.size, config.arch)["model"])
@@ -369,7 +370,7 @@ def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, 
         try:
             save_checkpoint(path, model, config, step, optimizer, sampler.snapshot(), progress.metrics())
         except OSError as exc:  # a full disk, say: the last checkpoint is still whole (atomic replace)
-            raise ValueError(f"checkpoint {path}: cannot write step {step} ({exc.strerror or exc}); "
+            raise UsageError(f"checkpoint {path}: cannot write step {step} ({exc.strerror or exc}); "
                              f"the previous one is intact, --resume continues it") from None
     return path
 

@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from cuboidtrain.files import write_json_atomically
+from shared.errors import UsageError
 from shared.files import process_alive
 
 STATUS_FILE = "status.json"
@@ -136,11 +137,11 @@ def read_status(out: Path) -> TrainerStatus:
             time.sleep(0.05)
             data = json.loads(path.read_text())
     except FileNotFoundError:
-        raise ValueError(f"{out}: no status.json — is it a cuboidtrain run folder?") from None
+        raise UsageError(f"{out}: no status.json — is it a cuboidtrain run folder?") from None
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
+        raise UsageError(f"{path}: not valid JSON ({err})") from None
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object, found {type(data).__name__}")
+        raise UsageError(f"{path}: expected a JSON object, found {type(data).__name__}")
     return TrainerStatus.from_json(data)
 
 
