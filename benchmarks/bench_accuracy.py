@@ -9,6 +9,9 @@ mean corner error is then in 256 px units by construction. Beside it:
 * `eval`'s figures on the same spool (`cuboidtrain.evaluate`), px x 256 / size,
   and the error budget they carry: R's IoU, S's peak error (DARK on S's maps
   against the truth), T alone on true heat maps, and the whole chain;
+* where the error is (`cuboidtrain.fit.where`): corners on the true silhouette's hull
+  against the hidden interior ones, NME as a share of the building's image span, and
+  the depth/height and width/height relative errors of the record's ratios;
 * shape selection (box against twobox, `--shape auto`) on the noisy sets;
 * the whole `infer` path's latency per mask (median of --latency-repeats single-mask
   calls, both models, the shape chosen), with the `paper` arch at the same size as the
@@ -41,6 +44,8 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import build_model
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.models.zoo import default_checkpoints
+from cuboidtrain.fit.where import corner_errors as split_errors, summarise
+from shared.shapes import get_shape
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 
@@ -63,9 +68,9 @@ def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
     return spool
 
 
-def write_masks(spool: Path, samples: int, folder: Path) -> tuple[list[str], list[np.ndarray], list[str]]:
-    """The first `samples` samples' noisy masks as PNGs: their paths, true keypoints and shapes."""
-    paths, truths, shapes = [], [], []
+def write_masks(spool: Path, samples: int, folder: Path) -> tuple[list[str], list[np.ndarray], list[str], list[dict]]:
+    """The first `samples` samples' noisy masks as PNGs: their paths, true keypoints, shapes and ratios."""
+    paths, truths, shapes, ratios = [], [], [], []
     for name in enumerate_spool(spool)[:samples]:
         sample = decode(read_sample_bytes(spool, name))
         path = folder / f"{spool.name}-{len(paths):04d}.png"
@@ -73,7 +78,8 @@ def write_masks(spool: Path, samples: int, folder: Path) -> tuple[list[str], lis
         paths.append(str(path))
         truths.append(sample.keypoints)
         shapes.append(sample.shape)
-    return paths, truths, shapes
+        ratios.append(sample.ratios)
+    return paths, truths, shapes, ratios
 
 
 def corner_errors(records: list[dict], truths: list[np.ndarray]) -> list[float]:
@@ -85,6 +91,13 @@ def corner_errors(records: list[dict], truths: list[np.ndarray]) -> list[float]:
             continue
         errors.append(float(np.linalg.norm(np.asarray(record["keypoints"]) - truth, axis=1).mean()))
     return errors
+
+
+def where_figures(shape: str, records: list[dict], truths: list[np.ndarray], ratios: list[dict]) -> dict:
+    """Hull / interior corner error, NME and ratio errors of the records that did not fail."""
+    geometry = get_shape(shape)
+    return summarise([split_errors(geometry, np.asarray(r["keypoints"]), t, r["ratios"], q)
+                      for r, t, q in zip(records, truths, ratios) if r["error"] is None])
 
 
 def eval_figures(model, spool: Path, samples: int) -> dict:
@@ -128,11 +141,12 @@ def main() -> None:
             chosen, total = 0, 0
             for shape, model in models.items():
                 spool = spool_for(args.spools, shape, scene, args.samples)
-                files, truths, _ = write_masks(spool, args.samples, Path(tmp))
-                errors = corner_errors(Fitter([model], FitOptions(shape=shape, device="cpu")).records(files), truths)
+                files, truths, _, true_ratios = write_masks(spool, args.samples, Path(tmp))
+                records = Fitter([model], FitOptions(shape=shape, device="cpu")).records(files)
+                errors = corner_errors(records, truths)
                 row = {"set": scene, "shape": shape, "samples": len(files), "size": model.size,
                        "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
-                       "failed": int(np.isnan(errors).sum())}
+                       "failed": int(np.isnan(errors).sum())} | where_figures(shape, records, truths, true_ratios)
                 if not args.no_eval:
                     row |= eval_figures(model, spool, args.samples)
                 rows.append(row)
@@ -162,17 +176,33 @@ def show(result: dict) -> None:
         table.add_column(column)
     for r in result["rows"]:
         table.add_row(r["set"], r["shape"], str(r["samples"]), f"{r['infer_mean_256']:.2f}", f"{r['infer_median_256']:.2f}",
-                      *(f"{r[k]:.3f}" if k == "refiner_iou" else f"{r[k]:.2f}" if k in r else "-"
+                      *("-" if k not in r else f"{r[k]:.3f}" if k == "refiner_iou" else f"{r[k]:.2f}"
                         for k in ("eval_mean_256", "refiner_iou", "s_peaks_dark_256", "t_alone_256")),
                       f"<= {TARGETS[r['set']]}")
     console = Console()
     console.print(table)
+    console.print(where_table(result["rows"]))
     for scene, accuracy in result["selection"].items():
         console.print(f"shape selection on {scene}: {100 * accuracy:.1f}% (target >= 95%)")
     lat = result["latency"]
     console.print(f"infer per mask ({result['threads']} thread(s), both models): {lat['shipped_ms']:.1f} ms "
                   f"(target <= 30); paper arch at the same size {lat['paper_arch_ms']:.1f} ms, ratio {lat['ratio']:.2f}")
     print(json.dumps(result))
+
+
+def where_table(rows: list[dict]) -> Table:
+    """Where the error is: hull against interior corners (mean / median), NME, ratio errors."""
+    table = Table(title="Where the error is (256 px units; ratios: relative error, mean / median)")
+    for column in ("set", "shape", "hull px", "interior px", "interior share", "NME % span", "depth/height",
+                   "width/height"):
+        table.add_column(column)
+    for r in rows:
+        table.add_row(r["set"], r["shape"], f"{r['hull_mean_px']:.2f} / {r['hull_median_px']:.2f}",
+                      f"{r['interior_mean_px']:.2f} / {r['interior_median_px']:.2f}", f"{100 * r['interior_share']:.0f}%",
+                      f"{100 * r['nme_mean']:.2f} / {100 * r['nme_median']:.2f}",
+                      f"{100 * r['depth_height_mean_rel']:.1f}% / {100 * r['depth_height_median_rel']:.1f}%",
+                      f"{100 * r['width_height_mean_rel']:.1f}% / {100 * r['width_height_median_rel']:.1f}%")
+    return table
 
 
 if __name__ == "__main__":
