@@ -21,7 +21,7 @@ solver walks through near-affine views without the focal/distance blow-up. A dis
 `mirror` flag reflects the object in x before the rotation: viewer naming (LEFT = image-left,
 FRONT = nearer) can make the labelled corners a reflected box, which no rotation reaches.
 
-Measured on the generator's own views (research/geometric_fit_prototype, 2000 views per
+Measured on the generator's own views (docs/research/geometric-fit, 2000 views per
 scene and shape): projection equal to the samples' keypoints to 3e-12 px.
 """
 from __future__ import annotations

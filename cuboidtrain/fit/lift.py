@@ -4,7 +4,7 @@ that the lift and the mask fit (`cuboidtrain.fit.outline`) share.
 
 Start: the weak-perspective (affine) lift, both depth orders (Necker), times a few
 perspective strengths k; then LM on the reprojection error. Measured on exact generated
-corners (tests/test_geometry.py; research/geometric_fit_prototype/RESULTS.md): `street`
+corners (tests/test_geometry.py; docs/research/geometric-fit/RESULTS.md): `street`
 views are lifted to < 0.01 px and ratios < 0.1% in 99.7% of cases; strongly perspective
 `paper` views (distance down to 1.2 heights) much less often: they start far from the
 affine solution, and near-frontal views leave the ratios nearly free (a 0.1% ratio change

@@ -2,7 +2,7 @@
 (how far the mask's outline lies from the model's silhouette and back), a pull toward the
 networks' corners by confidence, and `cuboidtrain.fit.lift`'s solver.
 
-Measured (research/geometric_fit_prototype/RESULTS.md, 3a/3b): from true corners + 3 px
+Measured (docs/research/geometric-fit/RESULTS.md, 3a/3b): from true corners + 3 px
 noise on clean masks, hull corners to a median 0.4-0.5 px; from the shipped networks'
 corners, clean-mask medians improve strongly (box 2.8 -> 0.7 px) while noisy means barely
 move; about 55 ms a shape with forward-difference Jacobians.
