@@ -22,6 +22,7 @@ demo: $(STAMP)
 	@echo "preview written to preview.png"
 	$(BIN)/cuboidtrain models
 	# The shipped models on a mask of another size, with the picture of how the networks got there.
+	mkdir -p runs/demo  # --json writes into a folder that exists (a missing one is an error, not made)
 	$(BIN)/cuboidtrain infer examples/building.png --explain runs/demo/explain --json runs/demo/infer.json
 	# And on 200 fresh noisy, occluded 256 px street masks, as `eval` scores them.
 	$(BIN)/cuboidgen run --spool runs/demo/val --scene street --limit 0 --max-samples 200 --seed 3 --workers 1 --no-dashboard

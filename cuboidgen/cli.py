@@ -1,7 +1,6 @@
 """`cuboidgen`: parse options, build a GenConfig, call the library. Nothing else lives here."""
 from __future__ import annotations
 
-import json
 import os
 import sys
 from dataclasses import asdict
@@ -15,7 +14,7 @@ from rich.table import Table
 from cuboidgen.config import GEN_SHAPES, SCENES, GenConfig
 from shared.console import Commands, choices, console, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
-from shared.files import atomic_path
+from shared.files import atomic_path, json_text
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
                   help="Synthetic cuboid samples into a capped spool.")
@@ -93,7 +92,7 @@ def inspect(
 
     report = inspect_spool(spool)
     if as_json:
-        typer.echo(json.dumps(report, indent=2))
+        typer.echo(json_text(report, indent=2))
         return
     table = Table("key", "value", title=f"spool {spool}")
     for key, value in report.items():
@@ -147,7 +146,7 @@ def scenes(name: Optional[str] = typer.Argument(None, help="Show one preset's ra
         return
     if name not in SCENES:
         raise UsageError(f"scene {name!r}: expected one of {', '.join(SCENES)}")
-    typer.echo(json.dumps(asdict(SCENES[name]), indent=2))
+    typer.echo(json_text(asdict(SCENES[name]), indent=2))
 
 
 @app.command()
@@ -164,7 +163,7 @@ def bench(
     setup_logging()
     check_outputs(("--json", json_out))
     results = run_benchmarks(size=size, samples=samples, repeats=repeats, where=str(where))
-    text = json.dumps(results, indent=2)
+    text = json_text(results, indent=2)
     if json_out:
         with atomic_path(json_out) as tmp:
             tmp.write_text(text)

@@ -9,7 +9,6 @@ publishing is a rename, even a SIGKILL never leaves a torn sample.
 from __future__ import annotations
 
 import errno
-import json
 import logging
 import multiprocessing as mp
 import os
@@ -22,7 +21,7 @@ from pathlib import Path
 
 from cuboidgen.config import GenConfig
 from cuboidgen.dashboard import Dashboard, GenSnapshot, WorkerView
-from shared.files import atomic_path
+from shared.files import write_json
 from shared.sample import encode
 from shared.spool import META_NAME, SpoolError, SpoolFull, SpoolWriter, check_spool, enumerate_spool, name_time
 
@@ -290,8 +289,7 @@ def write_metadata(config: GenConfig) -> None:
     from shared.sample import FORMAT, VERSION
 
     meta = {"format": FORMAT, "version": VERSION, "generator": config.to_dict(), "written": time.time()}
-    with atomic_path(config.spool / META_NAME) as tmp:
-        tmp.write_text(json.dumps(meta, indent=2, default=str))
+    write_json(config.spool / META_NAME, meta, indent=2, default=str)
 
 
 def _install_stop_handlers(stop: threading.Event) -> dict:

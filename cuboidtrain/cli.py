@@ -1,7 +1,6 @@
 """`cuboidtrain`: parse options, build a TrainConfig, call the library. Nothing else lives here."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Optional
@@ -12,6 +11,7 @@ from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
 from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
 from shared.console import Commands, choices, console, fail, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
+from shared.files import json_text
 from shared.shapes import SHAPES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
@@ -124,7 +124,7 @@ def evaluate(
                          device=device).validate()
     checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
     result = evaluate_checkpoint(checkpoint, spool, options, batch_size=batch_size, max_samples=max_samples)
-    typer.echo(json.dumps(result, indent=2) if as_json else format_report(result))
+    typer.echo(json_text(result, indent=2) if as_json else format_report(result))
 
 
 @app.command()
@@ -176,7 +176,7 @@ def infer(
     fitter = Fitter.from_files(default_checkpoints(checkpoint, options.shapes), options)
     records = fitter.records(paths, explain=explainer)
     if json_out == "-":
-        typer.echo(json.dumps(records, indent=2))
+        typer.echo(json_text(records, indent=2))
     else:
         write_records(Path(json_out), records)
     if explainer is not None:
@@ -384,7 +384,7 @@ def models(
 
     found = cards(folder)
     if as_json:
-        typer.echo(json.dumps(found, indent=2))
+        typer.echo(json_text(found, indent=2))
     else:
         console.print(_cards_table(found))
 

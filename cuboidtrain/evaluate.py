@@ -24,6 +24,7 @@ from cuboidtrain.models.refine import mask_iou
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
 from shared.errors import UsageError
+from shared.files import non_finite
 from shared.sample import decode_record
 from shared.shapes import get_shape
 from shared.spool import check_spool, enumerate_spool, read_sample_bytes
@@ -151,6 +152,9 @@ def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, o
     result = {"shape": model.shape, "size": model.size, "sigma": sigma, "samples": len(errors["iou"]),
               "extractor": options.extractor, "refine_steps": options.refine_steps, "skipped": skipped}
     result.update(_summarise(errors, model.shape, thresholds))
+    if (found := non_finite(result)) is not None:  # never a nan in a table or a JSON as if it were a figure
+        raise UsageError(f"evaluation of the {model.shape} model: {found[0]} is {found[1]}: its outputs are not "
+                         f"finite (its weights are a diverged training's?); no metric to report")
     return result
 
 

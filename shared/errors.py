@@ -19,9 +19,10 @@ class UsageError(ValueError):
 def check_writable(option: str, path: str | Path, folder: bool = False) -> Path:
     """`path` as given to `option`, if a file (or with `folder`, a folder) can be written there;
     else a UsageError naming the option. Checked before any work, so a fit or a training run
-    is not lost to a typo in its output path. Missing parent folders are fine: the writers
-    create them (`shared.files.atomic_path`); the nearest existing one must be a writable folder.
-    Nothing is created here."""
+    is not lost to a typo in its output path. A file goes into a folder that exists: a missing
+    one is an error, not a folder silently made (`--json /nonexistent/x.json`). A folder (a run's
+    `--out`, `--explain`) may be new, with its missing parents (the writers make them): the nearest
+    existing one must be a writable folder. Nothing is created here."""
     path = Path(path)
     if path.is_dir() and not folder:
         raise UsageError(f"{option} {path}: a folder, expected a file to write")
@@ -32,6 +33,8 @@ def check_writable(option: str, path: str | Path, folder: bool = False) -> Path:
         existing = existing.parent
     if not existing.is_dir():
         raise UsageError(f"{option} {path}: {existing} is not a folder")
+    if not folder and existing != path.parent:
+        raise UsageError(f"{option} {path}: no folder {path.parent} to write it in (expected an existing folder)")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise UsageError(f"{option} {path}: cannot write in {existing} (permission denied)")
     return path

@@ -7,6 +7,10 @@ reads the writer's host and pid back from the name, so it can tell a live writer
 file from a dead one's without waiting. The first field is not read (older versions
 put a time there); the host tag has no `-`, so the fields split cleanly whatever `name` holds.
 
+Every JSON the project writes, to a file or to stdout, is made by `json_text` (files: `write_json`):
+strict JSON, so a NaN or an Infinity is an error naming where it lies, never a bare `NaN` token
+that strict parsers reject.
+
 Every writer goes through `atomic_path` (or `save_figure` for a picture) but one: the spool's
 publish (`shared.spool.SpoolWriter`), the generator's hot path at thousands of samples a
 second, names its temporary file by the same `temporary_name` with its host and pid looked
@@ -15,6 +19,8 @@ up once, creates it exclusively, may fsync it, and turns a full disk into `Spool
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 import re
 import socket
@@ -76,6 +82,37 @@ def atomic_path(path: str | Path):
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def json_text(data, indent: int | None = None, what: str = "JSON", default=None) -> str:
+    """`data` as strict JSON text: a NaN or an Infinity anywhere in it raises a one-line ValueError
+    naming `what` and where the value lies (`records[2].keypoints[3][0] is nan`)."""
+    try:
+        return json.dumps(data, indent=indent, allow_nan=False, default=default)
+    except ValueError:
+        found = non_finite(data)
+        if found is None:
+            raise
+        raise ValueError(f"{what}: {found[0]} is {found[1]}, which JSON cannot hold; nothing was written") from None
+
+
+def non_finite(data, where: str = "") -> tuple[str, float] | None:
+    """The first NaN or Infinity in nested dicts, lists and tuples: (its path, the value), or None."""
+    if isinstance(data, float):
+        return None if math.isfinite(data) else (where or "the value", data)
+    items = data.items() if isinstance(data, dict) else enumerate(data) if isinstance(data, (list, tuple)) else ()
+    for key, value in items:
+        found = non_finite(value, f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else str(key))
+        if found is not None:
+            return found
+    return None
+
+
+def write_json(path: str | Path, data, indent: int | None = None, default=None) -> None:
+    """`json_text(data)` to `path`, replaced atomically; checked before the temporary file is made."""
+    text = json_text(data, indent, str(path), default)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text + "\n")
 
 
 def save_figure(fig, path: str | Path, dpi: int) -> Path:

@@ -7,7 +7,7 @@ from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
 
-from shared.sample import decode_record
+from shared.sample import CorruptSample, decode_record
 from shared.spool import (
     TMP_PREFIX, check_spool, enumerate_spool, foreign_names, is_sample_name, name_time, read_sample_bytes,
 )
@@ -33,9 +33,9 @@ def inspect_spool(spool: Path) -> dict:
         total_bytes += len(data)
         try:
             record = decode_record(data)
-        except ValueError as exc:
+        except ValueError as exc:  # counted by what is wrong (a field and its fault), not by each file's values
             corrupt += 1
-            problems[str(exc).split(":")[0]] += 1
+            problems[exc.reason if isinstance(exc, CorruptSample) else str(exc).split(":")[0]] += 1
             continue
         shapes[record["shape"]] += 1
         sizes[record["size"]] += 1

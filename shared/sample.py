@@ -9,12 +9,13 @@ masks (in torch, by BIT_SHIFTS: the bit order is stated here and nowhere else).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
 
-from shared.shapes import get_shape
+from shared.shapes import RATIO_KEYS, SHAPES, get_shape
 
 FORMAT = "cuboid-fit/sample"
 VERSION = 1
@@ -23,6 +24,24 @@ BIT_ORDER = "big"  # np.packbits' default: a byte's first pixel is its most sign
 # The right shift that brings each of a byte's 8 pixels, first pixel first, down to bit 0:
 # for unpacking without numpy (the trainer unpacks a batch on its device, in torch).
 BIT_SHIFTS = (7, 6, 5, 4, 3, 2, 1, 0) if BIT_ORDER == "big" else (0, 1, 2, 3, 4, 5, 6, 7)
+# What a reader accepts beyond the byte lengths (docs/contract.md, "Sample format"): a sample
+# outside these bounds is no picture of a building, and one NaN in a batch ruins a training run.
+MAX_SIZE = 4096  # px: the generator's largest --size
+# How far outside the image a keypoint may lie, as a fraction of the size. The generator frames
+# the whole silhouette inside the image, so its keypoints lie within it; a hidden corner of another
+# writer's sample may lie beyond an edge, and the trainer cuts off any beyond 1/8 of the size
+# (cuboidtrain.train.data.MAX_OUTSIDE), so this bound is only for values no framing explains.
+KEYPOINT_REACH = 0.5
+RATIO_RANGE = (1e-3, 1e3)  # depth/height and width/height: positive, and no part a thousand times flatter
+
+
+class CorruptSample(ValueError):
+    """A sample of this format and version whose fields cannot be right. `reason` names the field
+    and the fault without the values (what a census counts by); the message adds the values."""
+
+    def __init__(self, field: str, fault: str, detail: str):
+        super().__init__(f"corrupt sample: {field}: {fault} ({detail})")
+        self.reason = f"{field}: {fault}"
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,7 +98,7 @@ def to_record(sample: Sample) -> dict:
         mask = getattr(sample, name)
         if mask.shape != (sample.size, sample.size):
             raise ValueError(f"{name} mask is {mask.shape}, expected ({sample.size}, {sample.size})")
-    return {
+    record = {
         "format": FORMAT,
         "version": VERSION,
         "shape": sample.shape,
@@ -91,6 +110,8 @@ def to_record(sample: Sample) -> dict:
         "clean": pack_mask(sample.clean),
         "params": sample.params,
     }
+    check_record(record)  # a writer never makes a sample its readers refuse
+    return record
 
 
 def decode_record(data: bytes) -> dict:
@@ -105,25 +126,85 @@ def decode_record(data: bytes) -> dict:
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         found = record.get("format") if isinstance(record, dict) else type(record).__name__
         raise ValueError(f"not a cuboid-fit sample: format {found!r}, expected {FORMAT!r}")
-    if record.get("version") != VERSION:
-        raise ValueError(
-            f"sample format version {record.get('version')!r} is not supported: expected {VERSION}"
-        )
-    _check_lengths(record)
+    version = record.get("version")
+    if type(version) is not int or version != VERSION:  # True == 1 in Python: the type too
+        raise ValueError(f"sample format version {version!r} is not supported: expected {VERSION}")
+    check_record(record)
     return record
 
 
-def _check_lengths(record: dict) -> None:
-    try:
-        n = get_shape(record["shape"]).num_keypoints
-        size = int(record["size"])
-        mask_bytes = (size * size + 7) // 8
-        expected = {"keypoints": n * 2 * np.dtype(KEYPOINT_DTYPE).itemsize, "noisy": mask_bytes, "clean": mask_bytes}
-        for key, length in expected.items():
-            if len(record[key]) != length:
-                raise ValueError(f"corrupt sample: {key} has {len(record[key])} bytes, expected {length}")
-    except (KeyError, TypeError) as exc:
-        raise ValueError(f"corrupt sample: missing or malformed field {exc}") from None
+def check_record(record: dict) -> None:
+    """Every field of a sample record of this version: types, byte lengths, and values (finite
+    keypoints within KEYPOINT_REACH of the image, ratios in RATIO_RANGE). Raises CorruptSample.
+
+    The generator's hot path and the trainer's reader both run it: a few microseconds a sample
+    (a min and a max over the keypoints, which NaN fails too)."""
+    for key in ("shape", "size", "seed", "keypoints", "ratios", "noisy", "clean", "params"):
+        if key not in record:
+            raise CorruptSample(key, "missing", f"a sample has {', '.join(sorted(map(str, record)))}")
+    shape, size, seed = record["shape"], record["size"], record["seed"]
+    if not isinstance(shape, str) or shape not in SHAPES:
+        raise CorruptSample("shape", "unknown", f"{shape!r}, expected one of {sorted(SHAPES)}")
+    if not _integer(size) or not 1 <= size <= MAX_SIZE:
+        raise CorruptSample("size", "out of range", f"{size!r}, expected an integer from 1 to {MAX_SIZE} px")
+    if not _integer(seed) or seed < 0:
+        raise CorruptSample("seed", "out of range", f"{seed!r}, expected a non-negative integer")
+    if not isinstance(record["params"], dict):
+        raise CorruptSample("params", "not a map", f"a {type(record['params']).__name__}")
+    geometry = get_shape(shape)
+    mask_bytes = (size * size + 7) // 8
+    lengths = {"keypoints": geometry.num_keypoints * 2 * np.dtype(KEYPOINT_DTYPE).itemsize,
+               "noisy": mask_bytes, "clean": mask_bytes}
+    for key, length in lengths.items():
+        value = record[key]
+        if not isinstance(value, bytes):
+            raise CorruptSample(key, "not bytes", f"a {type(value).__name__}")
+        if len(value) != length:
+            raise CorruptSample(key, "wrong length", f"{len(value)} bytes, expected {length} for {size} px {shape}")
+    _check_keypoints(np.frombuffer(record["keypoints"], KEYPOINT_DTYPE), size)
+    _check_ratios(geometry, record["ratios"])
+
+
+def _check_keypoints(keypoints: np.ndarray, size: int) -> None:
+    reach = KEYPOINT_REACH * size
+    low, high = -0.5 - reach, size - 0.5 + reach
+    if low <= keypoints.min() and keypoints.max() <= high:  # False for a NaN too
+        return
+    if not np.isfinite(keypoints).all():
+        bad = int(np.flatnonzero(~np.isfinite(keypoints))[0])
+        raise CorruptSample("keypoints", "not finite", f"keypoint {bad // 2} {'xy'[bad % 2]} is {keypoints[bad]}")
+    bad = int(np.flatnonzero((keypoints < low) | (keypoints > high))[0])
+    raise CorruptSample("keypoints", "out of range",
+                        f"keypoint {bad // 2} {'xy'[bad % 2]} is {keypoints[bad]:g} px, expected {low:g} to {high:g} "
+                        f"for a {size} px image")
+
+
+def _check_ratios(geometry, ratios) -> None:
+    parts = [ratios] if len(geometry.parts) == 1 else None
+    if parts is None:
+        if not isinstance(ratios, dict) or set(ratios) != set(geometry.part_names):
+            found = sorted(map(str, ratios)) if isinstance(ratios, dict) else type(ratios).__name__
+            raise CorruptSample("ratios", "malformed", f"{found}, expected a map of {list(geometry.part_names)}")
+        parts = [ratios[p] for p in geometry.part_names]
+    low, high = RATIO_RANGE
+    for part in parts:
+        if not isinstance(part, dict) or set(part) != set(RATIO_KEYS):
+            found = sorted(map(str, part)) if isinstance(part, dict) else type(part).__name__
+            raise CorruptSample("ratios", "malformed", f"{found}, expected a map of {list(RATIO_KEYS)}")
+        for key, value in part.items():
+            if not _number(value):
+                raise CorruptSample("ratios", "not a number", f"{key} is {value!r}")
+            if not low <= value <= high:  # NaN fails the comparison too
+                fault = "out of range" if math.isfinite(value) else "not finite"
+                raise CorruptSample("ratios", fault, f"{key} is {value!r}, expected {low:g} to {high:g}")
+
+
+def _integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def decode(data: bytes) -> Sample:

@@ -45,11 +45,16 @@ def test_a_usage_error_is_a_value_error_and_a_skipped_sample_is_neither():
 
 # --- output paths --------------------------------------------------------------
 
-def test_a_file_can_go_where_its_missing_folders_will_be_made_and_nothing_is_made_now(tmp_path):
-    target = tmp_path / "new" / "deeper" / "x.json"
+def test_a_folder_can_be_new_a_files_folder_must_exist_and_nothing_is_made_now(tmp_path):
+    target = tmp_path / "x.json"
     assert check_writable("--json", target) == target
     assert check_writable("--out", tmp_path / "run", folder=True) == tmp_path / "run"
+    assert check_writable("--out", tmp_path / "runs" / "p1", folder=True) == tmp_path / "runs" / "p1"
     assert check_writable("--out", tmp_path, folder=True) == tmp_path  # an existing folder: written into
+    missing = tmp_path / "new" / "deeper" / "x.json"  # a typo in a folder is not made into folders
+    with pytest.raises(UsageError, match=f"^--json {missing}: no folder {missing.parent} to write it in "
+                                         f"\\(expected an existing folder\\)$"):
+        check_writable("--json", missing)
     assert list(tmp_path.iterdir()) == []
     check_outputs(("--json", "-"), ("--bars", None))  # stdout and not asked for: nothing to check
 
@@ -81,9 +86,16 @@ def test_infer_checks_json_and_explain_before_it_fits(tmp_path, a_file, monkeypa
     def no_fitting(*args, **kwargs):
         raise AssertionError("models loaded before the output paths were checked")
 
+    import os
+
     monkeypatch.setattr(Fitter, "from_files", no_fitting)
-    for option, path, message in (("--json", a_file / "out.json", f"{a_file} is not a folder"),
+    (locked := tmp_path / "locked").mkdir()
+    monkeypatch.setattr(os, "access", lambda path, mode: Path(path) != locked)  # root may write anywhere
+    for option, path, message in (("--json", locked / "out.json", f"cannot write in {locked} (permission denied)"),
+                                  ("--json", a_file / "out.json", f"{a_file} is not a folder"),
                                   ("--json", tmp_path, "a folder, expected a file to write"),
+                                  ("--json", tmp_path / "nowhere" / "x.json",
+                                   f"no folder {tmp_path / 'nowhere'} to write it in (expected an existing folder)"),
                                   ("--explain", a_file, "not a folder"),
                                   ("--explain", a_file / "pictures", f"{a_file} is not a folder")):
         result = runner.invoke(train_app, ["infer", "examples/building.png", option, str(path), "--device", "cpu"])

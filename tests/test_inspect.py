@@ -76,3 +76,34 @@ def test_health_is_1_with_one_line_otherwise(tmp_path, library, case, options, m
     code, lines = health(spool, *options)
     # Docker reads 1 as unhealthy and reserves 2, the other commands' code for bad options.
     assert code == 1 and len(lines) == 1 and message in lines[0], lines
+
+
+def poisoned(data: bytes, **changes) -> bytes:
+    """A well-formed sample's bytes with fields replaced (a NaN keypoint, a ratio of Infinity)."""
+    import msgpack
+
+    record = msgpack.unpackb(data)
+    record.update(changes)
+    return msgpack.packb(record, use_bin_type=True)
+
+
+def test_inspect_and_the_trainers_reader_count_non_finite_samples_as_corrupt_with_a_reason(tmp_path, library):
+    import json
+
+    import numpy as np
+
+    from cuboidtrain.train.data import SpoolBatches
+
+    names = fill_spool(tmp_path, 4, library=library)
+    good = (tmp_path / names[0]).read_bytes()
+    keypoints = np.full(16, np.nan).tobytes()
+    (tmp_path / names[1]).write_bytes(poisoned(good, keypoints=keypoints))
+    (tmp_path / names[2]).write_bytes(poisoned(good, ratios={"depth_height": float("inf"), "width_height": 1.0}))
+    result = runner.invoke(app, ["inspect", str(tmp_path), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["samples"] == 2 and report["corrupt"] == 2
+    assert report["corrupt_reasons"] == {"keypoints: not finite": 1, "ratios: not finite": 1}
+    batch = SpoolBatches(tmp_path, "box", 48)[names]
+    assert batch["names"] == [names[0], names[3]] and batch["skipped"]["corrupt"] == 2
+    assert np.isfinite(batch["keypoints"].numpy()).all()

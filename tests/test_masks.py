@@ -185,6 +185,49 @@ def test_load_mask_errors_name_the_path(tmp_path, blob):
         load_mask(write(tmp_path / "rgb.png", np.dstack([blob.astype(np.uint8) * 255] * 3)), label_id=1)
 
 
+def jpeg_declaring(width: int, height: int, icc_bytes: int = 0, progressive: bool = False) -> bytes:
+    """A tiny JPEG whose frame header claims width x height, after an ICC profile of `icc_bytes` in
+    APP2 segments (at most 65533 bytes each, as real profiles are split), and some fill bytes."""
+    flags = [cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if progressive else []
+    data = bytearray(cv2.imencode(".jpg", np.full((8, 8), 255, np.uint8), flags)[1].tobytes())
+    position = 2
+    while not (0xC0 <= data[position + 1] <= 0xC2):  # baseline or progressive frame header
+        position += 2 + int.from_bytes(data[position + 2 : position + 4], "big")
+    data[position + 5 : position + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+    profile = bytearray()
+    while icc_bytes > 0:
+        chunk = min(icc_bytes, 65533)
+        profile += b"\xff\xe2" + (chunk + 2).to_bytes(2, "big") + b"ICC_PROFILE\x00" + bytes(chunk - 12)
+        icc_bytes -= chunk
+    return bytes(data[:2] + profile + b"\xff\xff" + data[2:])  # 0xFF fill before the next marker
+
+
+@pytest.mark.parametrize("icc_bytes", [0, 200_000, 3_000_000])
+@pytest.mark.parametrize("progressive", [False, True])
+def test_a_huge_jpeg_is_refused_from_its_header_wherever_it_lies(tmp_path, monkeypatch, icc_bytes, progressive):
+    path = tmp_path / "huge.jpg"
+    path.write_bytes(jpeg_declaring(12_000, 12_000, icc_bytes, progressive))
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("decoded before its size was checked")
+    monkeypatch.setattr(cv2, "imdecode", no_decoding)
+    with pytest.raises(ValueError, match=r"^.*huge\.jpg: image of 12000 x 12000 px is too large") as error:
+        load_mask(path)
+    assert "\n" not in str(error.value)
+
+
+def test_a_jpeg_behind_a_large_profile_still_reads_and_a_headerless_one_is_refused_unread(tmp_path, monkeypatch):
+    path = tmp_path / "small.jpg"
+    path.write_bytes(jpeg_declaring(8, 8, icc_bytes=200_000))
+    assert load_mask(path).shape == (8, 8)
+    data = path.read_bytes()
+    frame_header = data.index(b"\xff\xc0")
+    (broken := tmp_path / "broken.jpg").write_bytes(data[:frame_header] + b"\xff\xda\x00\x02" + bytes(16))
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: pytest.fail("decoded a JPEG whose size is unknown"))
+    with pytest.raises(ValueError, match=r"broken\.jpg: cannot read image \(a JPEG without a frame header"):
+        load_mask(broken)
+
+
 # --- components ----------------------------------------------------------------
 
 

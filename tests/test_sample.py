@@ -76,7 +76,7 @@ def test_corrupt_bytes_raise_value_error(damage, library):
 def test_short_mask_field_is_corrupt(library):
     record = msgpack.unpackb(encode(build_sample(0, library=library)))
     record["clean"] = record["clean"][:-1]
-    with pytest.raises(ValueError, match="clean has"):
+    with pytest.raises(ValueError, match="clean: wrong length"):
         decode_record(msgpack.packb(record, use_bin_type=True))
 
 
@@ -103,3 +103,142 @@ def test_collate_refuses_mixed_shapes(library):
     records = [decode_record(encode(build_sample(0, s, library=library))) for s in ("box", "twobox")]
     with pytest.raises(ValueError, match="mixed batch"):
         collate(records)
+
+
+# --- every field checked: a well-formed sample with a bad value is corrupt, with a reason ---------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from shared.sample import KEYPOINT_REACH, MAX_SIZE, RATIO_RANGE, CorruptSample  # noqa: E402
+
+INTS = st.integers(-2**63, 2**63 - 1)  # what msgpack packs
+NON_FINITE = st.sampled_from([float("nan"), float("inf"), float("-inf")])
+NOT_INTEGERS = st.one_of(st.none(), st.booleans(), st.floats(allow_nan=True), st.text(max_size=4),
+                         st.lists(INTS, max_size=2), st.binary(max_size=4))
+NOT_BYTES = st.one_of(st.none(), INTS, st.floats(), st.text(max_size=8), st.lists(INTS, max_size=2))
+NOT_NUMBERS = st.one_of(st.none(), st.booleans(), st.text(max_size=4), st.lists(st.floats(), max_size=2),
+                        st.dictionaries(st.text(max_size=2), INTS, max_size=1))
+PROPERTY = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+def a_record(library, shape: str = "box") -> dict:
+    return msgpack.unpackb(encode(build_sample(0, shape, library=library)))
+
+
+def refused(record: dict, field: str) -> CorruptSample:
+    """decode_record refuses the record, naming `field` in the message and the census reason."""
+    with pytest.raises(CorruptSample) as caught:
+        decode_record(msgpack.packb(record, use_bin_type=True))
+    assert caught.value.reason.startswith(f"{field}: ") and str(caught.value).startswith(f"corrupt sample: {field}: ")
+    assert "\n" not in str(caught.value)
+    return caught.value
+
+
+def out_of_range_keypoint(size: int):
+    reach = KEYPOINT_REACH * size
+    return st.one_of(st.floats(max_value=-0.5 - reach - 1e-6, allow_nan=False, allow_infinity=False),
+                     st.floats(min_value=size - 0.5 + reach + 1e-6, allow_nan=False, allow_infinity=False))
+
+
+@PROPERTY
+@given(shape=st.sampled_from(["box", "twobox"]), index=st.integers(0, 27), data=st.data())
+def test_a_non_finite_or_out_of_range_keypoint_is_corrupt(library, shape, index, data):
+    record = a_record(library, shape)
+    keypoints = np.frombuffer(record["keypoints"], "<f8").copy()
+    bad = data.draw(st.one_of(NON_FINITE, out_of_range_keypoint(record["size"])))
+    keypoints[index % keypoints.size] = bad
+    record["keypoints"] = keypoints.tobytes()
+    fault = refused(record, "keypoints").reason
+    assert fault == ("keypoints: not finite" if not np.isfinite(bad) else "keypoints: out of range")
+
+
+@PROPERTY
+@given(shape=st.sampled_from(["box", "twobox"]), which=st.integers(0, 3), data=st.data())
+def test_a_non_finite_out_of_range_or_non_numeric_ratio_is_corrupt(library, shape, which, data):
+    record = a_record(library, shape)
+    part = record["ratios"] if shape == "box" else record["ratios"][("right", "left")[which // 2]]
+    key = ("depth_height", "width_height")[which % 2]
+    low, high = RATIO_RANGE
+    part[key] = data.draw(st.one_of(NON_FINITE, st.floats(max_value=low, exclude_max=True),
+                                    st.floats(min_value=high, exclude_min=True, allow_infinity=False),
+                                    st.integers(-2**63, 0), NOT_NUMBERS))
+    refused(record, "ratios")
+
+
+@PROPERTY
+@given(shape=st.sampled_from(["box", "twobox"]), ratios=st.one_of(
+    NOT_NUMBERS, st.floats(), st.dictionaries(st.sampled_from(["depth_height", "width_height", "left", "right", "x"]),
+                                               st.floats(1, 2), max_size=3)))
+def test_a_malformed_ratio_record_is_corrupt(library, shape, ratios):
+    record = a_record(library, shape)
+    if isinstance(ratios, dict) and shape == "box" and set(ratios) == {"depth_height", "width_height"}:
+        ratios["x"] = 1.0  # an extra key is malformed too
+    record["ratios"] = ratios
+    refused(record, "ratios")
+
+
+@PROPERTY
+@given(field=st.sampled_from(["noisy", "clean", "keypoints"]), data=st.data())
+def test_a_mask_or_keypoint_field_of_the_wrong_size_or_type_is_corrupt(library, field, data):
+    record = a_record(library)
+    length = len(record[field])
+    record[field] = data.draw(st.one_of(NOT_BYTES, st.binary(max_size=2 * length).filter(lambda b: len(b) != length)))
+    refused(record, field)
+
+
+@PROPERTY
+@given(field=st.sampled_from(["size", "seed"]), data=st.data())
+def test_a_size_or_seed_out_of_range_or_not_an_integer_is_corrupt(library, field, data):
+    record = a_record(library)
+    low, high = (1, MAX_SIZE) if field == "size" else (0, None)
+    out = st.integers(max_value=low - 1) if high is None else st.one_of(st.integers(max_value=low - 1),
+                                                                         st.integers(min_value=high + 1))
+    record[field] = data.draw(st.one_of(out.filter(lambda v: -2**63 <= v < 2**63), NOT_INTEGERS))
+    refused(record, field)
+
+
+@PROPERTY
+@given(field=st.sampled_from(["shape", "size", "seed", "keypoints", "ratios", "noisy", "clean", "params"]),
+       value=st.one_of(st.none(), INTS, st.text(max_size=6), st.lists(INTS, max_size=2)),
+       drop=st.booleans())
+def test_a_missing_or_mistyped_field_is_corrupt(library, field, value, drop):
+    record = a_record(library)
+    if drop:
+        del record[field]
+    else:
+        if field == "shape" and value in ("box", "twobox"):
+            value = "cone"
+        elif field in ("size", "seed") and isinstance(value, int):
+            value = str(value)  # "64" is no size
+        record[field] = value
+    refused(record, field)
+
+
+@PROPERTY
+@given(shape=st.sampled_from(["box", "twobox"]), data=st.data())
+def test_any_finite_sample_in_range_round_trips(library, shape, data):
+    """The reader refuses only what is out of bounds: anything inside them decodes unchanged."""
+    record = a_record(library, shape)
+    size, reach = record["size"], KEYPOINT_REACH * record["size"]
+    n = len(record["keypoints"]) // 8
+    keypoints = data.draw(st.lists(st.floats(-0.5 - reach, size - 0.5 + reach), min_size=n, max_size=n))
+    record["keypoints"] = np.array(keypoints, "<f8").tobytes()
+    ratio = st.floats(*RATIO_RANGE)
+    parts = [record["ratios"]] if shape == "box" else list(record["ratios"].values())
+    for part in parts:
+        for key in part:
+            part[key] = data.draw(ratio)
+    assert decode_record(msgpack.packb(record, use_bin_type=True)) == record
+
+
+def test_encode_refuses_a_sample_its_readers_would_refuse(library):
+    from dataclasses import replace
+
+    sample = build_sample(0, library=library)
+    keypoints = sample.keypoints.copy()
+    keypoints[3, 1] = np.nan
+    with pytest.raises(CorruptSample, match=r"^corrupt sample: keypoints: not finite \(keypoint 3 y is nan\)$"):
+        encode(replace(sample, keypoints=keypoints))
+    with pytest.raises(CorruptSample, match="ratios: out of range"):
+        encode(replace(sample, ratios={"depth_height": 0.0, "width_height": 1.0}))

@@ -18,7 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from cuboidtrain.files import write_json_atomically  # noqa: E402
-from shared.files import atomic_path, save_figure  # noqa: E402
+from shared.files import atomic_path, json_text, save_figure  # noqa: E402
 
 TRUE_COLOUR, OTHER_COLOUR = "#d62728", "#9aa5b1"
 
@@ -132,10 +132,7 @@ def plot_ranking(path: str | Path, result: dict) -> None:
 
 def write_json(out: str | None, result: dict) -> None:
     """`-`: stdout; a path: written atomically; None: nothing."""
-    import json
-
-
     if out == "-":
-        print(json.dumps(result, indent=2))
+        print(json_text(result, indent=2))
     elif out is not None:
         write_json_atomically(Path(out), result, indent=2)

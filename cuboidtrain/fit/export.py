@@ -22,7 +22,7 @@ from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import parse_refine_steps
 from shared.errors import UsageError
-from shared.files import atomic_path
+from shared.files import atomic_path, json_text
 from shared.shapes import get_shape
 
 FORMAT = "cuboid-fit/onnx"
@@ -57,8 +57,8 @@ def metadata(model: CuboidNet, sigma: float, refine_steps: int, step: int | None
     geometry = get_shape(model.shape)
     return {
         "format": FORMAT, "version": str(VERSION), "shape": model.shape, "size": str(model.size), "arch": model.arch,
-        "sigma": repr(float(sigma)), "keypoint_names": json.dumps(list(geometry.keypoint_names)),
-        "ratio_names": json.dumps(list(geometry.ratio_names)), "refine_steps": str(refine_steps),
+        "sigma": repr(float(sigma)), "keypoint_names": json_text(list(geometry.keypoint_names)),
+        "ratio_names": json_text(list(geometry.ratio_names)), "refine_steps": str(refine_steps),
         "checkpoint_step": "" if step is None else str(step),
     }
 

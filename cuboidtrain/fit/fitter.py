@@ -32,6 +32,7 @@ from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhoue
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.fit.options import FitOptions
 from shared.errors import UsageError
+from shared.files import non_finite
 from shared.shapes import get_shape
 
 log = logging.getLogger(__name__)
@@ -65,6 +66,11 @@ class Fit:
                   "refine_steps": self.refine_steps, "refine_converged": self.refine_converged, "error": None,
                   "warnings": list(self.warnings), "candidates": self.candidates}
         return record | ({"component": self.component} if with_component else {})
+
+
+class NonFiniteFit(ValueError):
+    """A model gave NaN or Infinity for a mask: no fit, and in `records` an error record (its weights
+    are a diverged training's, or the input broke its arithmetic)."""
 
 
 class Fitter:
@@ -126,7 +132,12 @@ class Fitter:
                     log.warning("%s: %s", path, warning)
                 if explain is not None:
                     fitted = replace(fitted, warnings=fitted.warnings + draw(explain, index, str(path), fitted))
-                records.append(fitted.record(with_component))
+                record = fitted.record(with_component)
+                if (found := non_finite(record)) is not None:  # the contract's numbers are finite, or an error
+                    reason = f"{path}: the fit's {found[0]} is {found[1]}: no fit"
+                    log.warning("%s", reason)
+                    record = error_record(str(path), reason, with_component)
+                records.append(record)
         return records
 
     @torch.inference_mode()
@@ -181,6 +192,9 @@ class Fitter:
         out = self.predict(model, x1)
         keypoints = out.keypoints[0].double().cpu().numpy()
         geometry = get_shape(model.shape)
+        if not (np.isfinite(keypoints).all() and torch.isfinite(out.ratios[0]).all()):
+            raise NonFiniteFit(f"the {model.shape} model's output is not finite (NaN or Infinity in its keypoints or "
+                               f"ratios): its weights are a diverged training's, or the mask broke it; no fit")
         return Candidate(
             shape=model.shape,
             keypoints=keypoints,

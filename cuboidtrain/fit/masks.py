@@ -71,7 +71,11 @@ def _read(path: Path) -> np.ndarray:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as error:
         raise UsageError(f"{path}: cannot read image ({error.strerror or error})") from None
-    _check_pixels(path, declared_size(data.tobytes()[:65536]))  # before decoding allocates it
+    try:
+        declared = declared_size(memoryview(data))
+    except ValueError as error:
+        raise UsageError(f"{path}: cannot read image ({error})") from None
+    _check_pixels(path, declared)  # before decoding allocates it
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise UsageError(f"{path}: cannot read image (not a PNG or JPG OpenCV can decode)")
@@ -87,19 +91,42 @@ def _check_pixels(path: Path, size: tuple[int, int] | None) -> None:
                          f"(downscale the mask first; the model sees it at 64-256 px anyway)")
 
 
-def declared_size(head: bytes) -> tuple[int, int] | None:
-    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame marker; None if neither."""
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
-        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    if head[:2] != b"\xff\xd8":
+# JPEG markers that stand alone, without a length: TEM, RST0-7, SOI, EOI.
+_STANDALONE = frozenset({0x01, *range(0xD0, 0xDA)})
+_START_OF_SCAN = 0xDA  # entropy-coded data follows: every frame header comes before it
+
+
+def declared_size(data: bytes | memoryview) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame header; None if neither format.
+
+    A JPEG's frame header may lie anywhere before its first scan, after any number of APPn
+    segments (an ICC profile, EXIF, XMP: megabytes, in 64 KB chunks), so the segments are walked
+    by their lengths, reading 4 bytes of each, never decoding. A JPEG whose frame header cannot be
+    found that way is a ValueError: it is either not a JPEG or one OpenCV would refuse anyway,
+    and its size cannot be checked before decoding."""
+    if bytes(data[:8]) == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if bytes(data[:2]) != b"\xff\xd8":
         return None
     position = 2
-    while position + 9 <= len(head) and head[position] == 0xFF:
-        marker, length = head[position + 1], int.from_bytes(head[position + 2 : position + 4], "big")
+    while position + 1 < len(data) and data[position] == 0xFF:
+        marker = data[position + 1]
+        if marker == 0xFF:  # a fill byte before a marker
+            position += 1
+            continue
+        if marker in _STANDALONE:
+            position += 2
+            continue
+        if marker == _START_OF_SCAN or position + 4 > len(data):
+            break
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn, not DHT/JPG/DAC
-            return int.from_bytes(head[position + 7 : position + 9], "big"), int.from_bytes(head[position + 5 : position + 7], "big")
-        position += 2 + length
-    return None
+            if position + 9 > len(data):
+                break
+            return (int.from_bytes(data[position + 7 : position + 9], "big"),
+                    int.from_bytes(data[position + 5 : position + 7], "big"))
+        position += 2 + int.from_bytes(data[position + 2 : position + 4], "big")
+    raise ValueError(f"a JPEG without a frame header before its image data (stopped at byte {position} of "
+                     f"{len(data)}), so its size cannot be checked before decoding")
 
 
 def components(mask: np.ndarray, all_components: bool = False, min_pixels: int = 16) -> list[np.ndarray]:

@@ -41,10 +41,25 @@ def set_rng_state(state: dict) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def non_finite_weights(state: dict) -> tuple[int, int]:
+    """(weights that are NaN or Infinity, weights in all) of a state dict's floating-point tensors."""
+    bad = total = 0
+    for tensor in state.values():
+        if torch.is_tensor(tensor) and tensor.is_floating_point():
+            bad += int((~torch.isfinite(tensor)).sum())
+            total += tensor.numel()
+    return bad, total
+
+
 def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, step: int,
                     optimizer: torch.optim.Optimizer | None = None, loader: LoaderState | None = None,
                     metrics: dict | None = None) -> Path:
+    """Raises ValueError, writing nothing, for weights that are NaN or Infinity: a diverged
+    model never replaces the last good checkpoint."""
     path = Path(path)
+    bad, total = non_finite_weights(model.state_dict())
+    if bad:
+        raise ValueError(f"checkpoint {path}: not written at step {step}: {bad} of {total} weights are NaN or Infinity")
     payload = {
         "format": FORMAT,
         "version": VERSION,
@@ -84,6 +99,10 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
                          f"or {MODEL_FORMAT!r})")
     if ckpt.get("version") != VERSION:
         raise UsageError(f"checkpoint {path}: format version {ckpt.get('version')!r}, expected {VERSION}")
+    bad, total = non_finite_weights(ckpt.get("model") or {})
+    if bad:  # written before save_checkpoint refused them: no fit or metric could be finite
+        raise UsageError(f"checkpoint {path}: {bad} of {total} weights are NaN or Infinity (a diverged training): "
+                         f"not a model to use")
     if shape is not None and ckpt["shape"] != shape:
         raise UsageError(f"checkpoint {path}: a {ckpt['shape']!r} model, expected {shape!r}")
     if size is not None and ckpt["size"] != size:

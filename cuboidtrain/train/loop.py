@@ -21,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.models.checkpoint import load_checkpoint, loader_state, save_checkpoint, set_rng_state
+from cuboidtrain.models.checkpoint import (load_checkpoint, loader_state, non_finite_weights, save_checkpoint,
+                                           set_rng_state)
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import FreshnessMeter, WaitInterrupted, make_loader, prepare_batch, spool_names
 from cuboidtrain.device import resolve_device
@@ -42,6 +43,26 @@ IDLE_WAIT = (0.5, 30.0)  # s: first and longest pause between listings of a spoo
 
 class NoUsableSamples(RuntimeError):
     """--max-wait ran out with nothing to train on: an empty spool, or none of its samples usable."""
+
+
+class Diverged(UsageError):
+    """A step gave a NaN or infinite loss, or left weights that are: the run stops before any
+    record, status or checkpoint could hold them, and the last checkpoint stays the last finite one."""
+
+
+def divergence(losses: dict[str, float], model: torch.nn.Module) -> str | None:
+    """What is NaN or Infinity after a step, its losses or its weights; None when nothing is.
+    One reduction over the weights (a NaN or Infinity anywhere makes the sum non-finite), one
+    sync. Every rank finds the same: the losses are global_losses', the weights DDP's."""
+    bad = [f"{name} is {value}" for name, value in losses.items() if not math.isfinite(value)]
+    if bad:
+        return ", ".join(bad)
+    with torch.no_grad():
+        tensors = [t for t in (*model.parameters(), *model.buffers()) if t.is_floating_point()]
+        if math.isfinite(torch.stack([t.float().sum() for t in tensors]).sum().item()):
+            return None
+    count, total = non_finite_weights(model.state_dict())
+    return f"{count} of {total} weights are NaN or Infinity after it"
 
 
 def next_wait(wait: float) -> float:
@@ -289,6 +310,11 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                     # 3. account and report
                     age, reuse = freshness.observe(batch["names"])
                     losses, samples = global_losses(ranks, losses, len(batch["names"]))
+                    if (fault := divergence(losses, model)) is not None:  # before any record could hold it
+                        progress.state("failed")
+                        raise Diverged(f"training diverged at step {step}: {fault}; stopped, "
+                                       f"{_kept(progress, out, first_step if config.resume else None)} "
+                                       f"(lower --lr, or look for bad samples: cuboidgen inspect {config.spool})")
                     progress.step(step, losses, samples, waited, age, reuse, skipped)
                     # 4. checkpoint, and validate when asked (rank 0; the others go on to the next collective)
                     if step % config.checkpoint_every == 0:
@@ -352,6 +378,13 @@ def _unusable_reason(config: TrainConfig, skipped: dict) -> str:
     elif skipped.get("other_shape"):
         reason += f"; the spool holds no {config.shape} samples (--shape)"
     return reason
+
+
+def _kept(progress: Progress, out: Path, resumed: int | None) -> str:
+    """What the run folder holds for a run that stops now: its last checkpoint, or none."""
+    last = progress.status()["last_checkpoint"]
+    step = last["step"] if last else resumed
+    return f"{out / LAST} keeps step {step}" if step is not None else "no checkpoint was written"
 
 
 def _sampler_options(ranks: Ranks, stop: StopRequest) -> dict:

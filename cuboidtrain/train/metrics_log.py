@@ -4,13 +4,13 @@ Only the writing rank (rank 0 under torchrun) writes; TensorBoard is optional.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 from cuboidtrain.train.stats import Rates
 from cuboidtrain.train.status import BatchFreshness, Validation
+from shared.files import json_text
 
 METRICS_FILE = "metrics.jsonl"
 # metrics.jsonl keys shown in TensorBoard; the losses under their own names, the rates under speed/
@@ -58,4 +58,4 @@ class MetricsLog:
         if not self.writes:
             return
         with open(self.path, "a") as f:
-            f.write(json.dumps(record) + "\n")
+            f.write(json_text(record, what=str(self.path)) + "\n")
