@@ -64,11 +64,15 @@ def _pooled(jobs, checkpoints, options, workers) -> Iterator[Group]:
 
 
 def _start_worker(checkpoints: list[str], options: FitOptions, parent: int) -> None:
+    import logging
+
     import torch
 
     from cuboidtrain.fit.fitter import Fitter
 
     global _fitter
+    # a spawned worker starts with no logging: its fits' warnings go to stderr as the parent's plain lines do
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)
     _fitter = Fitter.from_files(checkpoints, replace(options))
     threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
