@@ -179,12 +179,12 @@ def infer(
                          device=device).validate()
     json_out = "-" if json_out is None and jsonl is None else json_out
     check_outputs(("--json", json_out), ("--jsonl", jsonl))
-    inputs = gather_inputs(paths or [], from_list, glob)
     if explain is not None and workers > 1:
         raise UsageError(f"--explain with --workers {workers}: expected --workers 1 (pictures are drawn in one process)")
-    explainer = make_explainer(explain, overlay, len(inputs))
     checkpoints = default_checkpoints(checkpoint, options.shapes)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
+    inputs = gather_inputs(paths or [], from_list, glob)
+    explainer = make_explainer(explain, overlay, len(inputs))
     batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None)
     records, tally = run_batch(batch, fitter, console, explainer)
     if json_out == "-":
