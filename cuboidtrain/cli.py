@@ -179,8 +179,10 @@ def infer(
                          device=device).validate()
     json_out = "-" if json_out is None and jsonl is None else json_out
     check_outputs(("--json", json_out), ("--jsonl", jsonl))
-    if explain is not None and workers > 1:
-        raise UsageError(f"--explain with --workers {workers}: expected --workers 1 (pictures are drawn in one process)")
+    if explain is not None:
+        check_writable("--explain", explain, folder=True)
+        if workers > 1:
+            raise UsageError(f"--explain with --workers {workers}: expected --workers 1 (pictures are drawn in one process)")
     checkpoints = default_checkpoints(checkpoint, options.shapes)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
     inputs = gather_inputs(paths or [], from_list, glob)
