@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
+from cuboidtrain.fit.inputs import DEFAULT_GLOB_HELP, gather_inputs
 from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
 from shared.console import Commands, choices, console, fail, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
@@ -145,9 +146,13 @@ def watch(
 
 @app.command()
 def infer(
-    paths: list[str] = typer.Argument(..., metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id."),
+    paths: Optional[list[str]] = typer.Argument(None, metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id; a folder: its images, recursively."),
+    from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders), one a line; - for stdin."),
+    glob: Optional[str] = typer.Option(None, metavar="PATTERN", help=f"In folders, the files matching this (e.g. '*_mask.png'); default {DEFAULT_GLOB_HELP}."),
     checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
-    json_out: str = typer.Option("-", "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout."),
+    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl)."),
+    jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run."),
+    workers: int = typer.Option(1, min=1, help="Processes fitting at once, each with its own models and one torch thread."),
     shape: FitShape = typer.Option(FitShape[FIT.shape], help="auto: every given model, the best-explained fit wins."),
     refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help=f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else one building: its pieces (>= 1% of the largest one's area) fitted together."),
@@ -163,28 +168,37 @@ def infer(
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.fit.batch import Batch, run_batch
     from cuboidtrain.fit.chain import write_records
+    from cuboidtrain.fit.fitter import Fitter
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
                          pdm_components=pdm_components, all_components=all_components, label_id=label_id,
                          device=device).validate()
-    check_outputs(("--json", json_out))
-    explainer = make_explainer(explain, overlay, len(paths))
-    fitter = Fitter.from_files(default_checkpoints(checkpoint, options.shapes), options)
-    records = fitter.records(paths, explain=explainer)
+    json_out = "-" if json_out is None and jsonl is None else json_out
+    check_outputs(("--json", json_out), ("--jsonl", jsonl))
+    if explain is not None:
+        check_writable("--explain", explain, folder=True)
+        if workers > 1:
+            raise UsageError(f"--explain with --workers {workers}: expected --workers 1 (pictures are drawn in one process)")
+    checkpoints = default_checkpoints(checkpoint, options.shapes)
+    fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
+    inputs = gather_inputs(paths or [], from_list, glob)
+    explainer = make_explainer(explain, overlay, len(inputs))
+    batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None)
+    records, tally = run_batch(batch, fitter, console, explainer)
     if json_out == "-":
         typer.echo(json_text(records, indent=2))
-    else:
+    elif json_out is not None:
         write_records(Path(json_out), records)
     if explainer is not None:
         count = len(explainer.written)
         console.print(f"{count} picture{'' if count == 1 else 's'} in {explain}", highlight=False)
-    failed = sum(r["error"] is not None for r in records)
-    if failed:
-        console.print(f"{failed} of {len(records)} records have an error (see their \"error\" field)", highlight=False)
+    if tally.failed:
+        console.print(f"{tally.failed} of {tally.total} inputs have an error (see their records' \"error\" field)",
+                      highlight=False)
         raise typer.Exit(1)
 
 

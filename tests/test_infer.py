@@ -389,7 +389,7 @@ def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):
     args = ["infer", good, missing, "--checkpoint", str(checkpoints["box"]), "--checkpoint", str(checkpoints["twobox"])]
     result = runner.invoke(app, args + ["--json", str(out), "--refine-steps", "auto"])
     assert result.exit_code == 1, result.output  # one input failed: the others are written, the status says so
-    assert "1 of 2 records have an error" in result.output
+    assert "1 of 2 inputs have an error" in result.output
     records = json.loads(out.read_text())
     check_record(records[0], good)
     assert records[1]["error"] and records[1]["keypoints"] is None

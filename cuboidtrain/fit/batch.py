@@ -1,0 +1,75 @@
+"""`cuboidtrain infer` over many inputs, in labelled phases: resume from OUT, fit (in this process or
+a pool), store each input's records as it completes, report progress, summarise.
+
+The pieces have a module each: `inputs` (what to fit), `store` (the JSONL file and its
+resume), `pool` (where fits run), `progress` (what the user sees).
+"""
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.fit.pool import fit_groups
+from cuboidtrain.fit.batch_progress import Reporter, Tally
+from cuboidtrain.fit.store import RecordStore
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Batch:
+    """One infer run's inputs and where its fits run and go."""
+
+    inputs: tuple[str, ...]  # in input order; a record's "index" is a position here
+    checkpoints: tuple[Path, ...]  # what a pool's workers load
+    options: FitOptions
+    workers: int = 1  # 1: in this process, with the caller's Fitter
+    jsonl: Path | None = None  # the record store, resumed when it exists
+    keep: bool = True  # return the records (for --json's list); a city's run keeps none in memory
+
+
+def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) -> tuple[list[dict], Tally]:
+    """The records of the inputs in input order (when `batch.keep`) and the run's Tally."""
+    inputs = unique(batch.inputs) if batch.jsonl else list(batch.inputs)
+    with RecordStore(batch.jsonl) if batch.jsonl else nullcontext() as store:
+        # resume: the inputs OUT already holds are counted, not fitted again
+        held = defaultdict(list)
+        for record in store.records if store else ():
+            held[record["input"]].append({k: v for k, v in record.items() if k != "index"})
+        tally = Tally(total=len(inputs))
+        kept = {}
+        jobs = []
+        for index, path in enumerate(inputs):
+            if path in held:
+                tally.add(held[path], resumed=True)
+                kept[index] = held[path] if batch.keep else None
+            else:
+                jobs.append((index, path))
+        if tally.resumed:
+            log.info("%s holds %d of the %d inputs; fitting the other %d", batch.jsonl, tally.resumed,
+                     len(inputs), len(jobs))
+        # fit, store and show each input's records as they complete
+        groups = fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain)
+        with Reporter(tally, console) as reporter:
+            for index, records in groups:
+                if store:
+                    store.write(index, records)
+                if batch.keep:
+                    kept[index] = records
+                tally.add(records)
+                reporter.update()
+    records = [r for index in sorted(kept) for r in kept[index]] if batch.keep else []
+    return records, tally
+
+
+def unique(inputs: Sequence[str]) -> list[str]:
+    """The inputs once each, in first-seen order: OUT keys its records by input."""
+    seen = list(dict.fromkeys(inputs))
+    if len(seen) < len(inputs):
+        log.warning("%d inputs given more than once: each is fitted once", len(inputs) - len(seen))
+    return seen

@@ -1,0 +1,89 @@
+"""How far `cuboidtrain infer` is: a rich bar on a terminal, a log line every few seconds without one,
+and a summary at the end. The counting (`Tally`) is apart from the showing, so tests read it.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
+
+LOG_SECONDS = 5.0  # between plain progress lines
+
+
+@dataclass
+class Tally:
+    """Inputs and records counted as they complete (those OUT already held apart)."""
+
+    total: int  # inputs of the run, resumed ones included
+    resumed: int = 0  # inputs OUT already held
+    done: int = 0  # inputs fitted this run
+    failed: int = 0  # inputs whose first record has an error (this run and resumed)
+    shapes: Counter = field(default_factory=Counter)  # records by shape class ("failed" for errors)
+    started: float = field(default_factory=time.monotonic)
+
+    def add(self, records: list[dict], resumed: bool = False) -> None:
+        if resumed:
+            self.resumed += 1
+        else:
+            self.done += 1
+        self.failed += bool(records) and records[0]["error"] is not None
+        self.shapes.update(r["shape"] or "failed" for r in records)
+
+    @property
+    def rate(self) -> float:
+        return self.done / max(time.monotonic() - self.started, 1e-9)
+
+    def line(self) -> str:
+        finished = self.resumed + self.done
+        left = self.total - finished
+        eta = f"ETA {left / self.rate:.0f} s" if self.rate > 0 else "ETA ?"
+        return (f"{finished}/{self.total} masks, {self.rate:.1f} masks/s, {eta}, "
+                f"{self.failed} failure{'' if self.failed == 1 else 's'}")
+
+    def summary(self) -> str:
+        seconds = time.monotonic() - self.started
+        shapes = ", ".join(f"{name} {n}" for name, n in sorted(self.shapes.items()) if name != "failed") or "none"
+        resumed = f" ({self.resumed} already in OUT)" if self.resumed else ""
+        return (f"{self.resumed + self.done} masks{resumed}; fitted {self.done} in {seconds:.1f} s "
+                f"({self.rate:.1f} masks/s); records by shape: {shapes}; {self.failed} failed")
+
+
+class Reporter:
+    """Shows a Tally: `with Reporter(tally, console) as show: ...; show.update()` per input."""
+
+    def __init__(self, tally: Tally, console):
+        self.tally, self.console = tally, console
+        self.bar = None
+        self.logged = time.monotonic()
+
+    def __enter__(self) -> "Reporter":
+        if self.console.is_terminal:
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                       TimeRemainingColumn)
+
+            self.bar = Progress(TextColumn("fitting"), BarColumn(), MofNCompleteColumn(),
+                                TextColumn("{task.fields[rate]:.1f} masks/s"), TimeRemainingColumn(),
+                                TimeElapsedColumn(), TextColumn("{task.fields[failed]} failed"),
+                                console=self.console, transient=False)
+            self.bar.start()
+            self.task = self.bar.add_task("fit", total=self.tally.total, completed=self.tally.resumed,
+                                          rate=0.0, failed=self.tally.failed)
+        return self
+
+    def update(self) -> None:
+        tally = self.tally
+        if self.bar is not None:
+            self.bar.update(self.task, completed=tally.resumed + tally.done, rate=tally.rate, failed=tally.failed)
+        elif time.monotonic() - self.logged >= LOG_SECONDS:
+            self.logged = time.monotonic()
+            log.info("%s", tally.line())
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.update()
+            self.bar.stop()
+        if self.tally.total > 1:  # one mask's run is its record
+            self.console.print(self.tally.summary(), highlight=False, soft_wrap=True)

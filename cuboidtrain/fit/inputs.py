@@ -1,0 +1,85 @@
+"""What `cuboidtrain infer` is asked to fit: files, folders and lists of paths, turned into one list.
+
+A file is taken as given (one that cannot be read gets its error record later, and the run
+goes on). A folder is walked recursively, in sorted order, for the files `--glob` matches
+(default: the image extensions below); hidden names (`.tmp-...`, `.DS_Store`) are skipped.
+A list file (`--from-list FILE`, `-` for stdin) holds one path a line, each taken as above;
+blank lines and lines starting with `#` are skipped; relative paths are from the current
+folder. Nothing to fit is a UsageError naming what was expected, before any model loads.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from shared.errors import UsageError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")  # what cv2.imread reads here
+DEFAULT_GLOB_HELP = "*.png, *.jpg, *.jpeg, *.bmp, *.tif, *.tiff, *.webp"
+
+
+def gather_inputs(paths: Sequence[str], from_list: str | None = None, glob: str | None = None) -> list[str]:
+    """The inputs in order: the PATHs given, then the list file's. Folders expand to their
+    matching files (sorted). A UsageError when there is nothing to fit."""
+    given = list(paths)
+    if from_list is not None:
+        listed = read_list(from_list)
+        if not listed:
+            raise UsageError(f"--from-list {from_list}: no paths in it; expected one mask path a line")
+        given += listed
+    if not given:
+        raise UsageError("no inputs: expected mask PATHs (files or folders) or --from-list FILE")
+    inputs = []
+    for path in given:
+        inputs += expand(path, glob)
+    missing = [p for p in inputs if not Path(p).exists()]
+    if missing and len(missing) == len(inputs):
+        raise UsageError(f"{missing[0]}: no such file" + (f" (nor the {len(missing) - 1} other inputs)"
+                                                          if len(missing) > 1 else "")
+                         + "; expected mask images")
+    if missing:  # the run goes on: each gets its error record
+        log.warning("%d of %d inputs do not exist (the first: %s); their records say so",
+                    len(missing), len(inputs), missing[0])
+    return inputs
+
+
+def expand(path: str, glob: str | None) -> list[str]:
+    """A folder's matching files, sorted; anything else as given."""
+    folder = Path(path)
+    if not folder.is_dir():
+        return [path]
+    found = sorted(str(p) for p in walk(folder, glob))
+    if not found:
+        raise UsageError(f"{path}: a folder with no files matching {glob or DEFAULT_GLOB_HELP}; "
+                         f"expected mask images under it (or another --glob)")
+    return found
+
+
+def walk(folder: Path, glob: str | None) -> Iterable[Path]:
+    candidates = folder.rglob(glob) if glob else folder.rglob("*")
+    for path in candidates:
+        hidden = any(part.startswith(".") for part in path.relative_to(folder).parts)
+        if hidden or not path.is_file():
+            continue
+        if glob or path.suffix.lower() in IMAGE_SUFFIXES:
+            yield path
+
+
+def read_list(source: str) -> list[str]:
+    """The paths of a list file (or stdin for `-`): one a line, blanks and `#` comments skipped."""
+    if source == "-":
+        text = sys.stdin.read()
+    else:
+        try:
+            text = Path(source).read_text()
+        except FileNotFoundError:
+            raise UsageError(f"--from-list {source}: no such file; expected a text file of mask paths") from None
+        except (IsADirectoryError, UnicodeDecodeError) as exc:
+            raise UsageError(f"--from-list {source}: not a text file of paths ({type(exc).__name__}); "
+                             f"expected one mask path a line") from None
+    lines = (line.strip() for line in text.splitlines())
+    return [line for line in lines if line and not line.startswith("#")]

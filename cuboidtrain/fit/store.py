@@ -1,0 +1,117 @@
+"""The JSONL record store of `cuboidtrain infer --jsonl OUT`: written as fits complete, resumed after a kill.
+
+The byte format lives here, writer and reader (docs/contract.md, "The JSONL form"): one infer
+record a line, UTF-8, each line ending in a newline, every record led by `"index"` (the
+input's position in the run's inputs) then `"input"`. An input's records (one, or one per
+component) go out in one `os.write`, in the order fits complete, not input order.
+
+Resuming: `RecordStore` reads OUT first. A last line without its newline is a torn write
+(a kill or a full disk mid-write): it is cut off, with the lines of the same input before
+it, so an input is either wholly in OUT or not at all. The inputs OUT holds are skipped.
+A kill -9 loses only the masks in flight; the kernel keeps every completed write. An fsync
+every `FSYNC_SECONDS` bounds what a power cut could take.
+"""
+from __future__ import annotations
+
+import errno
+import json
+import os
+import re
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from shared.errors import UsageError
+from shared.files import json_text
+
+FSYNC_SECONDS = 2.0  # at most this much work is only in the page cache
+_TORN_INDEX = re.compile(rb'^\{"index": (\d+)')  # a torn line still names its input, if it got that far
+
+
+def encode_group(index: int, records: Iterable[dict]) -> bytes:
+    """One input's records as JSONL bytes, `index` first in each."""
+    return b"".join(json_text({"index": index} | r, what=f"record of input {index}").encode() + b"\n" for r in records)
+
+
+def scan(path: str | Path) -> tuple[list[dict], int]:
+    """The complete records of OUT and how many of its bytes hold them (the rest is a torn
+    tail, and the records of its input). A line in the middle that is not a record is a
+    UsageError: OUT is not an infer JSONL file."""
+    data = Path(path).read_bytes()
+    body, _, tail = data.rpartition(b"\n")
+    lines = body.split(b"\n") if body or data.startswith(b"\n") else []
+    records, ends, end = [], [], 0
+    for number, line in enumerate(lines, 1):
+        end += len(line) + 1
+        try:
+            record = json.loads(line)
+        except ValueError:
+            record = None
+        if not isinstance(record, dict) or not {"index", "input"} <= record.keys():
+            raise UsageError(f"--jsonl {path}: line {number} is not an infer record; expected one JSON record "
+                             f"a line with \"index\" and \"input\" (a file cuboidtrain infer --jsonl wrote)")
+        records.append(record)
+        ends.append(end)
+    if tail and (torn := _TORN_INDEX.match(tail)):  # drop its input's earlier components too
+        while records and records[-1]["index"] == int(torn.group(1)):
+            records.pop()
+            ends.pop()
+    return records, (ends[-1] if ends else 0)
+
+
+def read_records(path: str | Path) -> list[dict]:
+    """The records of an infer JSONL file, a torn last line ignored, sorted by input index."""
+    return sorted(scan(path)[0], key=lambda r: r["index"])
+
+
+class RecordStore:
+    """Appends input groups to OUT, flushed at once (unbuffered writes), fsync'd every few seconds.
+
+        with RecordStore(out) as store:
+            todo = [(i, p) for i, p in enumerate(inputs) if p not in store.done]
+            store.write(index, records)
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.records: list[dict] = []  # what OUT held when opened
+        self.done: set[str] = set()  # the inputs OUT holds
+        self.written = 0  # records this run
+        self.fd = -1
+        self.synced = time.monotonic()
+
+    def __enter__(self) -> "RecordStore":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        self.records, keep = scan(self.path)
+        if os.fstat(self.fd).st_size != keep:  # a torn tail: cut it off for good
+            os.ftruncate(self.fd, keep)
+        os.lseek(self.fd, keep, os.SEEK_SET)
+        self.done = {r["input"] for r in self.records}
+        return self
+
+    def write(self, index: int, records: list[dict]) -> None:
+        """One input's records; a full disk truncates back to the last whole input and is a
+        one-line UsageError that says the records written are kept."""
+        data, start = encode_group(index, records), os.lseek(self.fd, 0, os.SEEK_CUR)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self.fd, view):]
+        except OSError as exc:
+            os.ftruncate(self.fd, start)
+            os.lseek(self.fd, start, os.SEEK_SET)
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise UsageError(f"--jsonl {self.path}: disk full after {len(self.records) + self.written} records "
+                                 f"(all kept); expected free space: make some and rerun to resume") from None
+            raise
+        self.written += len(records)
+        if time.monotonic() - self.synced > FSYNC_SECONDS:
+            os.fsync(self.fd)
+            self.synced = time.monotonic()
+
+    def __exit__(self, *exc) -> None:
+        if self.fd >= 0:
+            os.fsync(self.fd)
+            os.close(self.fd)
+            self.fd = -1

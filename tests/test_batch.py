@@ -1,0 +1,104 @@
+"""`infer` over many masks (cuboidtrain/fit/batch.py, pool.py, progress.py): a run killed with SIGKILL
+and resumed ends with the records of an uninterrupted run, none twice; a pool of workers gives
+the records of one process; without a terminal, progress is plain log lines and a summary."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import pytest
+import torch
+from rich.console import Console
+
+from cuboidtrain.fit.batch import Batch, run_batch
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.fit.store import read_records
+from cuboidtrain.models.zoo import default_checkpoints
+from tests.conftest import build_sample
+
+ROOT = Path(__file__).resolve().parents[1]
+SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refiner passes: ~0.1 s a mask
+
+
+@pytest.fixture(scope="module")
+def masks(tmp_path_factory) -> list[str]:
+    """40 generated masks of 64 to 128 px, box and twobox, and one file that is no image."""
+    folder = tmp_path_factory.mktemp("masks")
+    paths = []
+    for seed in range(40):
+        sample = build_sample(seed, ("box", "twobox")[seed % 2], size=64 + 16 * (seed % 5))
+        paths.append(str(folder / f"m{seed:03d}.png"))
+        cv2.imwrite(paths[-1], sample.noisy.astype("uint8") * 255)
+    (folder / "m020.png").write_text("not a picture")  # an unreadable input among them
+    return paths
+
+
+def reference(paths, options, workers=1) -> list[dict]:
+    """An uninterrupted run's records, in this process (one torch thread, as the workers have)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        checkpoints = default_checkpoints(None, options.shapes)
+        batch = Batch(tuple(paths), tuple(checkpoints), options, workers)
+        return run_batch(batch, Fitter.from_files(checkpoints, options), Console(file=open(os.devnull, "w")))[0]
+    finally:
+        torch.set_num_threads(threads)
+
+
+def infer_command(folder: str, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "cuboidtrain", "infer", folder, "--jsonl", str(out), "--refine-steps", "6",
+            "--device", "cpu", *extra]
+
+
+def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp_path, masks):
+    out, folder = tmp_path / "out.jsonl", str(Path(masks[0]).parent)
+    env = os.environ | {"OMP_NUM_THREADS": "1"}
+    run = subprocess.Popen(infer_command(folder, out), cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 8):
+        time.sleep(0.01)
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    kept = read_records(out)
+    assert 8 <= len(kept) < len(masks), "killed mid-way"
+    with out.open("a") as torn:  # as if the kill had come mid-write
+        torn.write('{"index": 39, "input": "')
+    resumed = subprocess.run(infer_command(folder, out), cwd=ROOT, env=env, capture_output=True, text=True)
+    assert resumed.returncode == 1, resumed.stderr  # m020 is no image
+    assert f"holds {len(kept)} of the 40 inputs" in resumed.stderr
+    records = read_records(out)
+    assert [r["index"] for r in records] == list(range(40))  # each input once, the torn line gone
+    assert out.read_text().count("\n") == 40
+    expected = reference(masks, SLOW)
+    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == expected
+    assert records[20]["error"] and sum(r["error"] is not None for r in records) == 1
+
+
+def test_two_workers_give_the_records_of_one_process(masks):
+    options = FitOptions(device="cpu")
+    assert reference(masks[:16], options, workers=2) == reference(masks[:16], options)
+
+
+def test_without_a_terminal_progress_is_log_lines_and_a_summary(tmp_path, masks, monkeypatch, caplog):
+    monkeypatch.setattr("cuboidtrain.fit.batch_progress.LOG_SECONDS", 0.0)
+    console = Console(file=(tmp_path / "console.txt").open("w"), width=300)
+    checkpoints = default_checkpoints(None)
+    batch = Batch(tuple(masks[15:25]), tuple(checkpoints), FitOptions(device="cpu"), jsonl=tmp_path / "o.jsonl",
+                  keep=False)
+    with caplog.at_level("INFO", logger="cuboidtrain.fit.batch_progress"):
+        records, tally = run_batch(batch, Fitter.from_files(checkpoints, FitOptions(device="cpu")), console)
+    console.file.close()
+    assert records == [] and tally.done == 10 and tally.failed == 1
+    assert "10/10 masks" in caplog.records[-1].getMessage() and "1 failure" in caplog.records[-1].getMessage()
+    summary = (tmp_path / "console.txt").read_text()
+    shapes = {r["shape"] for r in read_records(tmp_path / "o.jsonl")} - {None}
+    assert "fitted 10 in" in summary and "1 failed" in summary
+    assert all(f"{shape} " in summary for shape in shapes)

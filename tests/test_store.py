@@ -1,0 +1,71 @@
+"""The JSONL record store (cuboidtrain/fit/store.py): round trip, a torn last line cut off on resume,
+a file that is not a record store refused, a full disk keeping every whole record."""
+from __future__ import annotations
+
+import errno
+import os
+
+import pytest
+
+from cuboidtrain.fit import store as store_module
+from cuboidtrain.fit.store import RecordStore, read_records
+from shared.errors import UsageError
+
+
+def record(path: str, shape: str | None = "box", component: int | None = None) -> dict:
+    return {"input": path, "shape": shape, "error": None if shape else "cannot read"} | (
+        {} if component is None else {"component": component})
+
+
+def test_records_round_trip_with_their_index_and_input(tmp_path):
+    out = tmp_path / "out.jsonl"
+    with RecordStore(out) as store:
+        store.write(1, [record("b.png")])
+        store.write(0, [record("a.png", None)])
+    assert read_records(out) == [{"index": 0} | record("a.png", None), {"index": 1} | record("b.png")]
+    assert out.read_text().count("\n") == 2
+    with RecordStore(out) as store:
+        assert store.done == {"a.png", "b.png"} and len(store.records) == 2
+
+
+def test_a_torn_last_line_is_ignored_then_cut_off_with_its_input_s_other_components(tmp_path):
+    out = tmp_path / "out.jsonl"
+    with RecordStore(out) as store:
+        store.write(0, [record("a.png")])
+        store.write(1, [record("b.png", component=0), record("b.png", component=1)])
+    whole = out.read_bytes()
+    out.write_bytes(whole[: whole.rindex(b"\n", 0, len(whole) - 1) + 20])  # b's second line, torn
+    assert [r["input"] for r in read_records(out)] == ["a.png"]  # b is in OUT wholly or not at all
+    with RecordStore(out) as store:
+        assert store.done == {"a.png"}
+        store.write(1, [record("b.png", component=0), record("b.png", component=1)])
+    assert out.read_bytes() == whole
+
+
+def test_a_file_that_is_not_an_infer_store_is_refused(tmp_path):
+    out = tmp_path / "notes.jsonl"
+    out.write_text('{"index": 0, "input": "a.png"}\nsome notes\n{"index": 1, "input": "b.png"}\n')
+    with pytest.raises(UsageError, match="line 2 is not an infer record"):
+        RecordStore(out).__enter__()
+
+
+def test_a_full_disk_keeps_every_whole_record_and_says_so_in_one_line(tmp_path, monkeypatch):
+    out = tmp_path / "out.jsonl"
+    real_write, calls = os.write, []
+
+    def write_then_fill(fd, data):
+        calls.append(len(data))
+        if len(calls) == 2:  # half of the second input's bytes, then the disk is full
+            return real_write(fd, bytes(data[: len(data) // 2]))
+        if len(calls) > 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(store_module.os, "write", write_then_fill)
+    with pytest.raises(UsageError, match="disk full after 1 records") as caught:
+        with RecordStore(out) as store:
+            store.write(0, [record("a.png")])
+            store.write(1, [record("b.png")])
+    assert "\n" not in str(caught.value)
+    monkeypatch.undo()
+    assert [r["input"] for r in read_records(out)] == ["a.png"] and out.read_text().endswith("\n")
