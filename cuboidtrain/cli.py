@@ -163,6 +163,7 @@ def infer(
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
     device: str = typer.Option(FIT.device, help=DEVICE_HELP),
+    cuboid: bool = typer.Option(FIT.cuboid, "--cuboid", help="Fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). Slower; better on clean masks (BENCHMARKS.md)."),
 ) -> None:
     """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
 
@@ -176,7 +177,7 @@ def infer(
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
                          pdm_components=pdm_components, all_components=all_components, label_id=label_id,
-                         device=device).validate()
+                         device=device, cuboid=cuboid).validate()
     json_out = "-" if json_out is None and jsonl is None else json_out
     check_outputs(("--json", json_out), ("--jsonl", jsonl))
     if explain is not None:

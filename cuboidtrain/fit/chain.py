@@ -167,10 +167,10 @@ def choose(candidates: list[Candidate]) -> Candidate:
     return best
 
 
-def error_record(path: str, reason: str, all_components: bool) -> dict:
+def error_record(path: str, reason: str, all_components: bool, cuboid: bool = False) -> dict:
     record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
               "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
-    return record | ({"component": None} if all_components else {})
+    return record | ({"cuboid": None} if cuboid else {}) | ({"component": None} if all_components else {})
 
 
 def no_explanation(exc: Exception) -> str:

@@ -28,6 +28,7 @@ from cuboidtrain.device import resolve_device
 from cuboidtrain.fit.chain import (Candidate, Explanation, choose, confidence, error_record, load_models,
                                    no_explanation, score)
 from cuboidtrain.fit.codec import make_codec
+from cuboidtrain.fit.cuboid import FittedCuboid, fit_candidate
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.fit.options import FitOptions
@@ -52,6 +53,7 @@ class Fit:
     candidates: dict[str, float] = field(default_factory=dict)  # every shape class tried -> its confidence
     input: str | None = None  # the file, when one was read
     component: int | None = None  # 0 = largest; set with FitOptions(all_components=True)
+    cuboid: FittedCuboid | None = None  # with FitOptions(cuboid=True): the box whose projection is `keypoints`
     # What an explanation draws (the winning candidate: refined mask, heat maps, framed input, Framing).
     explanation: Explanation | None = field(default=None, repr=False, compare=False)
 
@@ -65,6 +67,8 @@ class Fit:
                   "keypoints": np.asarray(self.keypoints).tolist(), "ratios": self.ratios,
                   "refine_steps": self.refine_steps, "refine_converged": self.refine_converged, "error": None,
                   "warnings": list(self.warnings), "candidates": self.candidates}
+        if self.cuboid is not None:
+            record["cuboid"] = self.cuboid.record()
         return record | ({"component": self.component} if with_component else {})
 
 
@@ -118,14 +122,14 @@ class Fitter:
         keypoints, and the others still run. `explain(index, path, fit)` draws each fitted
         component (cuboidtrain.fit.explain.Explainer) and returns the warnings it adds to its record."""
         records = []
-        with_component = self.options.all_components
+        with_component, cuboid = self.options.all_components, self.options.cuboid
         for index, path in enumerate(paths):
             try:
                 fits = self.fit_all(path)
             except (ValueError, OSError, cv2.error) as exc:  # bad data: this input only
                 reason = " ".join(str(exc).split())  # one line, whatever cv2 put in it
                 log.warning("%s", reason)
-                records.append(error_record(str(path), reason, with_component))
+                records.append(error_record(str(path), reason, with_component, cuboid))
                 continue
             for fitted in fits:
                 for warning in fitted.warnings:
@@ -136,7 +140,7 @@ class Fitter:
                 if (found := non_finite(record)) is not None:  # the contract's numbers are finite, or an error
                     reason = f"{path}: the fit's {found[0]} is {found[1]}: no fit"
                     log.warning("%s", reason)
-                    record = error_record(str(path), reason, with_component)
+                    record = error_record(str(path), reason, with_component, cuboid)
                 records.append(record)
         return records
 
@@ -169,17 +173,23 @@ class Fitter:
 
     def _fit_component(self, mask: np.ndarray, name: str | None) -> Fit:
         """Frame one component for every candidate model and keep the best-explained fit,
-        its keypoints mapped back to the input's pixels."""
+        its keypoints mapped back to the input's pixels; with `cuboid`, each candidate's cuboid
+        fitted to the component, judged by its own silhouette, and its projection kept."""
         candidates = []
         for model in self.models:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing))
+        cuboids = {c.shape: fit_candidate(c, mask) for c in candidates} if self.options.cuboid else {}
+        if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution
+            candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
         best = choose(candidates)
-        keypoints = best.framing.to_input(best.keypoints)
+        cuboid = cuboids.get(best.shape)
+        keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
         scores = score(best, mask, keypoints)
-        return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios, confidence=scores.confidence,
-                   refine_steps=best.refine_steps, refine_converged=best.refine_converged, warnings=scores.warnings,
-                   candidates={c.shape: c.confidence for c in candidates}, input=name,
+        return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios if cuboid is None else cuboid.fit.ratios,
+                   confidence=scores.confidence, refine_steps=best.refine_steps,
+                   refine_converged=best.refine_converged, warnings=scores.warnings,
+                   candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid,
                    explanation=Explanation(candidate=best, mask=mask))
 
     def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None) -> Candidate:

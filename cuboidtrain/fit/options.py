@@ -76,6 +76,7 @@ class FitOptions:
     all_components: bool = False  # one fit per 8-connected component (>= 16 px), else one building (masks.silhouette)
     label_id: int | None = None  # read a grey label map: pixels equal to this id are the object
     device: str = "auto"  # auto (CUDA when present), cpu, cuda or cuda:N
+    cuboid: bool = False  # fit a perspective cuboid to the mask at the input's resolution (cuboidtrain.fit.cuboid)
 
     def validate(self) -> "FitOptions":
         """The checked options, strings parsed; a ValueError names the bad value and what was expected.
