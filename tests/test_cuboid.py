@@ -1,0 +1,117 @@
+"""infer --cuboid (cuboidtrain.fit.cuboid): the record's keypoints are a box's projection, its
+`cuboid` object is whole and finite, and on clean masks the fit is closer to the truth than the
+networks' corners; without the option the record is as before."""
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from cuboidgen.config import PAPER_CLEAN
+from cuboidtrain.fit import cuboid as stage
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.options import FitOptions
+from shared.files import json_text
+from shared.shapes import get_shape
+from tests.conftest import build_sample
+
+# (shape, seed) at 128 px, clean scene: small, and a mix of views.
+MASKS = [("box", 1), ("box", 2), ("box", 3), ("twobox", 1), ("twobox", 2), ("twobox", 3)]
+SIZE = 128
+
+
+@pytest.fixture(scope="module")
+def masks(tmp_path_factory):
+    """Clean generated masks written as PNGs, with their samples."""
+    folder = tmp_path_factory.mktemp("cuboid")
+    samples, paths = [], []
+    for shape, seed in MASKS:
+        sample = build_sample(seed, shape, size=SIZE, scene=PAPER_CLEAN)
+        path = folder / f"{shape}-{seed}.png"
+        assert cv2.imwrite(str(path), sample.clean.astype(np.uint8) * 255)
+        samples.append(sample)
+        paths.append(str(path))
+    return paths, samples
+
+
+@pytest.fixture(scope="module")
+def records(masks):
+    """Each mask fitted as its own shape class, networks only and with --cuboid."""
+    paths, samples = masks
+    out = {}
+    for cuboid in (False, True):
+        fitters = {s: Fitter.from_shipped(FitOptions(shape=s, device="cpu", cuboid=cuboid)) for s in ("box", "twobox")}
+        out[cuboid] = [fitters[s.shape].records([p])[0] for p, s in zip(paths, samples)]
+    return out
+
+
+def concurrency(shape: str, keypoints) -> float:
+    """The largest, over every part and edge direction, of how far its four image edges are from
+    meeting in one point (a vanishing point, at infinity for parallel edges): the smallest singular
+    value of their four unit line vectors, 0 for a box's projection."""
+    points = np.asarray(keypoints, dtype=np.float64)
+    worst = 0.0
+    for part in get_shape(shape).parts:
+        corners = np.hstack([points[list(part)], np.ones((8, 1))])  # box order: bits left 2, bottom 1, front 4
+        for bit in (1, 2, 4):
+            lines = np.array([np.cross(corners[c], corners[c | bit]) for c in range(8) if not c & bit])
+            lines /= np.linalg.norm(lines, axis=1, keepdims=True)
+            worst = max(worst, np.linalg.svd(lines, compute_uv=False)[-1])
+    return worst
+
+
+def test_the_keypoints_are_a_box_s_projection(records):
+    for fitted, networks in zip(records[True], records[False]):
+        assert fitted["error"] is None, fitted["error"]
+        assert concurrency(fitted["shape"], fitted["keypoints"]) < 1e-9
+    # and the test can tell: the networks' free corners are no box's projection
+    assert all(concurrency(r["shape"], r["keypoints"]) > 1e-6 for r in records[False])
+
+
+def test_the_cuboid_object_is_whole_and_finite(records):
+    for record in records[True]:
+        json_text(record)  # strict JSON: no NaN or Infinity anywhere
+        cuboid = record["cuboid"]
+        assert set(cuboid) == {"yaw_deg", "pitch_deg", "roll_deg", "focal_px", "principal_px", "mirror", "iou",
+                               "outline_rms_px", "corners"}
+        assert all(-180 <= cuboid[k] <= 180 for k in ("yaw_deg", "pitch_deg", "roll_deg"))
+        assert cuboid["focal_px"] is None or cuboid["focal_px"] > 0
+        assert (cuboid["focal_px"] is None) == (cuboid["principal_px"] is None)
+        assert 0.9 < cuboid["iou"] <= 1  # a clean mask is explained
+        assert record["candidates"][record["shape"]] == cuboid["iou"]
+        assert len(cuboid["corners"]) == len(record["keypoints"])
+        assert all(isinstance(c["on_outline"], bool) and 0 <= c["score"] <= 1 for c in cuboid["corners"])
+        assert any(c["on_outline"] for c in cuboid["corners"])
+        assert (get_shape(record["shape"]).ratio_vector(record["ratios"]) > 0).all()  # the box's own, nested form
+
+
+def test_the_fit_is_closer_to_the_true_corners_than_the_networks_on_clean_masks(masks, records):
+    _, samples = masks
+
+    def mean_error(recs):
+        return np.mean([np.linalg.norm(np.asarray(r["keypoints"]) - s.keypoints, axis=1).mean()
+                        for r, s in zip(recs, samples)])
+
+    assert mean_error(records[True]) <= mean_error(records[False])
+
+
+def test_without_the_option_the_record_has_no_cuboid(records):
+    assert not any("cuboid" in r for r in records[False])
+
+
+def test_auto_chooses_by_the_fitted_cuboids(masks):
+    paths, samples = masks
+    fitted = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)).records(paths[:1] + paths[3:4])
+    for record in fitted:
+        assert set(record["candidates"]) == {"box", "twobox"}
+        assert record["cuboid"]["iou"] == record["candidates"][record["shape"]]
+        assert concurrency(record["shape"], record["keypoints"]) < 1e-9
+
+
+def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
+    real = stage.fit_mask
+    monkeypatch.setattr(stage, "fit_mask", lambda *a, **k: replace(real(*a, **k), yaw_deg=float("nan")))
+    paths, _ = masks
+    record = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).records(paths[:1])[0]
+    assert record["keypoints"] is None and record["cuboid"] is None
+    assert "cuboid fit's yaw/pitch/roll is not finite" in record["error"]
