@@ -72,20 +72,28 @@ def records(tmp_path_factory):
     mask = folder / "mask.png"
     assert cv2.imwrite(str(mask), build_sample(0, size=64).clean.astype("uint8") * 255)
     paths = [mask, folder / "missing.png"]
-    return infer_json(paths), infer_json(paths, "--all-components")
+    return infer_json(paths), infer_json(paths, "--all-components"), infer_json(paths, "--cuboid")
 
 
 def test_every_record_field_is_documented_and_every_documented_field_is_written(records):
-    plain, per_component = records
+    plain, per_component, cuboid = records
     assert [r["error"] is None for r in plain] == [True, False]  # a fit and an error record
     documented = documented_keys("The infer record")
     assert len(documented) == len(set(documented))
-    for record in plain + per_component:
+    for record in plain + per_component + cuboid:
         assert set(record) <= set(documented), set(record) - set(documented)
-    assert set().union(*per_component) == set(documented)
-    # the one optional field is the one the table says is optional
-    assert {k for k in documented if not all(k in r for r in plain)} == {"component"}
+    assert set().union(*per_component, *cuboid) == set(documented)
+    # the optional fields are the ones the table says are optional
+    assert {k for k in documented if not all(k in r for r in plain)} == {"component", "cuboid"}
     assert "only with `--all-components`" in section("The infer record")
+    assert "only with `--cuboid`" in section("The infer record")
+
+
+def test_the_cuboid_object_is_documented(records):
+    fitted, failed = records[2]
+    assert failed["cuboid"] is None
+    assert list(fitted["cuboid"]) == documented_keys("The cuboid object (`infer --cuboid`)")
+    assert set(fitted["cuboid"]["corners"][0]) == {"on_outline", "score"}
 
 
 @pytest.mark.parametrize("shape", ["box", "twobox"])

@@ -59,7 +59,10 @@ def fit_candidate(candidate: Candidate, mask: np.ndarray) -> FittedCuboid:
     shape = get_shape(candidate.shape)
     corners = candidate.framing.to_input(candidate.keypoints)
     peaks = heatmap_peaks(candidate.heatmaps)
-    fit = fit_mask(mask, shape, corners, peaks, prior_ratios=shape.ratio_vector(candidate.ratios))
+    prior = shape.ratio_vector(candidate.ratios)
+    # The Tabulator's head is unbounded: a ratio <= 0 anchors nothing (its log is -inf or NaN), so no anchor then.
+    prior = prior if (prior > 0).all() and np.isfinite(prior).all() else None
+    fit = fit_mask(mask, shape, corners, peaks, prior_ratios=prior)
     check_finite(fit)
     named_peaks = peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
     return FittedCuboid(fit, corner_scores(fit, mask, named_peaks))
