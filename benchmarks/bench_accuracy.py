@@ -17,6 +17,10 @@ mean corner error is then in 256 px units by construction. Beside it:
   calls, both models, the shape chosen), with the `paper` arch at the same size as the
   baseline run in the same process.
 
+With `--cuboid`, every figure is taken twice on the same masks, networks only and
+`infer --cuboid` (`cuboidtrain.fit.cuboid`): a row per path, shape selection on every set,
+and the median ms per mask of the selection run (both models, both cuboid fits).
+
     .venv/bin/python benchmarks/bench_accuracy.py --samples 300 --json bench-accuracy.json
 
 Spools are drawn on first use under --spools (seeded, so every run scores the same masks).
@@ -30,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -110,9 +115,9 @@ def eval_figures(model, spool: Path, samples: int) -> dict:
             "t_alone_256": chain["tabulator_px_error_on_true_heatmaps"] * scale, "skipped": chain["skipped"]}
 
 
-def latency_ms(models: list, path: str, repeats: int) -> float:
+def latency_ms(models: list, path: str, repeats: int, options: FitOptions = FitOptions(device="cpu")) -> float:
     """Median wall time of one whole `Fitter.records` call (`cuboidtrain infer`) on one mask file."""
-    fitter = Fitter(models, FitOptions(device="cpu"))
+    fitter = Fitter(models, options)
     fitter.records([path])  # warm-up: first-call allocations, lazy imports
     times = []
     for _ in range(repeats):
@@ -131,39 +136,53 @@ def main() -> None:
     parser.add_argument("--latency-repeats", type=int, default=30)
     parser.add_argument("--no-eval", action="store_true", help="skip eval's figures and the error budget")
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--cuboid", action="store_true", help="also score `infer --cuboid` on the same masks")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     paths = default_checkpoints(args.checkpoint)
     models = {m.shape: m for m in (load_model(p)[0] for p in paths)}
-    rows, selection = [], {}
+    variants = {"networks": FitOptions(device="cpu")} | ({"cuboid": FitOptions(device="cpu", cuboid=True)}
+                                                         if args.cuboid else {})
+    # `rows` and `selection` keep their old form (cuboidtrain models pack --validation reads them): networks only.
+    rows, selection, cuboid_selection, mask_ms = [], {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         for scene in SETS:
-            chosen, total = 0, 0
-            for shape, model in models.items():
-                spool = spool_for(args.spools, shape, scene, args.samples)
-                files, truths, _, true_ratios = write_masks(spool, args.samples, Path(tmp))
-                records = Fitter([model], FitOptions(shape=shape, device="cpu")).records(files)
-                errors = corner_errors(records, truths)
-                row = {"set": scene, "shape": shape, "samples": len(files), "size": model.size,
-                       "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
-                       "failed": int(np.isnan(errors).sum())} | where_figures(shape, records, truths, true_ratios)
-                if not args.no_eval:
-                    row |= eval_figures(model, spool, args.samples)
-                rows.append(row)
-                if scene in NOISY_SETS and len(models) > 1:
-                    picked = Fitter(list(models.values()), FitOptions(device="cpu")).records(files)
-                    chosen += sum(r["shape"] == shape for r in picked)
-                    total += len(picked)
-            if total:
-                selection[scene] = chosen / total
+            for variant, options in variants.items():
+                chosen, total, times = 0, 0, []
+                for shape, model in models.items():
+                    spool = spool_for(args.spools, shape, scene, args.samples)
+                    files, truths, _, true_ratios = write_masks(spool, args.samples, Path(tmp))
+                    records = Fitter([model], replace(options, shape=shape)).records(files)
+                    errors = corner_errors(records, truths)
+                    row = {"set": scene, "shape": shape, "path": variant, "samples": len(files), "size": model.size,
+                           "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
+                           "failed": int(np.isnan(errors).sum())} | where_figures(shape, records, truths, true_ratios)
+                    if not args.no_eval and variant == "networks":
+                        row |= eval_figures(model, spool, args.samples)
+                    rows.append(row)
+                    if (scene in NOISY_SETS or args.cuboid) and len(models) > 1:
+                        fitter = Fitter(list(models.values()), options)
+                        for file in files:  # one call a mask: its time is the whole infer path's
+                            start = time.perf_counter()
+                            chosen += fitter.records([file])[0]["shape"] == shape
+                            times.append(1000 * (time.perf_counter() - start))
+                        total += len(files)
+                if total:
+                    (selection if variant == "networks" else cuboid_selection)[scene] = chosen / total
+                    mask_ms.setdefault(variant, {})[scene] = statistics.median(times)
         example = write_masks(spool_for(args.spools, "box", "paper", 1), 1, Path(tmp))[0][0]
         size = next(iter(models.values())).size
         baseline = [build_model(s, size, arch="paper").eval() for s in models]
         latency = {"shipped_ms": latency_ms(list(models.values()), example, args.latency_repeats),
                    "paper_arch_ms": latency_ms(baseline, example, args.latency_repeats)}
+        if args.cuboid:
+            latency["cuboid_ms"] = latency_ms(list(models.values()), example, args.latency_repeats, variants["cuboid"])
     latency["ratio"] = latency["shipped_ms"] / latency["paper_arch_ms"]
     result = {"command": " ".join(sys.argv), "models": {s: str(p) for s, p in zip(models, paths)},
-              "threads": args.threads, "rows": rows, "selection": selection, "latency": latency, "targets": TARGETS}
+              "threads": args.threads, "rows": [r for r in rows if r["path"] == "networks"], "selection": selection,
+              "mask_ms": mask_ms, "latency": latency, "targets": TARGETS}
+    if args.cuboid:
+        result |= {"cuboid_rows": [r for r in rows if r["path"] == "cuboid"], "cuboid_selection": cuboid_selection}
     show(result)
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
@@ -171,33 +190,39 @@ def main() -> None:
 
 def show(result: dict) -> None:
     table = Table(title="Corner error in 256 px units, through infer (framing included) and eval")
-    for column in ("set", "shape", "samples", "infer mean", "infer median", "eval mean", "R IoU", "S peaks (DARK)",
-                   "T alone", "target"):
+    for column in ("set", "shape", "path", "samples", "infer mean", "infer median", "eval mean", "R IoU",
+                   "S peaks (DARK)", "T alone", "target"):
         table.add_column(column)
-    for r in result["rows"]:
-        table.add_row(r["set"], r["shape"], str(r["samples"]), f"{r['infer_mean_256']:.2f}", f"{r['infer_median_256']:.2f}",
+    rows = sorted(result["rows"] + result.get("cuboid_rows", []), key=lambda r: (SETS.index(r["set"]), r["shape"]))
+    for r in rows:
+        table.add_row(r["set"], r["shape"], r["path"], str(r["samples"]), f"{r['infer_mean_256']:.2f}",
+                      f"{r['infer_median_256']:.2f}",
                       *("-" if k not in r else f"{r[k]:.3f}" if k == "refiner_iou" else f"{r[k]:.2f}"
                         for k in ("eval_mean_256", "refiner_iou", "s_peaks_dark_256", "t_alone_256")),
                       f"<= {TARGETS[r['set']]}")
     console = Console()
     console.print(table)
-    console.print(where_table(result["rows"]))
-    for scene, accuracy in result["selection"].items():
-        console.print(f"shape selection on {scene}: {100 * accuracy:.1f}% (target >= 95%)")
+    console.print(where_table(rows))
+    for variant, key in (("networks", "selection"), ("cuboid", "cuboid_selection")):
+        for scene, accuracy in result.get(key, {}).items():
+            console.print(f"{variant}: shape selection on {scene}: {100 * accuracy:.1f}% (target >= 95%), "
+                          f"median {result['mask_ms'][variant][scene]:.1f} ms a mask")
     lat = result["latency"]
     console.print(f"infer per mask ({result['threads']} thread(s), both models): {lat['shipped_ms']:.1f} ms "
-                  f"(target <= 30); paper arch at the same size {lat['paper_arch_ms']:.1f} ms, ratio {lat['ratio']:.2f}")
+                  f"(target <= 30); paper arch at the same size {lat['paper_arch_ms']:.1f} ms, ratio {lat['ratio']:.2f}"
+                  + (f"; --cuboid {lat['cuboid_ms']:.1f} ms" if "cuboid_ms" in lat else ""))
     print(json.dumps(result))
 
 
 def where_table(rows: list[dict]) -> Table:
     """Where the error is: hull against interior corners (mean / median), NME, ratio errors."""
     table = Table(title="Where the error is (256 px units; ratios: relative error, mean / median)")
-    for column in ("set", "shape", "hull px", "interior px", "interior share", "NME % span", "depth/height",
-                   "width/height"):
+    for column in ("set", "shape", "path", "all px", "hull px", "interior px", "interior share", "NME % span",
+                   "depth/height", "width/height"):
         table.add_column(column)
     for r in rows:
-        table.add_row(r["set"], r["shape"], f"{r['hull_mean_px']:.2f} / {r['hull_median_px']:.2f}",
+        table.add_row(r["set"], r["shape"], r["path"], f"{r['infer_mean_256']:.2f} / {r['infer_median_256']:.2f}",
+                      f"{r['hull_mean_px']:.2f} / {r['hull_median_px']:.2f}",
                       f"{r['interior_mean_px']:.2f} / {r['interior_median_px']:.2f}", f"{100 * r['interior_share']:.0f}%",
                       f"{100 * r['nme_mean']:.2f} / {100 * r['nme_median']:.2f}",
                       f"{100 * r['depth_height_mean_rel']:.1f}% / {100 * r['depth_height_median_rel']:.1f}%",
