@@ -46,7 +46,7 @@ def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: fl
     One call evaluates every hypothesis and every forward-difference column of the Jacobian
     (B * (P + 1) rows): numpy's per-call cost is paid once per iteration, not per column.
     """
-    with np.errstate(over="ignore", invalid="ignore"):  # a diverged trial step is costed inf and rejected
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverged trial step: costed inf, rejected
         return _solve(residual, x0, iterations, step, tolerance)
 
 
