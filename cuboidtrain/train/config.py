@@ -46,6 +46,7 @@ class TrainConfig:
     init: str | None = None  # checkpoint whose weights start this run (phase 2, finetune)
     out: str = "runs/p1"
     resume: bool = False  # continue OUT/last.pt exactly
+    overwrite: bool = False  # start over in an OUT that holds a run (its last.pt, metrics.jsonl); else refused
     checkpoint_every: int = 500  # steps
     log_every: int = 10  # steps between metrics.jsonl records
     loader_workers: int = 2  # DataLoader processes reading the spool
