@@ -63,7 +63,6 @@ def run(
         seed=seed, scene=load_scene(scene), occluders=occluders, dashboard=dashboard, fsync=fsync,
         evict_every=evict_every, max_rate=max_rate,
     ).validate()
-    check_writable("--spool", config.spool, folder=True)  # created by the daemon; named here if it cannot be
     check_drawable(config.scene, [get_shape(s) for s in SHAPES if config.shape in (s, "mix")], config.size)
     if occluders is not None:
         from cuboidgen.occluders import OccluderLibrary

@@ -296,9 +296,11 @@ def test_cuboidgen_run_refuses_an_undrawable_scene_in_one_line(tmp_path):
 def test_cuboidgen_run_names_an_unwritable_spool(tmp_path, monkeypatch):
     from cuboidgen.cli import app
 
-    monkeypatch.setattr("os.access", lambda path, mode: False)  # as an unprivileged user in a read-only folder
-    result = CliRunner().invoke(app, ["run", "--spool", str(tmp_path / "noperm" / "sub"), "--no-dashboard"])
-    assert one_line(result).startswith(f"error: --spool {tmp_path / 'noperm' / 'sub'}: cannot write in")
+    (tmp_path / "noperm").mkdir(mode=0o555)
+    monkeypatch.setattr("os.access", lambda path, mode, **k: False)  # as an unprivileged user: root ignores modes
+    monkeypatch.setattr("pathlib.Path.mkdir", lambda *a, **k: (_ for _ in ()).throw(PermissionError(13, "Permission denied")))
+    result = CliRunner().invoke(app, ["run", "--spool", str(tmp_path / "noperm" / "sub"), "--no-dashboard", "--workers", "1"])
+    assert one_line(result) == f"error: spool {tmp_path / 'noperm' / 'sub'}: cannot create it (Permission denied)"
 
 
 @pytest.mark.parametrize("args, expected", [
