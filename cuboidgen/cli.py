@@ -32,7 +32,7 @@ def run(
     limit: int = typer.Option(GEN.limit, envvar="CUBOIDGEN_LIMIT",
                               help="Samples kept; the oldest are evicted. 0 retains the spool (no eviction)."),
     max_samples: Optional[int] = typer.Option(None, envvar="CUBOIDGEN_MAX_SAMPLES", help="Stop after publishing this many samples."),
-    workers: int = typer.Option(os.cpu_count() or 1, envvar="CUBOIDGEN_WORKERS", help="Worker processes (default: all cores)."),
+    workers: int = typer.Option(os.cpu_count() or 1, envvar="CUBOIDGEN_WORKERS", help="Worker processes (default: all cores; at most 4 per core)."),
     size: int = typer.Option(GEN.size, envvar="CUBOIDGEN_SIZE", help="Mask size in px (square)."),
     shape: GenShape = typer.Option(GenShape[GEN.shape], envvar="CUBOIDGEN_SHAPE", help="Shape class; mix picks one per sample."),
     seed: Optional[int] = typer.Option(None, envvar="CUBOIDGEN_SEED", help="Run seed: the same seed and options give the same samples."),
@@ -53,6 +53,8 @@ def run(
     """Generate samples into the spool until Ctrl-C/SIGTERM (or --max-samples)."""
     from cuboidgen.config import load_scene
     from cuboidgen.daemon import run as run_daemon
+    from cuboidgen.scene import check_drawable
+    from shared.shapes import SHAPES, get_shape
 
     setup_logging()
     config = GenConfig(
@@ -60,6 +62,7 @@ def run(
         seed=seed, scene=load_scene(scene), occluders=occluders, dashboard=dashboard, fsync=fsync,
         evict_every=evict_every, max_rate=max_rate,
     ).validate()
+    check_drawable(config.scene, [get_shape(s) for s in SHAPES if config.shape in (s, "mix")], config.size)
     if occluders is not None:
         from cuboidgen.occluders import OccluderLibrary
 

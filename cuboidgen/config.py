@@ -9,14 +9,18 @@ from __future__ import annotations
 import json
 import os
 import tomllib
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
+from shared.checks import MAX_SEED, PER_CORE, check_numbers, max_processes, number, pair
 from shared.errors import UsageError
 from shared.shapes import SHAPES
 from shared.spool import EVICT_EVERY
 
 Range = tuple[float, float]
+FAR = 1e6  # object units (metres in `street`): the largest magnitude of a scene's extents and positions
+NEAR = 1e-3  # the smallest extent and distance: a box's ratios are divided by its extents
+MAX_OCCLUDERS = 64  # per sample
 
 
 @dataclass(frozen=True)
@@ -29,52 +33,47 @@ class SceneConfig:
 
     name: str = "paper"
     # Box extents (the paper's Table 4 "Scale" rows): width (x), height (y), depth (z).
-    width: Range = (0.5, 2.0)
-    height: Range = (0.5, 2.0)
-    depth: Range = (0.5, 2.0)
+    width: Range = pair((0.5, 2.0), lo=NEAR, hi=FAR)
+    height: Range = pair((0.5, 2.0), lo=NEAR, hi=FAR)
+    depth: Range = pair((0.5, 2.0), lo=NEAR, hi=FAR)
     # Rotation of the box about its centre, degrees: pitch (x), yaw (y), roll (z).
-    pitch_deg: Range = (-10.0, 10.0)
-    yaw_deg: Range = (-10.0, 10.0)
-    roll_deg: Range = (-5.0, 5.0)
+    pitch_deg: Range = pair((-10.0, 10.0), lo=-180, hi=180)
+    yaw_deg: Range = pair((-10.0, 10.0), lo=-180, hi=180)
+    roll_deg: Range = pair((-5.0, 5.0), lo=-180, hi=180)
     # Centre offset from the optical axis; offset_y > 0 puts the box below the camera.
-    offset_x: Range = (-2.0, 2.0)
-    offset_y: Range = (0.0, 2.0)
+    offset_x: Range = pair((-2.0, 2.0), lo=-FAR, hi=FAR)
+    offset_y: Range = pair((0.0, 2.0), lo=-FAR, hi=FAR)
     # If set, the box stands on the ground this far below the camera and offset_y is unused.
-    eye_height: Range | None = None
+    eye_height: Range | None = pair(None, lo=0, hi=FAR, optional=True)
     # Camera to box centre along the optical axis: the paper's "focal length" (projection
     # plane distance). After framing, only this ratio to the box size shapes perspective.
-    distance: Range = (2.0, 10.0)
+    distance: Range = pair((2.0, 10.0), lo=NEAR, hi=FAR)
     # Camera tilted up (degrees): vertical edges converge upward, as in street photos.
-    camera_pitch_deg: Range = (0.0, 0.0)
-    flip_probability: float = 0.5  # mirror left-right; labels are re-derived in viewer terms
+    camera_pitch_deg: Range = pair((0.0, 0.0), lo=-90, hi=90, lo_open=True, hi_open=True)
+    flip_probability: float = number(0.5, lo=0, hi=1)  # mirror left-right; labels are re-derived in viewer terms
     # Framing: the silhouette's longer side fills the image less two margins (fraction of size).
-    margin: Range = (0.06, 0.14)
-    centre_jitter: float = 1.0  # how far off-centre the silhouette may sit, as a fraction of the margin
+    margin: Range = pair((0.06, 0.14), lo=0, hi=0.5, hi_open=True)
+    centre_jitter: float = number(1.0, lo=0, hi=1)  # how far off-centre the silhouette may sit, as a fraction of the margin
     # Two boxes: the middle wall's position (fraction of total width from the right) and
     # the lower part's height as a fraction of the taller one.
-    split: Range = (0.3, 0.7)
-    height_ratio: Range = (0.35, 0.85)
+    split: Range = pair((0.3, 0.7), lo=0.01, hi=0.99)  # each part at least 1% of the width
+    height_ratio: Range = pair((0.35, 0.85), lo=0.01, hi=1)
     # Occlusion: occluders per sample, their height (fraction of the silhouette's height),
     # rotation (degrees), and how often one stands on the building's ground line.
-    occluders: tuple[int, int] = (0, 3)
-    occluder_height: Range = (0.2, 0.8)
-    occluder_rotation_deg: Range = (-15.0, 15.0)
-    grounded_probability: float = 0.7
+    occluders: tuple[int, int] = pair((0, 3), lo=0, hi=MAX_OCCLUDERS, integer=True)
+    occluder_height: Range = pair((0.2, 0.8), lo=0, lo_open=True, hi=4)
+    occluder_rotation_deg: Range = pair((-15.0, 15.0), lo=-180, hi=180)
+    grounded_probability: float = number(0.7, lo=0, hi=1)
     # Contour noise: displacement of the silhouette's boundary, std in px at 256 px
     # (scaled with the image size), and the correlation length along the contour in px.
-    contour_noise: Range = (0.0, 2.5)
-    noise_wavelength: Range = (3.0, 12.0)
+    contour_noise: Range = pair((0.0, 2.5), lo=0, hi=64)
+    noise_wavelength: Range = pair((3.0, 12.0), lo=0, lo_open=True, hi=4096)
 
     def validate(self) -> "SceneConfig":
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, tuple) and (len(value) != 2 or value[0] > value[1]):
-                raise UsageError(f"scene {self.name!r}: {f.name} = {value!r}, expected a range (min, max) with min <= max")
-        for name in ("flip_probability", "grounded_probability", "centre_jitter"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise UsageError(f"scene {self.name!r}: {name} = {getattr(self, name)}, expected a value in [0, 1]")
-        if min(self.width + self.height + self.depth) <= 0 or self.distance[0] <= 0:
-            raise UsageError(f"scene {self.name!r}: extents and distance must be positive")
+        """Every field checked for type, finiteness and range; the error names the field."""
+        if not isinstance(self.name, str) or not self.name:
+            raise UsageError(f"scene name {self.name!r}: expected a non-empty string")
+        check_numbers(self, lambda field_name: f"scene {self.name!r}: {field_name}")
         return self
 
 
@@ -119,13 +118,18 @@ def load_scene(name_or_path: str) -> SceneConfig:
 
 
 def scene_from_dict(data: dict, default_name: str = "custom") -> SceneConfig:
-    base = SCENES.get(data.pop("base", "paper"))
-    if base is None:
-        raise UsageError(f"scene base must be one of {sorted(SCENES)}")
+    if not isinstance(data, dict):
+        raise UsageError(f"scene {default_name!r}: expected a table of fields (a JSON object), "
+                         f"not {type(data).__name__} {data!r:.60}")
+    data = dict(data)
+    base = data.pop("base", "paper")
+    if not isinstance(base, str) or base not in SCENES:
+        raise UsageError(f"scene {default_name!r}: base must be one of {sorted(SCENES)}, not {base!r}")
+    base = SCENES[base]
     known = {f.name for f in fields(SceneConfig)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise UsageError(f"scene: unknown field(s) {unknown}; expected some of {sorted(known)}")
+        raise UsageError(f"scene {default_name!r}: unknown field(s) {unknown}; expected some of {sorted(known)}")
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
     values.setdefault("name", default_name)
     return replace(base, **values).validate()
@@ -139,36 +143,28 @@ class GenConfig:
     """Everything `cuboidgen run` does; CLI options map one-to-one onto these fields."""
 
     spool: Path = Path("data_spool")
-    limit: int = 10_000  # samples kept in the spool; 0 retains it (no eviction)
-    max_samples: int | None = None  # stop after publishing this many (all workers together)
-    workers: int = field(default_factory=lambda: os.cpu_count() or 1)
-    size: int = 256  # px, square masks
+    limit: int = number(10_000, lo=0, integer=True, unit="0 retains the spool")  # samples kept in the spool; 0 retains it (no eviction)
+    max_samples: int | None = number(None, lo=1, integer=True, optional=True)  # stop after publishing this many (all workers together)
+    workers: int = number(default_factory=lambda: os.cpu_count() or 1, lo=1, hi=max_processes(), integer=True,
+                          unit=PER_CORE)
+    size: int = number(256, lo=16, hi=4096, integer=True, unit="px")  # square masks
     shape: str = "box"  # box | twobox | mix (each sample picks one at random)
-    seed: int | None = None  # None: fresh entropy; a seed makes the whole run reproducible
+    seed: int | None = number(None, lo=0, hi=MAX_SEED, integer=True, optional=True)  # None: fresh entropy; a seed makes the whole run reproducible
     scene: SceneConfig = PAPER
     occluders: Path | None = None  # folder of RGBA/binary PNG cutouts; None: the built-in library
     dashboard: bool = True
     fsync: bool = False  # sync each sample before publishing (survives power loss; slower)
-    evict_every: int = EVICT_EVERY  # publishes between spool listings (the bound on overshoot per writer)
+    evict_every: int = number(EVICT_EVERY, lo=1, integer=True)  # publishes between spool listings (the bound on overshoot per writer)
     # samples a second, all workers together (each takes its share); None: as fast as they go.
     # A trainer that reads slower than this rate misses samples (README: the generator's throttle).
-    max_rate: float | None = None
+    max_rate: float | None = number(None, lo=0, lo_open=True, optional=True, unit="samples a second")
 
     def validate(self) -> "GenConfig":
-        if self.limit < 0:
-            raise UsageError(f"--limit {self.limit}: expected 0 (retain the spool) or a positive sample count")
-        if self.max_samples is not None and self.max_samples < 1:
-            raise UsageError(f"--max-samples {self.max_samples}: expected a positive count")
-        if self.workers < 1:
-            raise UsageError(f"--workers {self.workers}: expected at least 1")
-        if not 16 <= self.size <= 4096:
-            raise UsageError(f"--size {self.size}: expected 16 to 4096 px")
-        if self.shape not in GEN_SHAPES:
+        check_numbers(self)  # every numeric field's declared range: finite, in range, the option named
+        if not isinstance(self.shape, str) or self.shape not in GEN_SHAPES:
             raise UsageError(f"--shape {self.shape!r}: expected one of {', '.join(GEN_SHAPES)}")
-        if self.evict_every < 1:
-            raise UsageError(f"--evict-every {self.evict_every}: expected at least 1")
-        if self.max_rate is not None and not self.max_rate > 0:  # `not >` also refuses NaN
-            raise UsageError(f"--max-rate {self.max_rate}: expected a positive number of samples a second")
+        if not isinstance(self.scene, SceneConfig):
+            raise UsageError(f"--scene {self.scene!r}: expected a SceneConfig (cuboidgen.config.load_scene)")
         self.scene.validate()
         return self
 

@@ -14,9 +14,11 @@ import numpy as np
 
 from cuboidgen.config import SceneConfig
 from shared.camera import Cuboid, Intrinsics, name_corners
+from shared.errors import UsageError
 from shared.shapes import Shape
 
 MIN_DEPTH = 0.05  # nearest corner's z as a fraction of the distance; closer draws are redrawn
+MAX_DRAWS = 1000  # draws before a scene is refused (every preset's first draw is in front of the camera)
 
 
 @dataclass(frozen=True)
@@ -36,12 +38,15 @@ def uniform(rng: np.random.Generator, bounds) -> float:
 
 def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Generator) -> View:
     """Draw one view of `shape` from `scene`'s ranges, framed into a size x size image."""
-    while True:
+    for _ in range(MAX_DRAWS):
         params = draw_params(shape, scene, rng)
         cuboid = Cuboid.from_params(params)
         camera = cuboid.camera_points(shape)
         if camera[:, 2].min() > MIN_DEPTH * cuboid.pose.distance:
             break
+    else:  # a scene whose boxes reach behind the camera: refused, not looped on forever
+        raise UsageError(f"scene {scene.name!r}: {MAX_DRAWS} {shape.name} draws in a row came closer to the camera "
+                         f"than {MIN_DEPTH:g} x distance: expected distance well beyond the extents")
     named = name_corners(shape, camera)
     params.update(named.naming.params())
     intrinsics, margin = frame(named.image, size, scene, rng)
@@ -98,3 +103,12 @@ def frame(image: np.ndarray, size: int, scene: SceneConfig, rng: np.random.Gener
         jitter = (draw - 0.5) * scene.centre_jitter * min(slack, size * margin)
         origin.append(slack / 2 + jitter - low * scale)  # pixel centres: the image spans 0 .. size - 1
     return Intrinsics(focal=scale, principal=tuple(origin)), margin
+
+
+def check_drawable(scene: SceneConfig, shapes, size: int, views: int = 16) -> None:
+    """A few views of each shape drawn and framed, so a scene that cannot be drawn (its boxes
+    behind the camera) is refused in one line at start-up, not in every worker."""
+    rng = np.random.default_rng(0)
+    for shape in shapes:
+        for _ in range(views):
+            draw_view(shape, scene, size, rng)

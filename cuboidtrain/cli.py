@@ -52,6 +52,7 @@ def run(
     init: Optional[Path] = typer.Option(TRAIN.init, envvar="CUBOIDTRAIN_INIT", help="Start from this checkpoint's weights (phase 2, finetune)."),
     out: Optional[Path] = typer.Option(None, envvar="CUBOIDTRAIN_OUT", help="Run folder (default runs/p1, runs/p2, runs/e2e, runs/finetune)."),
     resume: bool = typer.Option(TRAIN.resume, envvar="CUBOIDTRAIN_RESUME", help="Continue OUT/last.pt exactly: weights, optimizer, step, data order, RNG."),
+    overwrite: bool = typer.Option(TRAIN.overwrite, envvar="CUBOIDTRAIN_OVERWRITE", help="Start over in an --out that holds a run, replacing its last.pt and metrics.jsonl (without it, or --resume, such a run is refused)."),
     checkpoint_every: int = typer.Option(TRAIN.checkpoint_every, envvar="CUBOIDTRAIN_CHECKPOINT_EVERY", help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
     log_every: int = typer.Option(TRAIN.log_every, envvar="CUBOIDTRAIN_LOG_EVERY", help="Steps between records in OUT/metrics.jsonl."),
     loader_workers: int = typer.Option(TRAIN.loader_workers, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool."),
@@ -66,9 +67,9 @@ def run(
 ) -> None:
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
     from cuboidtrain.train.dashboard import Dashboard
-    from cuboidtrain.train.loop import NoUsableSamples
     from cuboidtrain.train.loop import run as run_training
-    from shared.spool import check_spool
+    from cuboidtrain.train.preflight import check_paths
+    from cuboidtrain.train.status import TrainingFailed
 
     setup_logging()
     config = TrainConfig(
@@ -77,18 +78,15 @@ def run(
         batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
         alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
         out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
-        resume=resume, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
+        resume=resume, overwrite=overwrite, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
         seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
         val_every=val_every, val_samples=val_samples,
     ).validate()
-    if not spool.exists():
-        raise UsageError(f"--spool {spool}: no such folder (start `cuboidgen run --spool {spool} --size {size}` first)")
-    check_spool(spool, readable=True)  # the trainer's own check (not a folder, unreadable), before --out's
-    check_writable("--out", config.out, folder=True)
+    check_paths(config)  # every path option, before the dashboard starts (run() checks them again)
     try:
         with Dashboard(live=dashboard and sys.stdout.isatty()) as board:
             status = run_training(config, dashboard=board)
-    except NoUsableSamples as exc:  # not a bad value: the spool may yet fill; exit 1, as a timeout
+    except TrainingFailed as exc:  # not a bad value (a full disk, a spool that never fills): exit 1
         fail(str(exc), code=1)
     if status.get("rank", 0) == 0:  # under torchrun rank 0 speaks for the run
         ckpt = status["last_checkpoint"]

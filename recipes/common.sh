@@ -11,7 +11,7 @@ clean=$SPOOLS/val-clean-$SHAPE-$SIZE
 noisy=$SPOOLS/val-noisy-$SHAPE-$SIZE
 
 # Run a recipe again after an interruption, and each run continues from its last checkpoint.
-resume() { if [ -f "$1/last.pt" ]; then echo --resume; fi; }
+resume() { if [ -f "$1/last.pt" ]; then echo --resume; else echo --overwrite; fi; }  # no checkpoint: start (over)
 threads=(); if [ -n "$THREADS" ]; then threads=(--threads "$THREADS"); fi
 # The paper's networks on the generator's own framing: Table 3 as it was measured (recipes/shipped.sh
 # trains the shipped, compact models instead).

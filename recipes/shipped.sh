@@ -24,7 +24,7 @@ PHASE2_STEPS=${PHASE2_STEPS:-2200} PHASE2_MINUTES=${PHASE2_MINUTES:-60} PHASE2_L
 train=$SPOOLS/train-$SHAPE-128
 val=$SPOOLS/val-paper-$SHAPE-256
 
-resume() { if [ -f "$1/last.pt" ]; then echo --resume; fi; }
+resume() { if [ -f "$1/last.pt" ]; then echo --resume; else echo --overwrite; fi; }  # no checkpoint: start (over)
 spool() {  # spool DIR SEED SCENE COUNT SIZE: add COUNT samples of SCENE, drawn once (a marker beside it says so)
     local drawn; drawn=$(dirname "$1")/.drawn-$(basename "$1")-$3
     if [ ! -f "$drawn" ]; then

@@ -5,6 +5,7 @@ import logging
 from enum import Enum
 
 import typer
+from rich.markup import escape
 from rich.console import Console
 from rich.logging import RichHandler
 from typer.core import TyperGroup
@@ -35,7 +36,8 @@ def setup_logging(verbose: bool = False) -> None:
 
 def fail(message: str, code: int = 2) -> None:
     """One line on stderr and a non-zero exit (2: a bad value): how every error is reported."""
-    console.print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
+    # escape: a message quotes values such as [nan, 1.0], which rich would read as markup and drop
+    console.print(f"[red]error:[/red] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 

@@ -249,7 +249,7 @@ def test_parse_components(text, value):
 
 @pytest.mark.parametrize("text", ["0", "1.5", "-2", "all", "1.0"])
 def test_parse_components_rejects_other_values(text):
-    with pytest.raises(ValueError, match=f"PDM components {text!r}: expected a count"):
+    with pytest.raises(ValueError, match=f"--pdm-components {text!r}: expected a count"):
         parse_components(text)
 
 

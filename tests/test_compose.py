@@ -299,7 +299,7 @@ def test_trainer_service_starts_fresh_then_resumes(clean_env, volumes, tmp_path,
         result = runner.invoke(APPS["cuboidtrain"], argv[1:], env=ours)
         assert result.exit_code == 0, result.output
         config = seen[-1]
-        assert config.resume is already_trained
+        assert config.resume is already_trained and config.overwrite is not already_trained
         assert Path(config.spool) == volumes["spool"] and Path(config.out).parent == volumes["runs"]
         assert config.device == service["environment"]["CUBOIDTRAIN_DEVICE"] and config.size == 64
         assert config.steps is None and config.init is None and config.dashboard is False

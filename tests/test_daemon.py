@@ -212,7 +212,7 @@ def test_token_bucket_refuses_a_rate_that_is_not_positive():
 
 @pytest.mark.parametrize("rate", [0, -1.0, float("nan")])
 def test_max_rate_must_be_positive(tmp_path, rate):
-    with pytest.raises(ValueError, match=r"--max-rate .*: expected a positive number of samples a second"):
+    with pytest.raises(ValueError, match=r"--max-rate .*: expected a finite number > 0 \(samples a second\)"):
         tiny_config(tmp_path, max_rate=rate).validate()
 
 

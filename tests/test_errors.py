@@ -183,3 +183,15 @@ def test_every_run_option_defaults_to_its_train_config_field():
     # --out follows --phase (runs/p1, runs/p2, ...); TrainConfig's is phase 1's
     assert options.pop("out") is None and defaults.pop("out") == "runs/p1" and defaults["phase"] == "1"
     assert {name: plain(value) for name, value in options.items()} == defaults
+
+
+def test_an_error_line_keeps_the_brackets_it_quotes(capsys):
+    """A message quoting a list ([nan, 1.0]) is printed as written, not read as rich markup."""
+    import typer
+
+    from shared.console import fail
+
+    with pytest.raises(typer.Exit):
+        fail("scene 'x': width [nan, 1.0]: expected a range [min, max]")
+    out = capsys.readouterr()
+    assert "width [nan, 1.0]: expected a range [min, max]" in (out.err + out.out)

@@ -145,7 +145,7 @@ def conv_count(path) -> int:
 
 @pytest.mark.parametrize("args, message", [
     (["--checkpoint", "/nonexistent/last.pt"], "/nonexistent/last.pt: no such file"),
-    (["--refine-steps", "-1"], "--refine-steps -1: expected a whole number of passes (0 or more)"),
+    (["--refine-steps", "-1"], "--refine-steps -1: expected a whole number of passes from 0 to 16"),
     (["--opset", "9"], "--opset 9: expected 11 to 20"),
 ])
 def test_cli_bad_values_are_one_line_errors(exported, tmp_path, args, message):

@@ -2,12 +2,14 @@
 and what a killed trainer leaves behind. The kill -9 soak is benchmarks/soak_faults.py."""
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import json
 import logging
 import multiprocessing as mp
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -396,24 +398,151 @@ def test_a_worker_that_cannot_write_stops_every_worker_and_says_why(tmp_path, mo
     assert os.listdir(tmp_path) == []
 
 
-def test_a_checkpoint_that_cannot_be_written_is_a_one_line_error_and_the_last_one_survives(tmp_path, monkeypatch):
-    import cuboidtrain.models.checkpoint as checkpoint
+def disk_fills_at(folder: Path, room: int):
+    """An os.write that fills the disk under `folder` (ENOSPC) once a file there has taken
+    `room` bytes: where the checkpoint writer's every write lands."""
+    real_write, written = os.write, {}
 
+    def write(fd, data):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            target = ""
+        if target.startswith(str(folder)):
+            written[target] = written.get(target, 0) + len(data)
+            if written[target] > room:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    return write
+
+
+@contextlib.contextmanager
+def file_size_limit(size: int):
+    """The kernel refuses (EFBIG) any write past `size` bytes into a file: a disk that fills,
+    for every writer of this process (torch's C++ one too), with no privileges needed.
+    Python ignores SIGXFSZ, so the write fails instead of the process."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+
+def open_files_under(folder: Path) -> list[str]:
+    """What this process holds open under `folder` (a deleted file shows as 'PATH (deleted)')."""
+    held = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith(str(folder)):
+            held.append(target)
+    return held
+
+
+def test_a_checkpoint_that_cannot_be_written_raises_its_oserror_and_leaves_no_file_open_or_behind(tmp_path):
+    from cuboidtrain.models.checkpoint import save_checkpoint
+    from tests.conftest import tiny_model
+
+    model, cfg = tiny_model("box", SIZE), train_config(size=SIZE)
+    save_checkpoint(tmp_path / "last.pt", model, cfg, step=5)
+    before = (tmp_path / "last.pt").read_bytes()
+    with file_size_limit(64 * 1024), pytest.raises(OSError) as raised:  # a checkpoint is 165 KB
+        save_checkpoint(tmp_path / "last.pt", model, cfg, step=10)
+    # the disk's own error, not torch's "[enforce fail at inline_container.cc] unexpected pos"
+    assert raised.value.errno == errno.EFBIG
+    assert os.listdir(tmp_path) == ["last.pt"] and (tmp_path / "last.pt").read_bytes() == before
+    assert open_files_under(tmp_path) == []  # the temporary file closed: the disk gets its space back
+
+
+def test_a_full_disk_mid_checkpoint_fails_the_run_in_one_line_keeping_the_last_checkpoint(tmp_path, monkeypatch):
     fill(tmp_path / "spool", 4)
-    real_save, saves = checkpoint.torch.save, []
+    out = tmp_path / "run"
+    fills = disk_fills_at(out, room=4096)
+    real_write = os.write
+    # room for one checkpoint: once last.pt exists the next one fails 4 KB in
+    monkeypatch.setattr(os, "write", lambda fd, data: (fills if (out / "last.pt").exists() else real_write)(fd, data))
+    message = f"out of space writing {out}/last.pt at step 2: kept the step-1 checkpoint (--resume continues it)"
+    with pytest.raises(train_module.TrainingFailed) as raised:
+        run(config(tmp_path / "spool", out, steps=2, checkpoint_every=1))
+    assert str(raised.value) == message
+    monkeypatch.setattr(os, "write", real_write)
+    assert load_checkpoint(out / "last.pt")["step"] == 1
+    assert not [p for p in os.listdir(out) if p.startswith(".tmp-")] and open_files_under(out) == []
+    status = read_status(out)
+    assert status.state == "failed" and status.notes[0] == message
 
-    def full_after_one(payload, path):
-        saves.append(path)
-        if len(saves) > 1:
-            Path(path).write_bytes(b"half")  # what a full disk leaves: a partial temporary file
-            raise OSError(errno.ENOSPC, "No space left on device")
-        real_save(payload, path)
 
-    monkeypatch.setattr(checkpoint.torch, "save", full_after_one)
-    with pytest.raises(ValueError, match=r"cannot write step 2 \(No space left on device\); the previous one is intact"):
-        run(config(tmp_path / "spool", tmp_path / "run", steps=2, checkpoint_every=1))
-    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 1
-    assert not [p for p in os.listdir(tmp_path / "run") if p.startswith(".tmp-")]
+# The trainer, as its own process, on a disk that fills at its second checkpoint: the hang
+# (loader workers never stopped) came at interpreter exit, which an in-process run never reaches.
+FULL_DISK_TRAINER = """
+import resource, sys
+import cuboidtrain.train.loop as loop
+real_save = loop.save_checkpoint
+def save_on_a_full_disk(path, *args, **kwargs):
+    if path.exists():  # room for one checkpoint only: writes past 64 KB fail (EFBIG)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+    return real_save(path, *args, **kwargs)
+loop.save_checkpoint = save_on_a_full_disk
+from cuboidtrain.cli import main
+sys.argv = ["cuboidtrain", *sys.argv[1:]]
+sys.exit(main())
+"""
+
+
+def test_the_trainer_on_a_full_disk_exits_in_one_line_within_seconds_keeping_its_checkpoint(tmp_path):
+    spool, out = tmp_path / "spool", tmp_path / "run"
+    fill(spool, 8)
+    args = ["run", "--spool", str(spool), "--size", str(SIZE), "--arch", ARCH, "--batch-size", "2",
+            "--threads", "1", "--no-dashboard", "--out", str(out), "--steps", "10", "--checkpoint-every", "5",
+            "--loader-workers", "2"]
+    started = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", FULL_DISK_TRAINER, *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=30)  # the issue's bound: it hung for minutes
+    assert time.monotonic() - started < 30
+    message = f"cannot write {out}/last.pt at step 10 (File too large): kept the step-5 checkpoint (--resume continues it)"
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == f"error: {message}" and "Traceback" not in proc.stderr
+    assert load_checkpoint(out / "last.pt")["step"] == 5  # kept, whole
+    assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
+    status = read_status(out)
+    assert status.state == "failed" and status.notes[0] == message and status.last_checkpoint.step == 5
+    assert _processes_naming(str(out)) == []  # the loader workers stopped with it, not left to time out
+
+
+def _processes_naming(marker: str) -> list[int]:
+    """Live processes whose command line holds `marker` (forked loader workers keep their parent's)."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if marker.encode() in f.read() and process_alive(int(pid)):
+                    found.append(int(pid))
+        except OSError:
+            continue
+    return found
+
+
+def test_any_failure_mid_run_leaves_the_status_failed_with_the_reason(tmp_path, monkeypatch):
+    fill(tmp_path / "spool", 4)
+    real_step, calls = train_module.train_step, []
+
+    def breaks_at_the_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("boom")
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "train_step", breaks_at_the_third)
+    with pytest.raises(RuntimeError, match="boom"):
+        run(config(tmp_path / "spool", tmp_path / "run", steps=5))
+    status = read_status(tmp_path / "run")
+    assert status.state == "failed" and status.notes[0] == "RuntimeError: boom" and status.step == 2
+    assert not trainer_died(status)  # finished, as `watch` and the healthcheck see it
+    assert watch(tmp_path / "run", once=True, console=Console(file=io.StringIO())) == 1
 
 
 def test_a_zombie_is_dead_to_the_sweep_and_to_watch(tmp_path):

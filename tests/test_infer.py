@@ -407,7 +407,7 @@ def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):
     (["--checkpoint", "{twobox}", "--shape", "box"], "no box model"),
     (["--checkpoint", "{box}", "--refine-steps", "many"], "--refine-steps 'many'"),
     (["--checkpoint", "{box}", "--margin", "0.7"], "--margin 0.7"),
-    (["--checkpoint", "{box}", "--extractor", "pdm", "--pdm-components", "1.5"], "PDM components '1.5'"),
+    (["--checkpoint", "{box}", "--extractor", "pdm", "--pdm-components", "1.5"], "--pdm-components '1.5'"),
     (["--checkpoint", "{box}", "--overlay", "{tmp}/p.jpg"], "--overlay needs --explain DIR"),
     (["--checkpoint", "{box}", "--explain", "{tmp}/x", "--overlay", "{tmp}/p.jpg", "--overlay", "{tmp}/p.jpg"],
      "--overlay given 2 times for 1 inputs"),

@@ -374,9 +374,8 @@ def test_a_failed_save_keeps_the_old_checkpoint_and_no_temporary_file(tmp_path, 
     path = tmp_path / "last.pt"
     save_checkpoint(path, stub_model(1.0), TrainConfig(size=SIZE), step=1)
 
-    def half_written(obj, f, *args, **kwargs):
-        with open(f, "wb") as out:
-            out.write(b"PK\x03\x04 half a zip")
+    def half_written(obj, f, *args, **kwargs):  # `f`: the file-like save_checkpoint writes through
+        f.write(b"PK\x03\x04 half a zip")
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(torch, "save", half_written)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -12,12 +14,15 @@ from pathlib import Path
 
 import pytest
 import torch
+from typer.testing import CliRunner
 
+from cuboidtrain.cli import app
 from cuboidtrain.models.checkpoint import load_checkpoint, load_model
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import SpoolBatches, prepare_batch
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.loop import learning_rate, run
+from shared.errors import UsageError
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
 from tests.conftest import ARCH, build_sample, tiny_model, train_config
@@ -201,3 +206,94 @@ def test_cosine_schedule_falls_from_lr_to_a_hundredth():
     assert rates[0] == pytest.approx(1e-3) and rates[-1] == pytest.approx(1e-5)
     assert all(a >= b for a, b in zip(rates, rates[1:]))
     assert learning_rate(TrainConfig(steps=100), 50) == 1e-3
+
+
+# ---- what --out holds, the path options, the smallest batch (issue 22) --------------------
+
+runner = CliRunner()
+
+
+def cli_run(spool: Path, out: Path, *extra: str):
+    return runner.invoke(app, ["run", "--spool", str(spool), "--size", str(SIZE), "--arch", ARCH, "--batch-size", "4",
+                               "--out", str(out), "--no-dashboard", "--loader-workers", "0", "--log-every", "1",
+                               *extra])
+
+
+def test_a_plain_run_into_a_run_folder_is_refused_and_changes_nothing(spool, tmp_path):
+    out = tmp_path / "run"
+    assert cli_run(spool, out, "--steps", "3").exit_code == 0
+    before = {name: (out / name).read_bytes() for name in ("last.pt", "metrics.jsonl", "config.json", "status.json")}
+    result = cli_run(spool, out, "--steps", "2")
+    assert result.exit_code == 2
+    line = result.output.strip()
+    assert line == (f"error: --out {out} holds a run (last.pt, metrics.jsonl): --resume continues it, "
+                    f"--overwrite starts it over, or give another --out")
+    assert {name: (out / name).read_bytes() for name in before} == before  # nothing replaced, nothing truncated
+    assert "give one of them" in cli_run(spool, out, "--resume", "--overwrite").output
+    assert cli_run(spool, out, "--steps", "4", "--resume").exit_code == 0  # the run goes on: steps 4
+    assert load_checkpoint(out / "last.pt")["step"] == 4
+    assert cli_run(spool, out, "--steps", "2", "--overwrite").exit_code == 0  # asked: started over
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+    assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [1, 2]
+
+
+def test_metrics_alone_are_a_run_too_and_resume_needs_a_checkpoint(spool, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "metrics.jsonl").write_text('{"step": 1}\n')  # killed before its first checkpoint
+    assert "holds a run (metrics.jsonl)" in cli_run(spool, out, "--steps", "1").output
+    assert "--resume: " in cli_run(spool, tmp_path / "new", "--steps", "1", "--resume").output
+    (out / "status.json").write_text("{}")  # status and config alone: nothing to lose
+    (out / "metrics.jsonl").unlink()
+    assert cli_run(spool, out, "--steps", "1").exit_code == 0
+
+
+@pytest.mark.parametrize("option, value, expected", [
+    ("val_spool", "missing", "--val-spool {}: no such folder"),
+    ("spool", "missing", "--spool {}: no such folder"),
+    ("init", "missing.pt", "--init {}: no such file"),
+])
+def test_every_path_option_is_checked_before_any_step(spool, tmp_path, option, value, expected):
+    path = tmp_path / value
+    cfg = replace(config(spool, tmp_path / "run"), **{option: str(path)}, val_every=1)
+    with pytest.raises(UsageError, match=re.escape(expected.format(path))):
+        run(cfg)
+    assert not (tmp_path / "run").exists()  # nothing written: no step trained, no status left "training"
+
+
+def test_a_validation_spool_gone_mid_run_costs_no_step(spool, tmp_path, monkeypatch):
+    val = tmp_path / "val"
+    shutil.copytree(spool, val)
+    import cuboidtrain.train.loop as loop
+
+    real, calls = loop.validate, []
+
+    def validate_then_lose_the_spool(*args):
+        calls.append(1)
+        if len(calls) == 1:
+            shutil.rmtree(val)  # gone after the first validation
+        return real(*args)
+
+    monkeypatch.setattr(loop, "validate", validate_then_lose_the_spool)
+    status = run(config(spool, tmp_path / "run", steps=3, val_spool=str(val), val_every=1, val_samples=4))
+    assert status["state"] == "done" and load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 3
+    assert any(note.startswith(f"--val-spool {val}: validation at step 3 failed") for note in status["notes"])
+
+
+def test_a_batch_of_one_trains(spool, tmp_path):
+    # Every batch of one was skipped as too small for BatchNorm, which needs two values per
+    # channel, not two samples: the run waited for ever on a full spool (issue 22).
+    status = run(config(spool, tmp_path / "run", steps=3, batch_size=1, max_wait=5.0))
+    assert status["state"] == "done" and status["step"] == 3
+
+
+def test_the_least_batch_is_measured_and_a_smaller_one_refused_before_any_step(spool, tmp_path):
+    from cuboidtrain.models.networks import build_model
+    from cuboidtrain.train.preflight import least_batch
+
+    assert least_batch(tiny_model("box", SIZE), CPU) == 1
+    assert least_batch(build_model("box", 32, arch="paper"), CPU) == 2  # ResNet-18's stride 32: a 1x1 map
+    assert least_batch(build_model("box", 64, arch="paper"), CPU) == 1
+    with pytest.raises(UsageError, match=r"--batch-size 1: the paper arch at --size 32 needs at least 2 samples"):
+        run(config(spool, tmp_path / "run", batch_size=1, arch="paper"))
+    assert not (tmp_path / "run").exists()

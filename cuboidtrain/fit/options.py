@@ -7,9 +7,12 @@ builds its choices from these lists, and `--help` must not wait for torch.
 """
 from __future__ import annotations
 
+import math
+import numbers
 import re
 from dataclasses import dataclass, replace
 
+from shared.checks import check_numbers, number
 from shared.errors import UsageError
 from shared.shapes import SHAPES
 
@@ -22,7 +25,7 @@ DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 component
 
 def check_choice(option: str, value: str, choices) -> str:
     """`value` if it is one of `choices`, else a ValueError naming the option and the choices."""
-    if value not in choices:
+    if not isinstance(value, str) or value not in choices:
         raise UsageError(f"{option} {value!r}: expected one of {', '.join(choices)}")
     return value
 
@@ -37,16 +40,20 @@ def check_device(device) -> str:
 
 
 def parse_refine_steps(value: int | str | None, allow_auto: bool = True) -> int | None:
-    """`auto` (or None) -> None: until the Refiner settles; otherwise a count of passes, 0 or more.
+    """`auto` (or None) -> None: until the Refiner settles; otherwise a count of passes, 0 to
+    MAX_REFINE_STEPS (auto's own cap: a pass more than auto would ever run is never wanted).
     An exported graph runs a fixed number of passes: it does not `allow_auto`."""
     if allow_auto and (value is None or value == "auto"):
         return None
-    try:
+    steps = -1
+    if isinstance(value, str) and value.strip().isascii() and value.strip().isdigit():
         steps = int(value)
-    except (TypeError, ValueError):
-        steps = -1
-    if steps < 0 or (isinstance(value, float) and value != steps):
-        raise UsageError(f"--refine-steps {value!r}: expected a whole number of passes (0 or more)"
+    elif isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        steps = int(value)
+    elif isinstance(value, float) and value.is_integer():
+        steps = int(value)
+    if not 0 <= steps <= MAX_REFINE_STEPS:
+        raise UsageError(f"--refine-steps {value!r}: expected a whole number of passes from 0 to {MAX_REFINE_STEPS}"
                          + (" or auto" if allow_auto else ""))
     return steps
 
@@ -55,14 +62,16 @@ def parse_components(value: str | int | float) -> int | float:
     """`--pdm-components`: an integer count (>= 1) or a variance fraction in (0, 1)."""
     text = str(value).strip()
     try:
-        number = float(text)
+        parsed = float(text)
     except ValueError:
-        number = float("nan")
-    if number >= 1 and number == int(number) and "." not in text:
-        return int(number)
-    if 0 < number < 1:
-        return number
-    raise UsageError(f"PDM components {value!r}: expected a count of components (1, 2, ...) "
+        parsed = math.nan
+    if not math.isfinite(parsed):
+        parsed = math.nan
+    if parsed >= 1 and parsed == int(parsed) and "." not in text:
+        return int(parsed)
+    if 0 < parsed < 1:
+        return parsed
+    raise UsageError(f"--pdm-components {value!r}: expected a count of components (1, 2, ...) "
                      f"or a fraction of the shape variance to keep, between 0 and 1")
 
 
@@ -70,11 +79,11 @@ def parse_components(value: str | int | float) -> int | float:
 class FitOptions:
     shape: str = "auto"  # a FIT_SHAPES name: which models may fit
     refine_steps: int | str | None = 1  # Refiner passes; None or "auto": until a pass changes nothing
-    margin: float = DEFAULT_MARGIN
+    margin: float = number(DEFAULT_MARGIN, lo=0, hi=0.5, hi_open=True)  # a fraction of the model size per side
     extractor: str = "tabulator"  # how keypoints are read off the heat maps; ratios are always T's
     pdm_components: int | float | str = DEFAULT_PDM_COMPONENTS  # with extractor "pdm": a count or a fraction
     all_components: bool = False  # one fit per 8-connected component (>= 16 px), else one building (masks.silhouette)
-    label_id: int | None = None  # read a grey label map: pixels equal to this id are the object
+    label_id: int | None = number(None, lo=0, hi=65535, integer=True, optional=True)  # read a grey label map: pixels equal to this id are the object
     device: str = "auto"  # auto (CUDA when present), cpu, cuda or cuda:N
     cuboid: bool = False  # fit a perspective cuboid to the mask at the input's resolution (cuboidtrain.fit.cuboid)
 
@@ -83,10 +92,7 @@ class FitOptions:
         Every option is checked, used or not: a typo is never silent."""
         check_choice("--shape", self.shape, FIT_SHAPES)
         check_choice("--extractor", self.extractor, EXTRACTORS)
-        if not 0 <= self.margin < 0.5:
-            raise UsageError(f"--margin {self.margin}: expected a fraction in [0, 0.5)")
-        if self.label_id is not None and not 0 <= self.label_id <= 65535:
-            raise UsageError(f"--label-id {self.label_id}: expected a label from 0 to 65535")
+        check_numbers(self)  # margin, label_id: finite and in their declared ranges
         return replace(self, refine_steps=parse_refine_steps(self.refine_steps),
                        pdm_components=parse_components(self.pdm_components), device=check_device(self.device))
 

@@ -5,9 +5,13 @@ TrainConfig beside the weights; for `--resume` also the optimizer, the step,
 the loader's position and every RNG, so the next step is the one that would
 have run. Writing goes to a temporary file in the same folder, then
 `os.replace`: a reader (or a crash) sees the old file or the new one, never half.
+A write that fails (a full disk) raises the OSError itself, with the temporary file
+closed and removed: the old checkpoint stays, and so does the disk's free space.
 """
 from __future__ import annotations
 
+import errno
+import os
 import random
 from pathlib import Path
 
@@ -76,8 +80,56 @@ def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, ste
         "metrics": metrics or {},
     }
     with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+        _save(payload, tmp)
     return path
+
+
+class _Sink:
+    """torch.save's destination: a file descriptor, each buffer written whole.
+
+    Given a path, torch.save writes through its own C++ file and turns a full disk into a bare
+    RuntimeError ("[enforce fail at inline_container.cc] unexpected pos ..."), and that file stays
+    open while the exception lives. Through a sink the OSError is kept (`error`), and the file is
+    ours to close. A write after `close` (torch's writer finishing late) touches no descriptor."""
+
+    def __init__(self, fd: int):
+        self.fd: int | None = fd
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        if self.fd is None:
+            raise OSError(errno.EBADF, "checkpoint file already closed")
+        view = memoryview(data).cast("B")
+        try:
+            while view:
+                view = view[os.write(self.fd, view):]
+        except OSError as exc:
+            self.error = exc
+            raise
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if self.fd is not None:
+            fd, self.fd = self.fd, None
+            os.close(fd)
+
+
+def _save(payload: dict, path: Path) -> None:
+    """torch.save to `path`, synced; a failed write raises its OSError, the file closed."""
+    sink = _Sink(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
+    try:
+        try:
+            torch.save(payload, sink)
+        except Exception:  # torch's wrapping of the sink's error (RuntimeError in torch 2.x)
+            if sink.error is not None:
+                raise sink.error from None
+            raise
+        os.fsync(sink.fd)  # a filesystem that allocates late says ENOSPC here, not at the write
+    finally:
+        sink.close()
 
 
 def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None = None,

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields, replace
 
 from cuboidtrain.fit.options import check_choice, check_device
+from shared.checks import MAX_SEED, PER_CORE, check_numbers, max_processes, number
 from shared.errors import UsageError
 from shared.shapes import get_shape
 
@@ -20,6 +21,8 @@ PHASES = {
     "finetune": "ablation: a trained model fine-tuned chained, final loss D_T only",
 }
 LR_SCHEDULES = ("constant", "cosine")  # cosine decays to lr/100 at --steps
+MAX_SIZE = 2048  # px: a batch of heat maps grows with size squared (2048 px: 16 MiB per map)
+MAX_BATCH = 4096  # samples per step
 
 
 @dataclass(frozen=True)
@@ -27,67 +30,56 @@ class TrainConfig:
     phase: str = "1"
     spool: str = "data_spool"
     shape: str = "box"
-    size: int = 256  # px, the model's square input
+    size: int = number(256, lo=32, hi=MAX_SIZE, integer=True, unit="px")  # the model's square input
     arch: str = "compact"  # a name in cuboidtrain.models.networks.ARCHS: paper (three ResNet-18s), compact, tiny
     reframe: bool = True  # frame each sample as `infer` frames a mask (its visible pieces); any spool size
-    steps: int | None = None  # train until this step (a run's steps count from 0; --resume continues the count)
-    epochs: int | None = None  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
-    batch_size: int = 32
-    lr: float = 1e-3  # Adam
+    steps: int | None = number(None, lo=1, integer=True, optional=True)  # train until this step (a run's steps count from 0; --resume continues the count)
+    epochs: int | None = number(None, lo=1, integer=True, optional=True)  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
+    batch_size: int = number(32, lo=1, hi=MAX_BATCH, integer=True)
+    lr: float = number(1e-3, lo=0, lo_open=True, hi=1)  # Adam
     lr_schedule: str = "constant"  # or "cosine": decays to lr/100 at --steps (needs --steps)
-    max_minutes: float | None = None  # stop (with a checkpoint) after this much wall time
-    max_wait: float | None = None  # s: give up (exit 1) after waiting this long for a usable sample; None: wait on
-    weight_decay: float = 1e-5  # Adam's L2 penalty (paper 3.2)
-    sigma: float | None = None  # heat-map Gaussian std in px; None: size/128, at least 1
-    alpha_r: float = 1.0  # phase 2 weights of eq. (1)
-    alpha_s: float = 1.0
-    alpha_t: float = 1.0
-    ratio_weight: float = 1.0  # weight of the ratio term inside D_T
+    max_minutes: float | None = number(None, lo=0, lo_open=True, optional=True)  # stop (with a checkpoint) after this much wall time
+    max_wait: float | None = number(None, lo=0, lo_open=True, optional=True)  # s: give up (exit 1) after waiting this long for a usable sample; None: wait on
+    weight_decay: float = number(1e-5, lo=0, hi=1)  # Adam's L2 penalty (paper 3.2)
+    sigma: float | None = number(None, lo=0, lo_open=True, optional=True)  # heat-map Gaussian std in px; None: size/128, at least 1
+    alpha_r: float = number(1.0, lo=0)  # phase 2 weights of eq. (1)
+    alpha_s: float = number(1.0, lo=0)
+    alpha_t: float = number(1.0, lo=0)
+    ratio_weight: float = number(1.0, lo=0)  # weight of the ratio term inside D_T
     init: str | None = None  # checkpoint whose weights start this run (phase 2, finetune)
     out: str = "runs/p1"
     resume: bool = False  # continue OUT/last.pt exactly
-    checkpoint_every: int = 500  # steps
-    log_every: int = 10  # steps between metrics.jsonl records
-    loader_workers: int = 2  # DataLoader processes reading the spool
-    seed: int = 0
+    overwrite: bool = False  # start over in an OUT that holds a run (its last.pt, metrics.jsonl); else refused
+    checkpoint_every: int = number(500, lo=1, integer=True)  # steps
+    log_every: int = number(10, lo=1, integer=True)  # steps between metrics.jsonl records
+    loader_workers: int = number(2, lo=0, hi=max_processes(), integer=True, unit=PER_CORE)  # DataLoader processes reading the spool
+    seed: int = number(0, lo=0, hi=MAX_SEED, integer=True)
     device: str = "auto"  # auto: cuda when present, else cpu
-    threads: int | None = None  # CPU threads for torch; None: torch's default (all cores)
+    threads: int | None = number(None, lo=1, hi=max_processes(), integer=True, optional=True, unit=PER_CORE)  # CPU threads for torch; None: torch's default (all cores)
     amp: bool = True  # mixed precision (CUDA only)
     dashboard: bool = True
     val_spool: str | None = None  # evaluated every val_every steps when set
-    val_every: int = 1000
-    val_samples: int = 256
+    val_every: int = number(1000, lo=1, integer=True)
+    val_samples: int = number(256, lo=1, integer=True)
 
     def validate(self) -> "TrainConfig":
-        if self.phase not in PHASES:
-            raise UsageError(f"--phase {self.phase!r}: expected one of {', '.join(PHASES)}")
+        check_choice("--phase", self.phase, PHASES)
         get_shape(self.shape)
         from cuboidtrain.models.networks import check_arch  # networks imports this module
 
         check_arch(self.arch)
-        if self.size < 32 or self.size % 32:
-            raise UsageError(f"--size {self.size}: expected a multiple of 32, at least 32 (ResNet-18 halves it 5 times)")
+        check_numbers(self)  # every numeric field's declared range: finite, in range, the option named
+        if self.size % 32:
+            raise UsageError(f"--size {self.size}: expected a multiple of 32 (ResNet-18 halves it 5 times)")
         if self.steps is not None and self.epochs is not None:
             raise UsageError("give --steps or --epochs, not both")
-        for name in ("steps", "epochs", "batch_size", "checkpoint_every", "log_every", "val_every", "val_samples"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise UsageError(f"--{name.replace('_', '-')} {value}: expected a positive integer")
         check_choice("--lr-schedule", self.lr_schedule, LR_SCHEDULES)
         if self.lr_schedule == "cosine" and self.steps is None:
             raise UsageError("--lr-schedule cosine needs --steps N: the step it decays to")
-        if self.max_minutes is not None and self.max_minutes <= 0:
-            raise UsageError(f"--max-minutes {self.max_minutes}: expected a positive number")
-        if self.max_wait is not None and self.max_wait <= 0:
-            raise UsageError(f"--max-wait {self.max_wait}: expected a positive number of seconds")
-        if self.threads is not None and self.threads < 1:
-            raise UsageError(f"--threads {self.threads}: expected a positive integer")
-        if self.loader_workers < 0:
-            raise UsageError(f"--loader-workers {self.loader_workers}: expected 0 or more")
-        if self.sigma is not None and self.sigma <= 0:
-            raise UsageError(f"--sigma {self.sigma}: expected a positive number of px")
-        if self.lr <= 0 or self.weight_decay < 0:
-            raise UsageError(f"--lr {self.lr} / --weight-decay {self.weight_decay}: expected lr > 0, decay >= 0")
+        if self.sigma is not None and self.sigma > self.size / 4:
+            raise UsageError(f"--sigma {self.sigma}: expected at most a quarter of --size ({self.size / 4:g} px)")
+        if self.phase in ("1", "2") and not any(self.loss_weights):
+            raise UsageError("--alpha-r, --alpha-s, --alpha-t: all 0, nothing would train; expected one > 0")
         if self.phase == "finetune" and not (self.init or self.resume):
             raise UsageError("--phase finetune needs --init CKPT: the trained model to fine-tune")
         if self.phase == "e2e" and self.init:

@@ -37,7 +37,7 @@ LOSSES = (("D_R", "Refiner"), ("D_S", "Estimator"), ("D_T", "Tabulator"), ("tota
 STATE_STYLE = {"training": "green", "waiting for samples": "yellow", "stopping after this step": "bold yellow",
                "checkpointing": "cyan",
                "evaluating": "cyan", "done": "bold green", "stopped": "bold yellow",
-               "gave up": "bold red"}
+               "gave up": "bold red", "failed": "bold red"}
 
 
 # --- formatting: every helper takes None and gives "—" -----------------------------------
@@ -268,7 +268,7 @@ def _annotated(status: TrainerStatus) -> TrainerStatus:
 
 def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console | None = None) -> int:
     """Show the dashboard of the run in `out` until it is done or stopped, its trainer dies,
-    or Ctrl-C. Returns 1 when the trainer died before finishing or gave up, else 0."""
+    or Ctrl-C. Returns 1 when the trainer died before finishing, gave up or failed, else 0."""
     console = console or Console()
     status = read_status(out)
     if once:
@@ -289,5 +289,5 @@ def watch(out: Path, interval: float = 1.0, once: bool = False, console: Console
 
 
 def _exit_code(status: TrainerStatus) -> int:
-    """1 when the trainer died before finishing or gave up waiting for samples, else 0."""
-    return int(trainer_died(status) or status.state == "gave up")
+    """1 when the trainer died before finishing, gave up waiting for samples or failed, else 0."""
+    return int(trainer_died(status) or status.state in ("gave up", "failed"))

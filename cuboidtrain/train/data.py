@@ -23,6 +23,7 @@ every rank, so one checkpoint resumes them all.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import dataclass, field, replace
@@ -275,6 +276,20 @@ def make_loader(spool: str | Path, shape: str, size: int, batch_size: int, seed:
         worker_init_fn=worker_init_fn,
     )
     return loader, sampler
+
+
+@contextlib.contextmanager
+def workers_stopped(loader: DataLoader):
+    """The loader's worker processes stopped on the way out, however the block ends. Persistent
+    workers otherwise live as long as their iterator, and an exception's traceback keeps that
+    alive: until interpreter exit, where joining them can hang for good (issue 22)."""
+    try:
+        yield loader
+    finally:
+        iterator = getattr(loader, "_iterator", None)
+        if iterator is not None and hasattr(iterator, "_shutdown_workers"):
+            iterator._shutdown_workers()
+        loader._iterator = None
 
 
 def _as_is(batch: dict) -> dict:

@@ -12,6 +12,7 @@ only rank 0 writes.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import os
@@ -24,24 +25,25 @@ import torch
 from cuboidtrain.models.checkpoint import (load_checkpoint, loader_state, non_finite_weights, save_checkpoint,
                                            set_rng_state)
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import FreshnessMeter, WaitInterrupted, make_loader, prepare_batch, spool_names
+from cuboidtrain.train.data import (FreshnessMeter, WaitInterrupted, make_loader, prepare_batch, spool_names,
+                                    workers_stopped)
 from cuboidtrain.device import resolve_device
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
 from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans, write_json_atomically
 from cuboidtrain.train.losses import combine, phase_losses
+from cuboidtrain.train.preflight import LAST, check_paths, least_batch
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.progress import Progress
 from cuboidtrain.train.spoolwatch import SpoolCensus
+from cuboidtrain.train.status import TrainingFailed
 from shared.errors import UsageError
-from shared.spool import check_spool
 
 log = logging.getLogger(__name__)
 
-LAST = "last.pt"
 IDLE_WAIT = (0.5, 30.0)  # s: first and longest pause between listings of a spool with no usable sample
 
 
-class NoUsableSamples(RuntimeError):
+class NoUsableSamples(TrainingFailed):
     """--max-wait ran out with nothing to train on: an empty spool, or none of its samples usable."""
 
 
@@ -179,12 +181,12 @@ def stale(skipped: dict, batch_size: int) -> bool:
     return 2 * skipped["vanished"] > batch_size
 
 
-def batch_facts(ranks: Ranks, batch: dict) -> tuple[dict, bool]:
-    """The batch's skip counts summed over ranks, and whether any rank holds too few samples
-    to step (BatchNorm needs two): every rank then skips it, or DDP would hang."""
+def batch_facts(ranks: Ranks, batch: dict, least: int = 2) -> tuple[dict, bool]:
+    """The batch's skip counts summed over ranks, and whether any rank holds fewer than `least`
+    samples, too few to step on (`least_batch`): every rank then skips it, or DDP would hang."""
     if not ranks.distributed:
-        return batch["skipped"], len(batch["names"]) < 2
-    sums = ranks.sum([*batch["skipped"].values(), float(len(batch["names"]) < 2)])
+        return batch["skipped"], len(batch["names"]) < least
+    sums = ranks.sum([*batch["skipped"].values(), float(len(batch["names"]) < least)])
     return dict(zip(batch["skipped"], (int(n) for n in sums))), sums[-1] > 0
 
 
@@ -225,7 +227,7 @@ def run(config: TrainConfig, dashboard=None, stop: StopRequest | None = None, lo
 
 
 def _train(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None) -> dict:
-    check_spool(config.spool, readable=True)
+    check_paths(config)
     ranks, device = from_environment(resolve_device(config.device))
     try:
         return _train_ranks(config, dashboard, stop, loader_timeout, ranks, device)
@@ -246,16 +248,23 @@ def _prepare_out(out: Path, config: TrainConfig) -> None:
 def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None,
                  ranks: Ranks, device: torch.device) -> dict:
     out = Path(config.out)
-    if ranks.main:
-        _prepare_out(out, config)
-    else:
+    if not ranks.main:
         logging.getLogger().setLevel(logging.WARNING)  # one rank speaks for the run
     if config.threads is not None:
         # On a shared CPU a second intra-op thread that gets descheduled stalls every
         # barrier of the other; fewer threads can be faster than all cores.
         torch.set_num_threads(config.threads)
-    model, optimizer, step, resume = build_state(config, device)
-    if ranks.main:  # steps after the start (a checkpoint, or 0) are trained again: record them once
+    model, optimizer, step, resume = build_state(config, device)  # before OUT is touched: a bad --init changes nothing
+    least = least_batch(model, device)
+    if config.batch_size < least:
+        raise UsageError(f"--batch-size {config.batch_size}: the {config.arch} arch at --size {config.size} needs at "
+                         f"least {least} samples per step (BatchNorm over a 1x1 map)")
+    kept = step if resume is not None else None  # the step OUT/last.pt holds, which a failure keeps
+    if ranks.main:
+        _prepare_out(out, config)
+        if config.overwrite:  # asked to start over: no step of the old run is resumed after a crash
+            (out / LAST).unlink(missing_ok=True)
+        # steps after the start (a checkpoint, or 0) are trained again: record them once
         drop_records_after(out / "metrics.jsonl", step)
     losses_of = wrap(model, config.phase, config.ratio_weight, ranks)
     loader, sampler = make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
@@ -271,7 +280,10 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     # The spool's count, arrival rate and evictions come from the listings the sampler makes
     # anyway: an inotify watcher's thread took the GIL for every publish (issue 14).
     census = SpoolCensus(config.spool)
-    with Progress(config, device, census, dashboard, ranks.rank, ranks.world, stop=stop) as progress:
+    # On any failure the status says `failed` and the loader's workers are stopped (issue 22: a
+    # full disk left "training" in status.json and a trainer hung on its workers).
+    with Progress(config, device, census, dashboard, ranks.rank, ranks.world, stop=stop) as progress, \
+            workers_stopped(loader):
         said = {"at": -math.inf, "total": 0}
         sampler.on_listing = lambda names: (_account_listing(census, names, ranks.main, said),
                                             freshness.forget_except(names),
@@ -286,7 +298,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                     # 1. fetch: the time spent waiting for this batch is the data wait
                     waited = progress.fetched()
                     taken = sampler.advance()
-                    skipped, too_small = batch_facts(ranks, batch)
+                    skipped, too_small = batch_facts(ranks, batch, least)
                     # the names this global batch was meant to hold were read, but for those found gone (on this rank)
                     census.read(set(taken) - set(batch["vanished"]))
                     unusable = {k: unusable.get(k, 0) + n for k, n in skipped.items()}
@@ -297,8 +309,9 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                         sampler.end_epoch()
                         went_stale = True
                         break
-                    if too_small:  # BatchNorm needs two
+                    if too_small:  # fewer than `least` samples left: BatchNorm cannot step on them
                         progress.skip(skipped)
+                        unusable["in_short_batches"] = unusable.get("in_short_batches", 0) + len(batch["names"])
                         continue
                     # 2. targets rendered on the device; forward, backward, step
                     x = prepare_batch(batch, device, sigma, config.size)
@@ -318,10 +331,9 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
                     progress.step(step, losses, samples, waited, age, reuse, skipped)
                     # 4. checkpoint, and validate when asked (rank 0; the others go on to the next collective)
                     if step % config.checkpoint_every == 0:
-                        progress.checkpointed(_checkpoint(ranks, out, model, config, step, optimizer, sampler,
-                                                          progress), step)
+                        kept = _checkpoint(ranks, out, model, config, step, optimizer, sampler, progress, kept)
                     if ranks.main and config.val_spool and step % config.val_every == 0:
-                        progress.validated(step, validate(model, config, device))
+                        _validate(progress, model, config, device, step)
                     if ranks.any(bool(stop) or finished(config, step, sampler.epochs_done(), started)):
                         break
             except WaitInterrupted:
@@ -347,7 +359,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
         # 5. the last checkpoint, also on SIGTERM / Ctrl-C; none before a step was trained
         if step > first_step:
             progress.state("checkpointing")
-            progress.checkpointed(_checkpoint(ranks, out, model, config, step, optimizer, sampler, progress), step)
+            kept = _checkpoint(ranks, out, model, config, step, optimizer, sampler, progress, kept)
         if ranks.distributed:
             progress.replicas(ranks.gather({"rank": ranks.rank, "step": step, "weights": weights_digest(model)}))
         progress.state("stopped" if ranks.any(bool(stop)) else "done")
@@ -396,16 +408,31 @@ def _sampler_options(ranks: Ranks, stop: StopRequest) -> dict:
 
 
 def _checkpoint(ranks: Ranks, out: Path, model: CuboidNet, config: TrainConfig, step: int, optimizer, sampler,
-                progress: Progress) -> Path:
-    """Rank 0 writes OUT/last.pt (the unwrapped model: no `module.` prefix); every rank gets its path."""
+                progress: Progress, kept: int | None) -> int:
+    """Rank 0 writes OUT/last.pt (the unwrapped model: no `module.` prefix); returns the step it
+    holds now. `kept`: the step it held before, which a failed write leaves in place."""
     path = out / LAST
     if ranks.main:
         try:
             save_checkpoint(path, model, config, step, optimizer, sampler.snapshot(), progress.metrics())
-        except OSError as exc:  # a full disk, say: the last checkpoint is still whole (atomic replace)
-            raise UsageError(f"checkpoint {path}: cannot write step {step} ({exc.strerror or exc}); "
-                             f"the previous one is intact, --resume continues it") from None
-    return path
+        except OSError as exc:  # the temporary file is closed and removed: the disk has its space back
+            what = (f"out of space writing {path} at step {step}" if exc.errno in (errno.ENOSPC, errno.EDQUOT)
+                    else f"cannot write {path} at step {step} ({exc.strerror or exc})")
+            then = (f"kept the step-{kept} checkpoint (--resume continues it)" if kept is not None
+                    else "no earlier checkpoint to keep")
+            raise TrainingFailed(f"{what}: {then}") from None
+    progress.checkpointed(path, step)
+    return step
+
+
+def _validate(progress: Progress, model: CuboidNet, config: TrainConfig, device: torch.device, step: int) -> None:
+    """Validation at `step`. A validation spool gone bad since start-up (emptied, removed) costs
+    no step: the status and the log say so, and training goes on."""
+    try:
+        progress.validated(step, validate(model, config, device))
+    except (UsageError, OSError) as exc:
+        progress.validation_failed(f"--val-spool {config.val_spool}: validation at step {step} failed ({exc}); "
+                                   f"training goes on")
 
 
 def validate(model: CuboidNet, config: TrainConfig, device: torch.device) -> dict:

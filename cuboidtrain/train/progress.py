@@ -23,7 +23,8 @@ from cuboidtrain.train.data import EpochPosition
 from cuboidtrain.train.metrics_log import MetricsLog
 from cuboidtrain.train.publisher import StatusPublisher
 from cuboidtrain.train.stats import Rates, RunningStats
-from cuboidtrain.train.status import Checkpoint, TrainerStatus, Validation
+from cuboidtrain.train.status import FINISHED, Checkpoint, TrainerStatus, TrainingFailed, Validation
+from shared.errors import UsageError
 from shared.spool import foreign_names
 
 log = logging.getLogger(__name__)
@@ -46,6 +47,8 @@ class Progress:
         self.publisher = StatusPublisher(Path(config.out), dashboard, stop, self.writes)
         self.sampler = None  # the loader's EpochSampler, from begin(): where the epoch stands
         self.idle_said = (None, 0.0)  # the last "no usable samples" warning and when
+        self.val_failed: str | None = None  # the last validation's failure, while no later one passed
+        self.error: str | None = None  # why the run failed (state "failed"): the first of its notes
         self._status = TrainerStatus(
             phase=config.phase, phase_meaning=PHASES[config.phase], shape=config.shape, size=config.size,
             device=str(device), out=str(Path(config.out)), spool=config.spool, state=self.publisher.state,
@@ -112,9 +115,33 @@ class Progress:
         self._publish(force=True)
 
     def validated(self, step: int, result: dict) -> None:
+        self.val_failed = None
         self._status.val = Validation(step, result["mean_px_error"], result["median_px_error"])
         self.metrics_log.validated(self._status.val)
         self._publish(force=True)
+
+    def validation_failed(self, message: str) -> None:
+        self.val_failed = message
+        log.warning("%s", message)
+        self._publish(force=True)
+
+    def failed(self, exc: BaseException) -> None:
+        """The run ends on `exc`: the status says `failed` and why, unless it already says how
+        it ended ("gave up"). Written best-effort: the disk may be the failure."""
+        if self.publisher.state in FINISHED:
+            return
+        message = str(exc).splitlines()[0] if str(exc) else ""
+        if not isinstance(exc, (UsageError, TrainingFailed)):
+            message = f"{type(exc).__name__}: {message}" if message else type(exc).__name__
+        self.error = message
+        self._status.idle = None
+        self.publisher.enter("failed")
+        if self.sampler is None:
+            return  # failed before begin(): nothing to count
+        try:
+            self._publish(force=True)
+        except OSError as err:
+            log.warning("%s: cannot write status.json (%s)", self.config.out, err.strerror or err)
 
     # ---- figures
 
@@ -158,7 +185,7 @@ class Progress:
         return max(0, remaining) * step_time
 
     def _notes(self, rates: Rates) -> list[str]:
-        notes = [self._status.idle] if self._status.idle else []
+        notes = [m for m in (self.error, self._status.idle, self.val_failed) if m]
         wait, skipped, foreign = rates.data_wait_fraction, self.stats.skipped, self.stats.foreign
         if wait is not None and wait > STARVING and self.stats.window_full():
             notes.append(f"data wait {wait:.0%} of step time: the loader is starving (more --loader-workers, or a faster spool disk)")
@@ -183,8 +210,10 @@ class Progress:
         self.publisher.__enter__()
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.publisher.__exit__(*exc)
+    def __exit__(self, kind, exc, tb) -> None:
+        if exc is not None:
+            self.failed(exc)
+        self.publisher.__exit__(kind, exc, tb)
         self.metrics_log.close()
 
 

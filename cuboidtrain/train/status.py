@@ -19,7 +19,13 @@ from shared.errors import UsageError
 from shared.files import process_alive
 
 STATUS_FILE = "status.json"
-FINISHED = ("done", "stopped", "gave up")  # states after which no update comes
+FINISHED = ("done", "stopped", "gave up", "failed")  # states after which no update comes
+
+
+class TrainingFailed(RuntimeError):
+    """A run that cannot go on through no bad option (a full disk, a spool that never fills):
+    its status ends `failed` (or `gave up`) with this one-line message, the command line prints
+    it and exits 1, and what was written before is kept."""
 
 
 @dataclass(slots=True)
