@@ -71,8 +71,9 @@ def _start_worker(checkpoints: list[str], options: FitOptions, parent: int) -> N
     from cuboidtrain.fit.fitter import Fitter
 
     global _fitter
-    # a spawned worker starts with no logging: its fits' warnings go to stderr as the parent's plain lines do
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # A spawned worker writes to the terminal behind the parent's progress bar: on a 20,000-mask
+    # run its warnings tore the bar every few lines. A fit's warnings are in its record: errors only here.
+    logging.basicConfig(level=logging.ERROR, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)
     _fitter = Fitter.from_files(checkpoints, replace(options))
     threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
