@@ -115,3 +115,18 @@ def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
     record = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).records(paths[:1])[0]
     assert record["keypoints"] is None and record["cuboid"] is None
     assert "cuboid fit's yaw/pitch/roll is not finite" in record["error"]
+
+
+def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(tmp_path):
+    """With --cuboid the explanation's input tile shows where box and input disagree and the
+    networks' corners the box started from (a legend entry for each)."""
+    from cuboidtrain.fit.explain import explanation_figure
+    import matplotlib.pyplot as plt
+
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape="box"))
+    mask = cv2.imread("examples/building.png", cv2.IMREAD_UNCHANGED)
+    fit = fitter.fit(mask)
+    figure = explanation_figure(fit)
+    labels = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
+    plt.close(figure)
+    assert labels == ["input, not the box", "box, not the input", "networks' corners"]

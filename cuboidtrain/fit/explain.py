@@ -31,11 +31,13 @@ matplotlib.use("Agg")  # files only; never a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
 from cuboidtrain.fit.chain import no_explanation  # noqa: E402
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
+from shared.raster import rasterize  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
 
 if TYPE_CHECKING:
@@ -118,6 +120,27 @@ def _input_tile(ax, mask: np.ndarray, geometry: Shape, keypoints: np.ndarray) ->
     mark_outside(ax, *mask.shape)
 
 
+def _cuboid_residual(ax, fit: Fit) -> None:
+    """With `--cuboid`: where the fitted box's silhouette and the input disagree (input minus model
+    red, model minus input blue), and the networks' corners it started from (orange x), over the
+    input tile, which already draws the box (its keypoints are the box's projection)."""
+    mask, candidate = fit.explanation.mask, fit.explanation.candidate
+    height, width = mask.shape
+    model = rasterize(get_shape(fit.shape), input_keypoints(fit), max(height, width))[:height, :width]
+    residual = np.zeros((height, width, 4))
+    residual[mask & ~model] = (1.0, 0.15, 0.1, 0.85)  # building pixels the box leaves out: the costly miss
+    residual[model & ~mask] = (0.2, 0.45, 1.0, 0.6)  # box over background: often an occluded part
+    ax.imshow(residual, interpolation="nearest")
+    networks = candidate.framing.to_input(np.asarray(candidate.keypoints)) if candidate.framing else None
+    handles = [Patch(color=(1.0, 0.15, 0.1), label="input, not the box"),
+               Patch(color=(0.2, 0.45, 1.0), label="box, not the input")]
+    if networks is not None:
+        ax.scatter(networks[:, 0], networks[:, 1], s=28, marker="x", color="#ff9900", linewidths=1.2, zorder=5)
+        handles.append(Line2D([], [], marker="x", color="#ff9900", linestyle="", label="networks' corners"))
+    ax.set_title(f"input and the fitted cuboid (IoU {fit.cuboid.fit.iou:.3f})", fontsize=9)
+    ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.85)
+
+
 def _heatmap_tiles(fig, grid, geometry: Shape, heatmaps: np.ndarray, keypoints: np.ndarray,
                    refined: np.ndarray) -> None:
     """One tile per keypoint's map, each scaled to its own peak (a faint map is still a shape one
@@ -148,6 +171,8 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
                                 wspace=0.06)
     tiles = [fig.add_subplot(top_grid[0, k]) for k in range(tops)]
     _input_tile(tiles[0], fit.explanation.mask, geometry, input_keypoints(fit))
+    if fit.cuboid is not None:
+        _cuboid_residual(tiles[0], fit)
     size = candidate.refined.shape[0]
     _show(tiles[1], candidate.framed, f"framed input x1 ({size} x {size} px)", cmap="gray", vmin=0, vmax=1)
     _show(tiles[2], candidate.refined > 0, f"refined R(x1), {candidate.refine_steps} pass(es), with the fit",
@@ -176,7 +201,8 @@ def _caption(fit: Fit) -> str:
     if "depth_height" not in ratios:
         ratios = {f"{part}.{k}": v for part, values in ratios.items() for k, v in values.items()}
     others = ", ".join(f"{s} {c:.2f}" for s, c in fit.candidates.items() if s != fit.shape)
-    text = (f"{Path(fit.input).name}: {fit.shape}, confidence {fit.confidence:.2f}"
+    name = Path(fit.input).name if fit.input is not None else "mask"  # an array fitted through the API has no file
+    text = (f"{name}: {fit.shape}, confidence {fit.confidence:.2f}"
             + (f" (vs {others})" if others else "")
             + "   ratios " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
     return text + ("\nwarning: " + fit.warnings[0] if fit.warnings else "")
