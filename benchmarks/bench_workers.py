@@ -2,6 +2,9 @@
 (box and twobox, the `paper` scene), the shipped models, one torch thread a process.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_workers.py --masks 400 --workers 1 2
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_workers.py --masks 400 --workers 1 2 --cluster 2
+
+`--cluster N` adds `infer --cluster local --workers N` (a local Dask cluster, the `cluster` extra).
 
 Times the whole command (start, models, fits, writing the JSONL) and reads its fitting rate.
 """
@@ -37,22 +40,26 @@ def main() -> None:
     parser.add_argument("--masks", type=int, default=400)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--cluster", type=int, nargs="*", default=[], metavar="N",
+                        help="also a local Dask cluster of N worker processes")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "masks"
         folder.mkdir()
         write_masks(folder, args.masks, args.size)
         base = None
-        for workers in args.workers:
-            out = Path(tmp) / f"w{workers}.jsonl"
+        runs = [(f"workers {w}", ["--workers", str(w)]) for w in args.workers]
+        runs += [(f"dask local cluster {w}", ["--cluster", "local", "--workers", str(w)]) for w in args.cluster]
+        for number, (name, extra) in enumerate(runs):
+            out = Path(tmp) / f"run{number}.jsonl"
             start = time.perf_counter()
             done = subprocess.run([sys.executable, "-m", "cuboidtrain", "infer", str(folder), "--jsonl", str(out),
-                                   "--workers", str(workers), "--device", "cpu"], cwd=ROOT, capture_output=True,
+                                   *extra, "--device", "cpu"], cwd=ROOT, capture_output=True,
                                   text=True, env=os.environ | {"OMP_NUM_THREADS": "1"})
             seconds = time.perf_counter() - start
             summary = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "(no summary)"
             base = base or seconds
-            print(f"workers {workers}: {seconds:.1f} s wall, speed-up {base / seconds:.2f}x; {summary}", flush=True)
+            print(f"{name}: {seconds:.1f} s wall, speed-up {base / seconds:.2f}x; {summary}", flush=True)
 
 
 if __name__ == "__main__":

@@ -151,6 +151,7 @@ def infer(
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl)."),
     jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run."),
     workers: int = typer.Option(1, min=1, help="Processes fitting at once, each with its own models and one torch thread."),
+    cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves."),
     shape: FitShape = typer.Option(FitShape[FIT.shape], help="auto: every given model, the best-explained fit wins."),
     refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help=f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else one building: its pieces (>= 1% of the largest one's area) fitted together."),
@@ -180,13 +181,19 @@ def infer(
     check_outputs(("--json", json_out), ("--jsonl", jsonl))
     if explain is not None:
         check_writable("--explain", explain, folder=True)
-        if workers > 1:
-            raise UsageError(f"--explain with --workers {workers}: expected --workers 1 (pictures are drawn in one process)")
+        if workers > 1 or cluster is not None:
+            what = f"--workers {workers}" if cluster is None else f"--cluster {cluster}"
+            raise UsageError(f"--explain with {what}: expected --workers 1 and no --cluster (pictures are drawn in one process)")
+    if cluster is not None:
+        from cuboidtrain.fit.cluster import require_distributed
+
+        require_distributed(cluster)  # before the models load: a missing extra is a one-line error
     checkpoints = default_checkpoints(checkpoint, options.shapes)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
     inputs = gather_inputs(paths or [], from_list, glob)
     explainer = make_explainer(explain, overlay, len(inputs))
-    batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None)
+    batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None,
+                  cluster=cluster)
     records, tally = run_batch(batch, fitter, console, explainer)
     if json_out == "-":
         typer.echo(json_text(records, indent=2))

@@ -163,8 +163,9 @@ def readme_python_example() -> str:
 
 # Modules a fit with the shipped models does not need, each seconds to import on a small CPU:
 # torchvision (only the `paper` arch's ResNet-18) pulls in torch._dynamo; matplotlib draws
-# explanations only when asked. A one-mask `cuboidtrain infer` is mostly imports.
-SLOW_IMPORTS = ("torchvision", "torch._dynamo", "matplotlib")
+# explanations only when asked; Dask (the optional cluster extra) only for `infer --cluster`.
+# A one-mask `cuboidtrain infer` is mostly imports.
+SLOW_IMPORTS = ("torchvision", "torch._dynamo", "matplotlib", "dask", "distributed")
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,8 @@
 a pool), store each input's records as it completes, report progress, summarise.
 
 The pieces have a module each: `inputs` (what to fit), `store` (the JSONL file and its
-resume), `pool` (where fits run), `progress` (what the user sees).
+resume), `pool` (where fits run on this machine), `cluster` (on a Dask cluster, imported only
+for `--cluster`), `progress` (what the user sees).
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ class Batch:
     workers: int = 1  # 1: in this process, with the caller's Fitter
     jsonl: Path | None = None  # the record store, resumed when it exists
     keep: bool = True  # return the records (for --json's list); a city's run keeps none in memory
+    cluster: str | None = None  # a Dask scheduler's address, or "local" (`workers` processes here); None: no cluster
 
 
 def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) -> tuple[list[dict], Tally]:
@@ -54,7 +56,7 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) ->
             log.info("%s holds %d of the %d inputs; fitting the other %d", batch.jsonl, tally.resumed,
                      len(inputs), len(jobs))
         # fit, store and show each input's records as they complete
-        groups = fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain)
+        groups = fitted(batch, jobs, fitter, explain)
         with Reporter(tally, console) as reporter:
             for index, records in groups:
                 if store:
@@ -65,6 +67,15 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) ->
                 reporter.update()
     records = [r for index in sorted(kept) for r in kept[index]] if batch.keep else []
     return records, tally
+
+
+def fitted(batch: Batch, jobs: list[tuple[int, str]], fitter, explain: Callable | None):
+    """The jobs' (index, records) from wherever `batch` says fits run."""
+    if batch.cluster is None:
+        return fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain)
+    from cuboidtrain.fit.cluster import cluster_groups  # Dask only when asked: an optional extra
+
+    return cluster_groups(jobs, batch.checkpoints, batch.options, batch.cluster, batch.workers)
 
 
 def unique(inputs: Sequence[str]) -> list[str]:
