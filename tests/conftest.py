@@ -35,6 +35,19 @@ def build_sample(seed: int = 0, shape: str = "box", size: int = SIZE, library=No
     return make_sample(shape, scene, size, seed, library if library is not None else small_library())
 
 
+def write_mask_pngs(folder: Path, count: int) -> list[str]:
+    """`count` generated noisy masks of 64 to 128 px, box and twobox in turn, as PNGs: what a user
+    points `cuboidtrain infer` at."""
+    import cv2
+
+    paths = []
+    for seed in range(count):
+        sample = build_sample(seed, ("box", "twobox")[seed % 2], size=64 + 16 * (seed % 5))
+        paths.append(str(folder / f"m{seed:03d}.png"))
+        cv2.imwrite(paths[-1], sample.noisy.astype("uint8") * 255)
+    return paths
+
+
 def fill_spool(spool: Path, count: int, limit: int = 0, shape: str = "box", library=None) -> list[str]:
     """Publish `count` samples (seeds 0..count-1); returns their names, oldest first."""
     with SpoolWriter(spool, limit=limit) as writer:

@@ -11,7 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import pytest
 import torch
 from rich.console import Console
@@ -21,7 +20,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.fit.store import read_records
 from cuboidtrain.models.zoo import default_checkpoints
-from tests.conftest import build_sample
+from tests.conftest import write_mask_pngs
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refiner passes: ~0.1 s a mask
@@ -31,11 +30,7 @@ SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refin
 def masks(tmp_path_factory) -> list[str]:
     """40 generated masks of 64 to 128 px, box and twobox, and one file that is no image."""
     folder = tmp_path_factory.mktemp("masks")
-    paths = []
-    for seed in range(40):
-        sample = build_sample(seed, ("box", "twobox")[seed % 2], size=64 + 16 * (seed % 5))
-        paths.append(str(folder / f"m{seed:03d}.png"))
-        cv2.imwrite(paths[-1], sample.noisy.astype("uint8") * 255)
+    paths = write_mask_pngs(folder, 40)
     (folder / "m020.png").write_text("not a picture")  # an unreadable input among them
     return paths
 

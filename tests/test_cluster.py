@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import sys
 
-import cv2
 import pytest
 import torch
 from rich.console import Console
@@ -18,7 +17,7 @@ from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.fit.store import read_records
 from cuboidtrain.models.zoo import default_checkpoints
 from shared.errors import UsageError
-from tests.conftest import build_sample
+from tests.conftest import write_mask_pngs
 
 OPTIONS = FitOptions(device="cpu")
 
@@ -26,13 +25,7 @@ OPTIONS = FitOptions(device="cpu")
 @pytest.fixture(scope="module")
 def masks(tmp_path_factory) -> list[str]:
     """12 generated masks of 64 to 128 px, box and twobox."""
-    folder = tmp_path_factory.mktemp("masks")
-    paths = []
-    for seed in range(12):
-        sample = build_sample(seed, ("box", "twobox")[seed % 2], size=64 + 16 * (seed % 5))
-        paths.append(str(folder / f"m{seed:03d}.png"))
-        cv2.imwrite(paths[-1], sample.noisy.astype("uint8") * 255)
-    return paths
+    return write_mask_pngs(tmp_path_factory.mktemp("masks"), 12)
 
 
 def run(paths, **batch) -> list[dict]:
