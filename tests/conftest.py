@@ -48,10 +48,11 @@ def write_mask_pngs(folder: Path, count: int) -> list[str]:
     return paths
 
 
-def fill_spool(spool: Path, count: int, limit: int = 0, shape: str = "box", library=None) -> list[str]:
+def fill_spool(spool: Path, count: int, limit: int = 0, shape: str = "box", library=None,
+               size: int = SIZE) -> list[str]:
     """Publish `count` samples (seeds 0..count-1); returns their names, oldest first."""
     with SpoolWriter(spool, limit=limit) as writer:
-        return [writer.publish(encode(build_sample(i, shape, library=library))) for i in range(count)]
+        return [writer.publish(encode(build_sample(i, shape, size=size, library=library))) for i in range(count)]
 
 
 def tiny_model(shape: str = "box", size: int = SIZE, seed: int = 0, sigma: float | None = None):

@@ -16,9 +16,7 @@ from cuboidtrain.cli import app as train_app
 from cuboidtrain.models.checkpoint import load_checkpoint, save_checkpoint
 from cuboidtrain.train.loop import Diverged, run
 from shared.files import json_text, non_finite, write_json
-from shared.sample import encode
-from shared.spool import SpoolWriter
-from tests.conftest import build_sample, tiny_model, train_config
+from tests.conftest import fill_spool, tiny_model, train_config
 
 SIZE = 32
 runner = CliRunner()
@@ -34,9 +32,7 @@ def strict_loads(text: str):
 @pytest.fixture(scope="module")
 def spool(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("spool")
-    with SpoolWriter(path, limit=0) as writer:
-        for seed in range(8):
-            writer.publish(encode(build_sample(seed, "box", size=SIZE)))
+    fill_spool(path, 8, size=SIZE)
     return path
 
 
