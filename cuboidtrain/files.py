@@ -5,16 +5,10 @@ import json
 from pathlib import Path
 
 from shared import files
-from shared.files import atomic_path, write_json
+from shared.files import atomic_path
 
 ORPHAN_AGE = 600.0  # s: a temporary file this old is no live writer's (a checkpoint takes seconds)
 
-
-def write_json_atomically(path: Path, data, indent: int | None = None) -> None:
-    """JSON to `path`, replaced atomically (`shared.files.write_json`): strict, so a NaN or an
-    Infinity is a ValueError naming where it lies, never written. A diverged loss stops the
-    trainer before it reaches a record (cuboidtrain.train.loop.Diverged)."""
-    write_json(path, data, indent)
 
 
 def sweep_orphans(folder: Path, max_age: float = ORPHAN_AGE) -> int:

@@ -17,7 +17,7 @@ from rich.table import Table
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from cuboidtrain.files import write_json_atomically  # noqa: E402
+from shared import files  # noqa: E402
 from shared.files import atomic_path, json_text, save_figure  # noqa: E402
 
 TRUE_COLOUR, OTHER_COLOUR = "#d62728", "#9aa5b1"
@@ -135,4 +135,4 @@ def write_json(out: str | None, result: dict) -> None:
     if out == "-":
         print(json_text(result, indent=2))
     elif out is not None:
-        write_json_atomically(Path(out), result, indent=2)
+        files.write_json(Path(out), result, indent=2)

@@ -15,8 +15,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from cuboidtrain.files import write_json_atomically  # noqa: E402
-from shared.files import atomic_path, save_figure  # noqa: E402
+from shared.files import atomic_path, save_figure, write_json  # noqa: E402
 
 PAPER_TABLE3 = {  # paper, Table 3: mean px error on clean synthetic validation masks, 256 px
     "random weights": 17.9,
@@ -41,7 +40,7 @@ def write_report(results: dict, out: Path, command: str, localization: Path | No
               "Iterative refinement (Figure 7), noisy and occluded masks", category=lambda r: str(r["refine_steps"])),
         _extractor_plot(out / "extractors.png", results),
     ]
-    write_json_atomically(out / "report.json", results, indent=2)
+    write_json(out / "report.json", results, indent=2)
     text = markdown(results, command, localization)
     with atomic_path(out / "REPORT.md") as tmp:
         tmp.write_text(text)

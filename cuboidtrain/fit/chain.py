@@ -22,7 +22,7 @@ import torch
 from shared.errors import UsageError
 from shared.raster import rasterize
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.files import write_json_atomically
+from shared.files import write_json
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.models.refine import DRIFT_IOU
 from cuboidtrain.fit.masks import Framing
@@ -180,4 +180,4 @@ def no_explanation(exc: Exception) -> str:
 
 def write_records(path: Path, records: list[dict]) -> None:
     """The JSON list, replaced atomically: a reader never sees half of it."""
-    write_json_atomically(path, records, indent=2)
+    write_json(path, records, indent=2)

@@ -29,7 +29,8 @@ from cuboidtrain.train.data import (FreshnessMeter, WaitInterrupted, make_loader
                                     workers_stopped)
 from cuboidtrain.device import resolve_device
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
-from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans, write_json_atomically
+from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans
+from shared.files import write_json
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.preflight import LAST, check_paths, least_batch
 from cuboidtrain.models.networks import CuboidNet, build_model
@@ -242,7 +243,7 @@ def _prepare_out(out: Path, config: TrainConfig) -> None:
     if swept:
         log.info("swept %d temporary files left in %s by a killed trainer", swept, out)
     repair_jsonl(out / "metrics.jsonl")
-    write_json_atomically(out / "config.json", config.resolved().to_dict(), indent=2)
+    write_json(out / "config.json", config.resolved().to_dict(), indent=2)
 
 
 def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None,

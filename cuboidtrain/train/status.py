@@ -14,9 +14,8 @@ import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
-from cuboidtrain.files import write_json_atomically
 from shared.errors import UsageError
-from shared.files import process_alive
+from shared.files import process_alive, write_json
 
 STATUS_FILE = "status.json"
 FINISHED = ("done", "stopped", "gave up", "failed")  # states after which no update comes
@@ -130,7 +129,7 @@ def _known(cls, data: dict) -> dict:
 
 def write_status(out: Path, status: TrainerStatus) -> None:
     """Replace OUT/status.json atomically, so a reader sees the old file or the new, never half."""
-    write_json_atomically(Path(out) / STATUS_FILE, status.to_json())
+    write_json(Path(out) / STATUS_FILE, status.to_json())
 
 
 def read_status(out: Path) -> TrainerStatus:
