@@ -2,21 +2,23 @@
 (`cuboidtrain.fit.geometry`'s parameters), and the batched Levenberg-Marquardt solver
 that the lift and the mask fit (`cuboidtrain.fit.outline`) share.
 
-Start: the weak-perspective (affine) lift, both depth orders (Necker), times a few
-perspective strengths k; then LM on the reprojection error. Measured on exact generated
-corners (tests/test_geometry.py; docs/research/geometric-fit/RESULTS.md): `street`
-views are lifted to < 0.01 px and ratios < 0.1% in 99.7% of cases; strongly perspective
-`paper` views (distance down to 1.2 heights) much less often: they start far from the
-affine solution, and near-frontal views leave the ratios nearly free (a 0.1% ratio change
-moves the corners by < 0.01 px in every `paper` view).
+Starts: the algebraic one from the box's vanishing points (`cuboidtrain.fit.vanishing`:
+exact for perspective views), and the weak-perspective (affine) lift, both depth orders
+(Necker), times a few perspective strengths k (exact for distant ones); then LM on the
+reprojection error with the projection's analytic Jacobian. Measured on exact generated
+corners (benchmarks/bench_lift.py, tests/test_geometry.py): 100% of `paper` and `street`
+views, box and twobox, lifted to < 0.01 px with ratios < 0.1%, in about 5 ms. Before the
+vanishing-point start, strongly perspective `paper` views failed in 3-6% of cases.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from cuboidtrain.fit.geometry import _SIDES, CameraParams, canonical, project, rotation_vector
+from cuboidtrain.fit.geometry import _SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
+from cuboidtrain.fit.vanishing import vanishing_starts
 from shared.shapes import Shape
 
 # Perspective-strength starts (k = height / distance), tried group by group until one
@@ -39,46 +41,56 @@ class Solved:
 
 
 def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: float = 1e-7,
-                        tolerance: float = 1e-12) -> Solved:
+                        tolerance: float = 1e-12, jacobian=None, enough: float = 0.0) -> Solved:
     """Minimise 0.5 |residual(x, rows)|^2 for every row of x0 at once.
 
     `residual(x, rows)` maps (B', P) params and (B',) hypothesis indices to (B', M) residuals.
-    One call evaluates every hypothesis and every forward-difference column of the Jacobian
+    `jacobian(x, rows)`, when given, returns the residuals and their Jacobian (B', M, P);
+    without it, one call evaluates every hypothesis and every forward-difference column
     (B * (P + 1) rows): numpy's per-call cost is paid once per iteration, not per column.
+    Every hypothesis stops once one reaches a cost of `enough` (the lift's exact match).
     """
+    if jacobian is None:
+        jacobian = partial(_forward_differences, residual, step)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverged trial step: costed inf, rejected
-        return _solve(residual, x0, iterations, step, tolerance)
+        return _solve(residual, jacobian, x0, iterations, tolerance, enough)
 
 
-def _solve(residual, x0: np.ndarray, iterations: int, step: float, tolerance: float) -> Solved:
+def _forward_differences(residual, step: float, x: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b, p = x.shape
+    probe = np.repeat(x[:, None, :], p + 1, axis=1)
+    probe[:, 1:] += np.eye(p) * step
+    values = residual(probe.reshape(-1, p), np.repeat(rows, p + 1)).reshape(b, p + 1, -1)
+    r = values[:, 0]
+    return r, (values[:, 1:] - r[:, None]).transpose(0, 2, 1) / step
+
+
+def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float, enough: float) -> Solved:
     x = x0.copy()
     b, p = x.shape
     rows = np.arange(b)
-    fd_rows = np.repeat(rows, p + 1)
     damping = np.full(b, 1e-3)
     cost = 0.5 * (residual(x, rows) ** 2).sum(1)
     active = np.ones(b, dtype=bool)
     eye = np.eye(p)
     for _ in range(iterations):
-        probe = np.repeat(x[:, None, :], p + 1, axis=1)
-        probe[:, 1:] += eye * step
-        values = residual(probe.reshape(-1, p), fd_rows).reshape(b, p + 1, -1)
-        r = values[:, 0]
-        jac = (values[:, 1:] - r[:, None]).transpose(0, 2, 1) / step  # (B, M, P)
+        live = np.flatnonzero(active)
+        r, jac = jacobian(x[live], live)  # (B', M), (B', M, P): finished hypotheses cost nothing
         jtj = jac.transpose(0, 2, 1) @ jac
         grad = np.einsum("bmp,bm->bp", jac, r)
         diag = np.einsum("bii->bi", jtj)
-        system = jtj + (damping[:, None] * (diag + 1e-9))[:, :, None] * eye
+        system = jtj + (damping[live, None] * (diag + 1e-9))[:, :, None] * eye
         delta = -np.linalg.solve(system, grad[..., None])[..., 0]
-        trial = x + delta * active[:, None]
-        new_cost = np.nan_to_num(0.5 * (residual(trial, rows) ** 2).sum(1), nan=np.inf)
-        better = (new_cost < cost) & active
-        x[better] = trial[better]
-        gain = np.where(better, cost - new_cost, 0.0)
-        cost = np.where(better, new_cost, cost)
-        damping = np.where(better, damping / 3, damping * 4)
-        active &= ~((better & (gain <= tolerance * (cost + 1e-12))) | (damping > 1e10) | (cost < 1e-20))
-        if not active.any():
+        trial = x[live] + delta
+        new_cost = np.nan_to_num(0.5 * (residual(trial, live) ** 2).sum(1), nan=np.inf)
+        better = new_cost < cost[live]
+        gain = np.where(better, cost[live] - new_cost, 0.0)
+        x[live[better]] = trial[better]
+        cost[live] = np.where(better, new_cost, cost[live])
+        damping[live] = np.where(better, damping[live] / 3, damping[live] * 4)
+        done = (better & (gain <= tolerance * (cost[live] + 1e-12))) | (damping[live] > 1e10) | (cost[live] < 1e-20)
+        active[live[done]] = False
+        if not active.any() or cost.min() < enough:
             break
     return Solved(x, cost)
 
@@ -150,6 +162,20 @@ def affine_starts(points: np.ndarray, shape: Shape, k_starts=(0.0,)) -> tuple[np
     return params, mirror
 
 
+def corner_residuals(points: np.ndarray, sqrt_w: np.ndarray, shape: Shape, mirrors: np.ndarray):
+    """The weighted reprojection residuals of hypotheses with flags `mirrors`, and their analytic Jacobian."""
+
+    def residual(x, rows):
+        return ((project(x, shape, mirrors[rows]) - points) * sqrt_w).reshape(len(x), -1)
+
+    def jacobian(x, rows):
+        image, jac = project_with_jacobian(x, shape, mirrors[rows])
+        r = ((image - points) * sqrt_w).reshape(len(x), -1)
+        return r, (jac * sqrt_w[..., None]).reshape(len(x), r.shape[1], -1)
+
+    return residual, jacobian
+
+
 @dataclass(frozen=True)
 class Lifted:
     """The best camera for given corners, and every hypothesis tried (for ambiguity checks
@@ -164,7 +190,7 @@ class Lifted:
 
 def lift(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_starts=K_STARTS,
          iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS,
-         polish: int = POLISH_ITERATIONS) -> Lifted:
+         polish: int = POLISH_ITERATIONS, vanishing: bool = True) -> Lifted:
     """Named image corners (N, 2) -> the camera + cuboid that projects onto them (weighted
     least squares; `weights` (N,) per corner, e.g. heat-map confidences).
 
@@ -176,13 +202,15 @@ def lift(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_
     groups = k_starts if isinstance(k_starts[0], (tuple, list)) else (k_starts,)
     sqrt_w = np.sqrt(weights)[None, :, None]
     params, mirrors, costs = [], [], []
-    for group in groups:
+    for number, group in enumerate(groups):
         starts, flags = affine_starts(points, shape, group)
+        if number == 0 and vanishing:
+            algebraic, algebraic_flags = vanishing_starts(points, shape)
+            starts, flags = np.concatenate([algebraic, starts]), np.concatenate([algebraic_flags, flags])
 
-        def residual(x, rows, flags=flags):
-            return ((project(x, shape, flags[rows]) - points) * sqrt_w).reshape(len(x), -1)
-
-        solved = levenberg_marquardt(residual, starts, iterations, tolerance=tolerance)
+        residual, jacobian = corner_residuals(points, sqrt_w, shape, flags)
+        solved = levenberg_marquardt(residual, starts, iterations, tolerance=tolerance, jacobian=jacobian,
+                                     enough=0.5 * len(points) * accept_rms**2)
         params.append(solved.params)
         mirrors.append(flags)
         costs.append(solved.cost)
@@ -192,10 +220,8 @@ def lift(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_
     best = int(np.argmin(costs))
     mirror = bool(mirrors[best])
 
-    def residual(x, rows):
-        return ((project(x, shape, mirror) - points) * sqrt_w).reshape(len(x), -1)
-
-    polished = levenberg_marquardt(residual, params[best : best + 1], polish, tolerance=0.0)
+    residual, jacobian = corner_residuals(points, sqrt_w, shape, np.array([mirror]))
+    polished = levenberg_marquardt(residual, params[best : best + 1], polish, tolerance=0.0, jacobian=jacobian)
     vector, mirror = canonical(polished.params[0], mirror)
     rms = float(np.sqrt(2 * polished.cost[0] / len(points)))
     return Lifted(CameraParams(shape, vector, mirror), rms, params, mirrors, costs)

@@ -1,0 +1,204 @@
+"""The algebraic start of the lift: vanishing points of the box's parallel edges -> focal
+length, principal point and rotation, then extents and translation by linear least squares.
+
+The affine start (`cuboidtrain.fit.lift.affine_starts`) is exact for a distant camera and
+far off for a close one; this start is exact for a close one (three finite vanishing points)
+and degrades as a vanishing point runs off to infinity. The lift tries both.
+
+1. Each edge direction (width, height, depth) has 4 parallel edges (8 for twobox): its
+   vanishing point is the least-squares common point of their image lines (homogeneous).
+2. Three finite vanishing points of orthogonal directions fix the camera: the principal point
+   is their triangle's orthocentre and f^2 = -(v1 - c).(v2 - c). With one at infinity (e.g.
+   vertical edges parallel in the image) the principal point lies somewhere on the line of
+   the two finite ones; with two at infinity the focal length is free (`intrinsics`): those
+   give a range of candidates, ranked by the linear solve of step 4.
+3. The rotation's columns are K^-1 v, up to sign: all sign choices are tried (a reflection is
+   the x-mirrored box, `geometry`'s `mirror`).
+4. With K and the rotation known, each corner's projection is linear in the extents and the
+   translation: P = M X(theta) + T, and u P_z - P_x = 0, v P_z - P_y = 0 in normalised image
+   coordinates. Height (of the RIGHT part) is 1, the scale gauge.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from cuboidtrain.fit.geometry import _MIRROR_X, _SIDES, rotation_vector
+from shared.shapes import Shape
+
+# A vanishing point whose homogeneous w is below this share of its norm (in corner-span
+# units) is taken as at infinity: its lines are parallel to rounding error. Exact corners
+# fix even a far vanishing point (w = 1e-4 in near-frontal `paper` views), and the three
+# finite ones then give the exact camera: at 1e-3 here, 3% of exact twobox lifts failed.
+INFINITE = 1e-9
+# Between INFINITE and this, a vanishing point is tried both as finite and as at infinity:
+# near-frontal views put it far out, where noisy corners fix it poorly.
+DOUBTFUL = 0.05
+LINE_STEPS = 25  # principal-point candidates on the line of two finite vanishing points
+FOCAL_STEPS = 25  # focal-length candidates (x the corners' mean radius) with one finite
+KEEP = 3  # the best (intrinsics, signs) by the linear solve's residual become LM starts
+
+
+def _normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Points centred and scaled to unit mean radius (conditioning of the line fits)."""
+    centre = points.mean(0)
+    scale = float(np.linalg.norm(points - centre, axis=1).mean()) or 1.0
+    return (points - centre) / scale, centre, scale
+
+
+def edges_by_axis(shape: Shape) -> list[list[tuple[int, int]]]:
+    """The shape's edges grouped by the object axis they run along (x width, y height, z depth)."""
+    groups: list[list[tuple[int, int]]] = [[], [], []]
+    # A corner's index bits (`_SIDES`): 2 = LEFT, 1 = BOTTOM, 4 = FRONT; an edge flips one.
+    for part in shape.parts:
+        for axis, flip in ((0, 2), (1, 1), (2, 4)):
+            groups[axis] += [(part[a], part[a ^ flip]) for a in range(8) if a < a ^ flip]
+    return [sorted(set(g)) for g in groups]
+
+
+def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]]) -> np.ndarray:
+    """Homogeneous (3,) least-squares common point of the edges' lines, unit norm."""
+    h = np.hstack([points, np.ones((len(points), 1))])
+    lines = np.array([np.cross(h[a], h[b]) for a, b in edges])
+    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True) + 1e-12
+    return np.linalg.svd(lines)[2][-1]
+
+
+def intrinsics(vps: np.ndarray, finite: np.ndarray) -> list[tuple[float, np.ndarray]]:
+    """(focal, principal) candidates in normalised units from (3, 3) homogeneous vanishing
+    points, `finite` (3,) saying which to take as finite.
+
+    Three finite: the orthocentre, exact. Two: the principal point lies on their line (the
+    third direction is perpendicular to it) but where is free, so positions between them are
+    all candidates. One: it is the principal point if the box faces the camera squarely, and
+    the focal length is free (one-point perspective trades it against depth), so a range.
+    The linear solve of extents (`_extents_and_translation`) then ranks the candidates."""
+    points = vps[finite, :2] / vps[finite, 2:3]
+    if len(points) == 3:
+        a, b, c = points
+        m = np.array([b - c, a - c])  # orthocentre: (p - a).(b - c) = 0 and (p - b).(a - c) = 0
+        if abs(np.linalg.det(m)) < 1e-12:
+            return []
+        principal = np.linalg.solve(m, np.array([a @ (b - c), b @ (a - c)]))
+        f2 = -(a - principal) @ (b - principal)
+        return [(float(np.sqrt(f2)), principal)] if f2 > 0 else []
+    if len(points) == 2:
+        a, b = points
+        candidates = []
+        for t in np.linspace(0.02, 0.98, LINE_STEPS):
+            principal = a + t * (b - a)
+            candidates.append((float(np.sqrt(-(a - principal) @ (b - principal))), principal))
+        return candidates
+    if len(points) == 1:
+        return [(float(f), points[0]) for f in np.geomspace(0.5, 50.0, FOCAL_STEPS)]
+    return []
+
+
+def _object_basis(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    """Object corners as an affine map of theta = (w, d) for box, (w, d, m, hL) for twobox:
+    X = coef @ theta + const, coef (N, 3, Q), const (N, 3); `geometry.object_points`' layout
+    (m is the x of the plane between the parts, hL the LEFT part's height)."""
+    n, q = shape.num_keypoints, 2 * len(shape.parts)
+    coef, const = np.zeros((n, 3, q)), np.zeros((n, 3))
+    for index, part in enumerate(shape.parts):
+        for c, corner in enumerate(part):
+            left, bottom, front = _SIDES[c]
+            coef[corner, 2, 1] = 0.5 - front  # z = -d/2 front, +d/2 back
+            if index == 0:  # the only part, or the RIGHT one: x from m (or -w/2) to w/2
+                coef[corner, 0, 0] = 0.5 if not left else (0.0 if q == 4 else -0.5)
+                if left and q == 4:
+                    coef[corner, 0, 2] = 1.0
+                const[corner, 1] = bottom - 0.5
+            else:  # LEFT part: x from -w/2 to m, top at 1/2 - hL
+                coef[corner, 0, 0] = -0.5 if left else 0.0
+                coef[corner, 0, 2] = 0.0 if left else 1.0
+                const[corner, 1] = 0.5
+                coef[corner, 1, 3] = 0.0 if bottom else -1.0
+    return coef, const
+
+
+def _extents_and_translation(image: np.ndarray, m: np.ndarray, coef: np.ndarray,
+                             const: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """theta (C, Q) and T (C, 3) for C candidate cameras at once: normalised image corners
+    `image` (C, N, 2) (unit focal, principal point at 0) and rotations-or-reflections `m`
+    (C, 3, 3); and each one's rms residual (C,). Normal equations, batched: the corners are
+    normalised, so they are well conditioned."""
+    c, n, _ = image.shape
+    q = coef.shape[2]
+    mc = np.einsum("cij,njq->cniq", m, coef)  # (C, N, 3, Q)
+    me = np.einsum("cij,nj->cni", m, const)  # (C, N, 3)
+    a = np.zeros((c, n, 2, q + 3))
+    a[..., :q] = image[..., None] * mc[:, :, None, 2] - mc[:, :, :2]
+    a[..., 0, q], a[..., 1, q + 1] = -1.0, -1.0
+    a[..., q + 2] = image
+    b = -(image * me[..., 2:3] - me[..., :2])
+    a, b = a.reshape(c, 2 * n, q + 3), b.reshape(c, 2 * n)
+    solution = np.linalg.solve(a.transpose(0, 2, 1) @ a, np.einsum("cmk,cm->ck", a, b)[..., None])[..., 0]
+    rms = np.sqrt(np.mean((np.einsum("cmk,ck->cm", a, solution) - b) ** 2, axis=1))
+    return solution[:, :q], solution[:, q:], rms
+
+
+def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tuple[np.ndarray, np.ndarray]:
+    """Start params (H <= keep, P) and mirror flags (H,) from labelled image corners (N, 2),
+    in `geometry`'s layout; empty when no candidate camera gives a box in front of it."""
+    unit, centre, scale = _normalise(np.asarray(points, dtype=np.float64))
+    vps = np.array([vanishing_point(unit, edges) for edges in edges_by_axis(shape)])
+    focals, principals, bases = [], [], []
+    for finite in _finiteness_choices(np.abs(vps[:, 2])):
+        directions_xy = np.where(finite[:, None], vps[:, :2] / np.where(finite, vps[:, 2], 1.0)[:, None], vps[:, :2])
+        for focal, principal in intrinsics(vps, finite):
+            rays = np.where(finite[:, None], (directions_xy - principal) / focal, directions_xy)
+            directions = np.hstack([rays, finite[:, None].astype(np.float64)])
+            u, _, vt = np.linalg.svd(directions / np.linalg.norm(directions, axis=1, keepdims=True))
+            focals.append(focal)
+            principals.append(principal)
+            bases.append((u @ vt).T)  # nearest orthogonal matrix; columns = the object axes in the camera
+    p = 11 if len(shape.parts) == 1 else 13
+    if not focals:
+        return np.zeros((0, p)), np.zeros(0, dtype=bool)
+    # Every candidate camera times every sign choice of the axes, solved at once.
+    focal = np.repeat(focals, len(_SIGNS))
+    principal = np.repeat(principals, len(_SIGNS), axis=0)
+    m = (np.array(bases)[:, None] * _SIGNS[None, :, None, :]).reshape(-1, 3, 3)
+    coef, const = _object_basis(shape)
+    theta, t, rms = _extents_and_translation((unit[None] - principal[:, None]) / focal[:, None, None], m, coef, const)
+    camera = np.einsum("cij,cnj->cni", m, np.einsum("njq,cq->cnj", coef, theta) + const) + t[:, None]
+    good = np.flatnonzero(_plausible(theta) & (camera[..., 2] > 0).all(1))
+    best = good[np.argsort(rms[good] * focal[good])[:keep]]  # rms in corner-span units
+    starts, mirrors = [], []
+    for i in best:
+        mirror = bool(np.linalg.det(m[i]) < 0)
+        rot = m[i] @ _MIRROR_X if mirror else m[i]
+        starts.append(_to_params(theta[i], rot, t[i], focal[i] * scale, principal[i] * scale + centre, len(shape.parts)))
+        mirrors.append(mirror)
+    return np.array(starts).reshape(-1, p), np.array(mirrors, dtype=bool)
+
+
+_SIGNS = np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3).astype(np.float64)
+
+
+def _finiteness_choices(weight: np.ndarray) -> list[np.ndarray]:
+    """Which vanishing points to take as finite: every choice that the doubtful ones allow."""
+    sure, doubtful = weight >= DOUBTFUL, (weight > INFINITE) & (weight < DOUBTFUL)
+    choices = []
+    for mask in range(1 << int(doubtful.sum())):
+        finite = sure.copy()
+        finite[np.flatnonzero(doubtful)] = [(mask >> i) & 1 for i in range(int(doubtful.sum()))]
+        choices.append(finite)
+    return choices
+
+
+def _plausible(theta: np.ndarray) -> np.ndarray:
+    """(C,) positive extents, and for twobox the dividing plane between the outer faces."""
+    if theta.shape[1] == 2:
+        return (theta > 0).all(1)
+    w, d, middle, h_left = theta.T
+    return (w > 0) & (d > 0) & (h_left > 0) & (np.abs(middle) < w / 2)
+
+
+def _to_params(theta: np.ndarray, rot: np.ndarray, t: np.ndarray, focal: float, principal: np.ndarray,
+               parts: int) -> list[float]:
+    """`geometry`'s vector: s = f / Tz, k = 1 / Tz, offset (Tx, Ty) in height units."""
+    w, d = theta[0], theta[1]
+    extra = [] if parts == 1 else [(w / 2 - theta[2]) / w, np.log(max(theta[3], 1e-6))]
+    return [np.log(w), np.log(d), *rotation_vector(rot), t[0], t[1], np.log(focal / t[2]), 1.0 / t[2],
+            principal[0], principal[1], *extra]
