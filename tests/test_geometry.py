@@ -131,3 +131,23 @@ def test_vanishing_point_start_is_exact_on_exact_corners(shape, scene):
         errors = np.abs(project(starts, geometry, mirrors) - view.keypoints).max(axis=(1, 2))
         exact += len(starts) > 0 and errors.min() < 1e-6
     assert exact / len(cases) >= 0.95
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_silhouette_derivatives_match_central_differences(shape):
+    """The mask fit's analytic derivatives with respect to the corners, on a mask the
+    perturbed corners do not match (every kind of row active)."""
+    from cuboidtrain.fit.outline import MaskFitWeights, boundary_points, signed_distance_field, silhouette_terms
+    geometry, rng, weights = get_shape(shape), np.random.default_rng(3), MaskFitWeights()
+    for view in views(shape, "paper", 3, seed=6):
+        mask = rasterize(geometry, view.keypoints, 256)
+        outline, sdf = boundary_points(mask, weights.max_boundary_points), signed_distance_field(mask)
+        image = (view.keypoints + rng.normal(0, 2, view.keypoints.shape))[None]
+        _, analytic = silhouette_terms(image, geometry, outline, sdf, weights, derivatives=True)
+        for corner in range(len(view.keypoints)):
+            for axis in range(2):
+                step = np.zeros_like(image)
+                step[0, corner, axis] = 1e-5
+                numeric = (silhouette_terms(image + step, geometry, outline, sdf, weights)[0]
+                           - silhouette_terms(image - step, geometry, outline, sdf, weights)[0]) / 2e-5
+                assert np.abs(analytic[0, :, corner, axis] - numeric[0]).max() < 1e-3 * (1 + np.abs(numeric).max())

@@ -172,6 +172,20 @@ def ratios(params: np.ndarray, shape: Shape) -> np.ndarray:
     return np.stack([d, split * w, d / h_left, (1 - split) * w / h_left], axis=1)
 
 
+def log_ratio_jacobian(params: np.ndarray, shape: Shape) -> np.ndarray:
+    """(B, 2 or 4, P): d log(ratios) / d params, `ratios`' order."""
+    params = np.atleast_2d(params)
+    jac = np.zeros((len(params), 2 * len(shape.parts), params.shape[1]))
+    jac[:, 0, 1] = 1.0  # log d
+    jac[:, 1, 0] = 1.0  # log w (+ log split for twobox)
+    if len(shape.parts) == 2:
+        split = params[:, 11]
+        jac[:, 1, 11] = 1 / split
+        jac[:, 2, 1], jac[:, 2, 12] = 1.0, -1.0  # log d - log hL
+        jac[:, 3, 0], jac[:, 3, 11], jac[:, 3, 12] = 1.0, -1 / (1 - split), -1.0
+    return jac
+
+
 def canonical(vector: np.ndarray, mirror: bool) -> tuple[np.ndarray, bool]:
     """The same projection with k >= 0. A mirrored object seen with k < 0 is the depth-reversed
     (Necker) twin of a camera in front of the object: R F_m X and D R F F_m X differ only in z's

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from cuboidtrain.fit.geometry import CameraParams, CuboidFit, describe, project, ratios
+from cuboidtrain.fit.geometry import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
+                                      project_with_jacobian, ratios)
 from cuboidtrain.fit.lift import levenberg_marquardt, lift
 from shared.raster import rasterize
 from shared.shapes import Shape
@@ -60,41 +61,83 @@ def signed_distance_field(mask: np.ndarray) -> np.ndarray:
 
 def bilinear(field: np.ndarray, points: np.ndarray) -> np.ndarray:
     """`field` sampled at (..., 2) x, y points, clamped at the border."""
+    return bilinear_with_gradient(field, points)[0]
+
+
+def bilinear_with_gradient(field: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`field` sampled at (..., 2) x, y points, clamped at the border, and its gradient (..., 2)
+    (zero across a clamped coordinate)."""
     h, w = field.shape
     points = np.nan_to_num(points, nan=-1.0)  # a diverged trial step: costed, then rejected by LM
     x = np.clip(points[..., 0], 0, w - 1.001)
     y = np.clip(points[..., 1], 0, h - 1.001)
     x0, y0 = x.astype(int), y.astype(int)
     fx, fy = x - x0, y - y0
-    top = field[y0, x0] * (1 - fx) + field[y0, x0 + 1] * fx
-    bottom = field[y0 + 1, x0] * (1 - fx) + field[y0 + 1, x0 + 1] * fx
-    return top * (1 - fy) + bottom * fy
+    tl, tr, bl, br = field[y0, x0], field[y0, x0 + 1], field[y0 + 1, x0], field[y0 + 1, x0 + 1]
+    top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
+    gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
+    gy = np.where(y == points[..., 1], bottom - top, 0.0)
+    return top * (1 - fy) + bottom * fy, np.stack([gx, gy], axis=-1)
 
 
 _PAIRS = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])  # 28 candidate hull edges
+_QUARTER_TURN = np.array([[0.0, 1.0], [-1.0, 0.0]])  # (x, y) -> (y, -x)
 
 
-def hull_edges(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """For (B, 8, 2) corners of convex parts: every corner pair's start (B, 28, 2), direction
-    (B, 28, 2), outward unit normal (B, 28, 2), and whether it is a hull edge (B, 28): all the
-    other corners lie on its inner side. Vectorised: no per-hypothesis convexHull call."""
+# A convex part's silhouette has at most 6 edges; a degenerate view (coincident corners)
+# can flag a few more pairs as edges, and those slots keep them.
+HULL_SLOTS = 8
+
+
+@dataclass(frozen=True)
+class HullEdges:
+    """The hull edges of (B, 8, 2) convex parts, HULL_SLOTS a part (unused slots invalid)."""
+
+    start: np.ndarray  # (B, E, 2)
+    direction: np.ndarray  # (B, E, 2) end - start
+    normal: np.ndarray  # (B, E, 2) outward unit normal
+    valid: np.ndarray  # (B, E) a real hull edge: all the other corners lie on its inner side
+    pairs: np.ndarray  # (B, E, 2) the part's corner indices (0-7) at its start and end
+
+
+def hull_edges(corners: np.ndarray) -> HullEdges:
+    """Every corner pair tested as an edge at once (no per-hypothesis convexHull call),
+    then the edges packed into the first slots."""
     a, b = corners[:, _PAIRS[:, 0]], corners[:, _PAIRS[:, 1]]
     direction = b - a
-    normal = np.stack([direction[..., 1], -direction[..., 0]], axis=-1)
+    normal = direction @ _QUARTER_TURN.T
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True) + 1e-12
     side = np.einsum("bkd,bnd->bkn", normal, corners) - np.einsum("bkd,bkd->bk", normal, a)[..., None]
     flip = np.where(side.sum(-1) > 0, -1.0, 1.0)  # outward: away from the rest
     normal *= flip[..., None]
     side *= flip[..., None]
     is_edge = (side <= 1e-9 * (1 + np.abs(side).max(-1, keepdims=True))).all(-1)
-    return a, direction, normal, is_edge
+    slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
+    take = lambda v: np.take_along_axis(v, slots[..., None], 1)  # noqa: E731
+    return HullEdges(take(a), take(direction), take(normal), np.take_along_axis(is_edge, slots, 1), _PAIRS[slots])
 
 
-def polygon_distance(points: np.ndarray, a: np.ndarray, normal: np.ndarray, is_edge: np.ndarray) -> np.ndarray:
+def polygon_distance(points: np.ndarray, hull: HullEdges) -> tuple[np.ndarray, np.ndarray]:
     """Signed distance (positive outside) of (B, M, 2) points to convex hulls given by their
-    edges: the largest outward offset over hull edges (exact inside, a lower bound outside)."""
-    offset = np.einsum("bmd,bkd->bmk", points, normal) - np.einsum("bkd,bkd->bk", a, normal)[:, None]
-    return np.where(is_edge[:, None], offset, -np.inf).max(-1)
+    edges: the largest outward offset over hull edges (exact inside, a lower bound outside),
+    and which edge slot gives it (B, M)."""
+    offset = np.einsum("bmd,bkd->bmk", points, hull.normal) - np.einsum("bkd,bkd->bk", hull.start, hull.normal)[:, None]
+    offset = np.where(hull.valid[:, None], offset, -np.inf)
+    edge = offset.argmax(-1)
+    return np.take_along_axis(offset, edge[..., None], -1)[..., 0], edge
+
+
+def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray,
+                     normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d/d start and d/d end (..., 2) of the offset (p - start).n of points p from the line
+    through an edge, n its outward unit normal (n = +-quarter turn of the direction / length)."""
+    length = np.linalg.norm(direction, axis=-1, keepdims=True) + 1e-12
+    tangent = direction / length
+    # With p - a = alpha t + beta n (t the unit direction), n's turn with the edge gives
+    # d o / d end = -alpha n / L, and the start moves the line as well: -n - that.
+    along = np.einsum("...d,...d->...", points - start, tangent)[..., None]
+    d_end = -along * normal / length
+    return -normal - d_end, d_end
 
 
 def _tolerant(d: np.ndarray, scale: float) -> np.ndarray:
@@ -102,29 +145,96 @@ def _tolerant(d: np.ndarray, scale: float) -> np.ndarray:
     return np.sign(d) * scale * np.sqrt(np.log1p((d / scale) ** 2))
 
 
+def _tolerant_slope(d: np.ndarray, scale: float) -> np.ndarray:
+    """d _tolerant / d d: 1 at 0, falling as the loss saturates."""
+    u = (d / scale) ** 2
+    root = np.sqrt(np.log1p(u))
+    return np.where(u < 1e-12, 1.0, np.abs(d) / (scale * np.where(root > 0, root, 1.0) * (1 + u)))
+
+
+def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitWeights, tolerant_when_positive: bool):
+    """A distance's residual and slope: one side linear at weight `outside`, the other robust."""
+    if tolerant_when_positive:
+        value = np.where(d > 0, positive * _tolerant(d, weights.robust_px), negative * d)
+        slope = np.where(d > 0, positive * _tolerant_slope(d, weights.robust_px), negative)
+    else:
+        value = np.where(d > 0, positive * d, negative * _tolerant(d, weights.robust_px))
+        slope = np.where(d > 0, positive, negative * _tolerant_slope(d, weights.robust_px))
+    return value, slope
+
+
 def silhouette_residuals(params: np.ndarray, mirrors: np.ndarray, shape: Shape, outline: np.ndarray,
                          sdf: np.ndarray, weights: MaskFitWeights) -> np.ndarray:
     """(B, M) residuals of how well each hypothesis' silhouette explains the mask."""
-    image = project(params, shape, mirrors)
-    parts = [hull_edges(image[:, list(p)]) for p in shape.parts]
-    pts = np.broadcast_to(outline, (len(params), *outline.shape))
-    dist = np.min([polygon_distance(pts, a, n, e) for a, _, n, e in parts], axis=0)
-    out = np.where(dist > 0, weights.outside * dist, weights.inside * _tolerant(dist, weights.robust_px))
-    t = (np.arange(weights.samples_per_edge) + 0.5) / weights.samples_per_edge
-    residuals = [out]
-    for k, (a, direction, _, is_edge) in enumerate(parts):
-        samples = a[:, :, None] + direction[:, :, None] * t[:, None]  # (B, 28, T, 2)
-        flat = samples.reshape(len(params), -1, 2)
-        keep = np.repeat(is_edge, len(t), axis=1)
-        for j, (a2, _, n2, e2) in enumerate(parts):  # a twobox outline inside the other part is no outline
+    return silhouette_terms(project(params, shape, mirrors), shape, outline, sdf, weights)[0]
+
+
+def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: np.ndarray,
+                     weights: MaskFitWeights, derivatives: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """(B, R) residuals of how well silhouettes with corners `image` (B, N, 2) explain the mask,
+    and, if asked, their derivatives with respect to the corners (B, R, N, 2): each row
+    touches the two corners of one edge (which edge is active is held fixed: the objective
+    is piecewise smooth).
+
+    Two kinds of rows: the mask's outline points' distance to the model's silhouette
+    (positive outside: a missed building pixel, linear; inside: robust), and points along the
+    model's outline edges sampled on the mask's signed distance field (over background:
+    robust, an occluded part may be there; inside the mask: linear), each weighted by the
+    square root of its share of the edge's length, so every outline px counts once."""
+    b, n = image.shape[:2]
+    hulls = [hull_edges(image[:, list(p)]) for p in shape.parts]
+    # Each edge slot's two corners, as indices into the shape's N corners: (B, E, 2).
+    ends = [np.asarray(p)[hull.pairs] for p, hull in zip(shape.parts, hulls)]
+    rows = np.arange(b)[:, None]
+    residuals, gradients = [], []
+
+    # The mask's outline points against the nearest part's silhouette.
+    points = np.broadcast_to(outline, (b, *outline.shape))
+    found = [polygon_distance(points, hull) for hull in hulls]
+    part = np.argmin([dist for dist, _ in found], axis=0) if len(hulls) > 1 else np.zeros((b, len(outline)), dtype=int)
+    dist = np.choose(part, [dist for dist, _ in found])
+    value, slope = _weighted(dist, weights.outside, weights.inside, weights, tolerant_when_positive=False)
+    residuals.append(value)
+    if derivatives:
+        pick = lambda field: np.choose(part[..., None], [np.take_along_axis(field(j), e[..., None], 1)  # noqa: E731
+                                                         for j, (_, e) in enumerate(found)])
+        start, direction = pick(lambda j: hulls[j].start), pick(lambda j: hulls[j].direction)
+        normal, corner = pick(lambda j: hulls[j].normal), pick(lambda j: ends[j])
+        d_start, d_end = _offset_gradient(points, start, direction, normal)
+        m = np.arange(len(outline))[None]
+        d = np.zeros((b, len(outline), n, 2))
+        d[rows, m, corner[..., 0]] = slope[..., None] * d_start
+        d[rows, m, corner[..., 1]] += slope[..., None] * d_end
+        gradients.append(d)
+
+    # The model's outline edges, sampled on the mask's distance field.
+    count = weights.samples_per_edge
+    t = (np.arange(count) + 0.5) / count
+    for k, hull in enumerate(hulls):
+        samples = hull.start[:, :, None] + hull.direction[:, :, None] * t[:, None]  # (B, E, T, 2)
+        flat = samples.reshape(b, -1, 2)
+        keep = np.repeat(hull.valid, count, axis=1)
+        for j, other in enumerate(hulls):  # a twobox outline inside the other part is no outline
             if j != k:
-                keep &= polygon_distance(flat, a2, n2, e2) > 0
-        over = bilinear(sdf, flat)
-        over = np.where(over > 0, weights.overhang * _tolerant(over, weights.robust_px), weights.outside * over)
-        # Scale by edge length: each outline px counts once, whatever the edge's sample count.
-        length = np.repeat(np.linalg.norm(direction, axis=-1), len(t), axis=1) / len(t)
-        residuals.append(np.where(keep, over * np.sqrt(length), 0.0))
-    return np.concatenate(residuals, axis=1)
+                keep &= polygon_distance(flat, other)[0] > 0
+        over, gradient = bilinear_with_gradient(sdf, flat)
+        value, slope = _weighted(over, weights.overhang, weights.outside, weights, tolerant_when_positive=True)
+        full = np.linalg.norm(hull.direction, axis=-1)  # (B, E)
+        root = np.repeat(np.sqrt(full / count), count, axis=1)  # sqrt of each sample's share of the edge
+        residuals.append(np.where(keep, value * root, 0.0))
+        if derivatives:
+            # d root / d end = (direction / L) / (2 count root); the start's is its negative.
+            d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=1) / (2 * root[..., None] + 1e-12)
+            share = np.tile(t, hull.valid.shape[1])[None, :, None]
+            along = slope[..., None] * gradient * root[..., None]
+            scale = keep[..., None].astype(np.float64)
+            corner = np.repeat(ends[k], count, axis=1)  # (B, E T, 2)
+            r = np.arange(flat.shape[1])[None]
+            d = np.zeros((b, flat.shape[1], n, 2))
+            d[rows, r, corner[..., 0]] = scale * (along * (1 - share) - value[..., None] * d_root)
+            d[rows, r, corner[..., 1]] += scale * (along * share + value[..., None] * d_root)
+            gradients.append(d)
+    return np.concatenate(residuals, axis=1), (np.concatenate(gradients, axis=1) if derivatives else None)
 
 
 def fit_mask(mask: np.ndarray, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
@@ -144,12 +254,24 @@ def fit_mask(mask: np.ndarray, shape: Shape, corners: np.ndarray, confidence: np
     pull = weights.corners * np.sqrt(np.clip(confidence, 0.05, 1.0))[None, :, None]
 
     def residual(x, rows):
-        fit = silhouette_residuals(x, mirrors[rows], shape, outline, sdf, weights) * norm
-        prior = ((project(x, shape, mirrors[rows]) - corners) * pull).reshape(len(x), -1) * norm
-        extents = weights.ratios * np.log(ratios(x, shape) / prior_ratios) if prior_ratios is not None else fit[:, :0]
-        return np.concatenate([fit, prior, extents], axis=1)
+        return jacobian(x, rows, derivatives=False)
 
-    solved = levenberg_marquardt(residual, x0, iterations, step=1e-6, tolerance=1e-7)
+    def jacobian(x, rows, derivatives=True):
+        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
+        fit, d_fit = silhouette_terms(image, shape, outline, sdf, weights, derivatives)
+        prior = ((image - corners) * pull).reshape(len(x), -1) * norm
+        values = [fit * norm, prior]
+        if prior_ratios is not None:
+            values.append(weights.ratios * np.log(ratios(x, shape) / prior_ratios))
+        if not derivatives:
+            return np.concatenate(values, axis=1)
+        rows_jac = [np.einsum("brnd,bndp->brp", d_fit, d_image) * norm,
+                    (d_image * (pull * norm)[..., None]).reshape(len(x), -1, x.shape[1])]
+        if prior_ratios is not None:
+            rows_jac.append(weights.ratios * log_ratio_jacobian(x, shape))
+        return np.concatenate(values, axis=1), np.concatenate(rows_jac, axis=1)
+
+    solved = levenberg_marquardt(residual, x0, iterations, tolerance=1e-7, jacobian=jacobian)
     best = int(np.argmin(solved.cost))
     camera = CameraParams(shape, solved.params[best], bool(mirrors[best]))
     outline_rms = float(np.sqrt(np.mean(silhouette_residuals(solved.params[best : best + 1], mirrors[best : best + 1],
