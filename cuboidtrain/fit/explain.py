@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,6 +36,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
 from cuboidtrain.fit.chain import no_explanation  # noqa: E402
+from cuboidtrain.fit.inputs import OutputNames  # noqa: E402
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.raster import rasterize  # noqa: E402
@@ -250,10 +252,11 @@ class Explainer:
     """`Fitter.records`'s explain callback: writes each fitted component's panel (and overlay) to `folder`.
 
     `photos[i]` is the photo behind input i (or None); a mask made at another
-    resolution than its photo is scaled onto it.
+    resolution than its photo is scaled onto it. A picture is named after its input's file
+    stem (`cuboidtrain.fit.inputs.OutputNames`; `inputs`, the run's, fix the names up front).
     """
 
-    def __init__(self, folder: Path, photos: list[Path] | None = None):
+    def __init__(self, folder: Path, photos: list[Path] | None = None, inputs: Sequence[str] | None = None):
         self.folder, self.photos = Path(folder), list(photos or [])
         missing = [str(p) for p in self.photos if p is not None and not Path(p).is_file()]
         if missing:
@@ -262,12 +265,12 @@ class Explainer:
             raise UsageError(f"--explain {self.folder}: not a folder")
         self.folder.mkdir(parents=True, exist_ok=True)
         self.written: list[Path] = []
-        self.stems: dict[str, int] = {}  # picture name -> the input that took it
+        self.names = OutputNames(inputs)  # the run's inputs fix each picture's name (as --mesh's files')
 
     def __call__(self, index: int, path: str, fit: Fit) -> tuple[str, ...]:
         """Draw `fit` (input `index`, file `path`); the warnings for its record: a photo that cannot
         be read, a picture that cannot be written."""
-        stem = self._stem(index, path) + (f"-{fit.component}" if fit.component is not None else "")
+        stem = self.names(index, path) + (f"-{fit.component}" if fit.component is not None else "")
         photo, notes = self._photo(index)
         shown = replace(fit, warnings=fit.warnings + notes)  # the caption names the first warning
         try:
@@ -282,13 +285,6 @@ class Explainer:
             log.warning("%s: %s", path, warning)
             return notes + (warning,)
         return notes
-
-    def _stem(self, index: int, path: str) -> str:
-        """The input's file stem; a second input of the same stem (a/x.png, b/x.png) gets its index too."""
-        stem = Path(path).stem
-        if self.stems.setdefault(stem, index) != index:
-            stem = f"{stem}-input{index}"
-        return stem
 
     def _photo(self, index: int) -> tuple[np.ndarray | None, tuple[str, ...]]:
         """Input `index`'s photo (or None), and the warning when it cannot be decoded: a warning in
