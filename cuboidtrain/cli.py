@@ -163,6 +163,7 @@ def infer(
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
     device: str = typer.Option(FIT.device, help=DEVICE_HELP),
     cuboid: bool = typer.Option(FIT.cuboid, "--cuboid", help="Fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). Slower; better on clean masks (BENCHMARKS.md)."),
+    mesh: Optional[Path] = typer.Option(None, metavar="DIR", help="With --cuboid: write each fitted box as a Wavefront OBJ mesh here, DIR/<input>.obj, in the camera's frame (x right, y down, z forward; units: box heights); its vertices are the keypoints, in order."),
 ) -> None:
     """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
 
@@ -170,7 +171,8 @@ def infer(
     """
     from cuboidtrain.fit.batch import Batch, run_batch
     from cuboidtrain.fit.chain import write_records
-    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.fit.fitter import Fitter, Writers
+    from cuboidtrain.fit.mesh import MeshWriter, check_mesh_options
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
@@ -184,6 +186,9 @@ def infer(
         if workers > 1 or cluster is not None:
             what = f"--workers {workers}" if cluster is None else f"--cluster {cluster}"
             raise UsageError(f"--explain with {what}: expected --workers 1 and no --cluster (pictures are drawn in one process)")
+    check_mesh_options(mesh, options.cuboid, cluster)
+    if mesh is not None:
+        check_writable("--mesh", mesh, folder=True)
     if cluster is not None:
         from cuboidtrain.fit.cluster import require_distributed
 
@@ -191,10 +196,11 @@ def infer(
     checkpoints = default_checkpoints(checkpoint, options.shapes)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
     inputs = gather_inputs(paths or [], from_list, glob)
-    explainer = make_explainer(explain, overlay, len(inputs))
     batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None,
                   cluster=cluster)
-    records, tally = run_batch(batch, fitter, console, explainer)
+    explainer = make_explainer(explain, overlay, len(inputs), batch.indexed())
+    mesher = MeshWriter(mesh, batch.indexed()) if mesh is not None else None
+    records, tally = run_batch(batch, fitter, console, Writers.of(explainer, mesher))
     if json_out == "-":
         typer.echo(json_text(records, indent=2))
     elif json_out is not None:
@@ -202,14 +208,18 @@ def infer(
     if explainer is not None:
         count = len(explainer.written)
         console.print(f"{count} picture{'' if count == 1 else 's'} in {explain}", highlight=False)
+    if mesher is not None:  # a pool's workers write their own: count the folder's then
+        count = len(mesher.written) if workers == 1 else sum(1 for _ in mesher.folder.glob("*.obj"))
+        console.print(f"{count} mesh{'' if count == 1 else 'es'} in {mesh}", highlight=False)
     if tally.failed:
         console.print(f"{tally.failed} of {tally.total} inputs have an error (see their records' \"error\" field)",
                       highlight=False)
         raise typer.Exit(1)
 
 
-def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
-    """The explanation writer for --explain/--overlay, or None; bad combinations are UsageErrors."""
+def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int, names: Optional[list[str]] = None):
+    """The explanation writer for --explain/--overlay, or None; bad combinations are UsageErrors.
+    `names`, the run's inputs in index order, fix the pictures' names."""
     if photos and folder is None:
         raise UsageError("--overlay needs --explain DIR: the folder its pictures go to")
     if photos and len(photos) != inputs:
@@ -220,7 +230,7 @@ def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int):
     check_writable("--explain", folder, folder=True)
     from cuboidtrain.fit.explain import Explainer  # matplotlib: only when pictures are wanted
 
-    return Explainer(folder, photos)
+    return Explainer(folder, photos, names)
 
 
 @app.command()

@@ -118,8 +118,8 @@ def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
 
 
 def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(tmp_path):
-    """With --cuboid the explanation's input tile shows where box and input disagree and the
-    networks' corners the box started from (a legend entry for each)."""
+    """With --cuboid the explanation has a tile of the networks' corners against the fitted box and
+    one of where box and input disagree, both ways (a legend entry, with a pixel count, for each)."""
     from cuboidtrain.fit.explain import explanation_figure
     import matplotlib.pyplot as plt
 
@@ -127,6 +127,11 @@ def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(t
     mask = cv2.imread("examples/building.png", cv2.IMREAD_UNCHANGED)
     fit = fitter.fit(mask)
     figure = explanation_figure(fit)
-    labels = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
+    titles = {ax.get_title().split("\n")[0]: ax for ax in figure.axes}
+    corners = [t.get_text() for t in titles["networks' corners -> the fitted cuboid"].get_legend().get_texts()]
+    residual = [t.get_text() for t in titles[f"silhouette residual, IoU {fit.cuboid.fit.iou:.3f}"].get_legend().get_texts()]
     plt.close(figure)
-    assert labels == ["input, not the box", "box, not the input", "networks' corners"]
+    assert "networks' corner -> fitted" in corners and "hidden corner (not on the outline)" in corners
+    assert [label.split(":")[0] for label in residual[:3]] == ["input, not the box", "box, not the input", "both"]
+    model_minus_input = int(residual[1].split(": ")[1].removesuffix(" px"))
+    assert model_minus_input > 1000  # the building's occluded holes, inside the box

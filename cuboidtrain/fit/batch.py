@@ -34,6 +34,11 @@ class Batch:
     keep: bool = True  # return the records (for --json's list); a city's run keeps none in memory
     cluster: str | None = None  # a Dask scheduler's address, or "local" (`workers` processes here); None: no cluster
 
+    def indexed(self) -> list[str]:
+        """The inputs a record's (and a per-fit writer's) index counts: each once with a record
+        store (it keys records by input, `unique`), else as given."""
+        return list(dict.fromkeys(self.inputs)) if self.jsonl else list(self.inputs)
+
 
 def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) -> tuple[list[dict], Tally]:
     """The records of the inputs in input order (when `batch.keep`) and the run's Tally."""

@@ -240,3 +240,21 @@ def draw(explain, index: int, path: str, fit: Fit) -> tuple[str, ...]:
         warning = no_explanation(exc)
         log.warning("%s: %s", path, warning)
         return (warning,)
+
+
+class Writers:
+    """Per-fit writers (an Explainer's pictures, a MeshWriter's files) as one `records` callback:
+    each called in turn, one's failure a warning that does not stop the next; all their warnings.
+    Picklable when they are: a `--workers` pool sends its workers a copy (pool.fit_groups)."""
+
+    def __init__(self, *writers: Callable[[int, str, Fit], Sequence[str]]):
+        self.writers = writers
+
+    @classmethod
+    def of(cls, *writers) -> "Writers | None":
+        """The writers given (None: not asked for) as one callback, or None when there are none."""
+        given = tuple(w for w in writers if w is not None)
+        return cls(*given) if given else None
+
+    def __call__(self, index: int, path: str, fit: Fit) -> tuple[str, ...]:
+        return tuple(warning for writer in self.writers for warning in draw(writer, index, path, fit))

@@ -83,3 +83,26 @@ def read_list(source: str) -> list[str]:
                              f"expected one mask path a line") from None
     lines = (line.strip() for line in text.splitlines())
     return [line for line in lines if line and not line.startswith("#")]
+
+
+class OutputNames:
+    """The file stem a per-input output (an `--explain` panel, a `--mesh` file) is named after:
+    the input's own stem; a later input of the same stem (a/x.png, b/x.png) gets `-input<index>`.
+
+    Given the run's inputs (in index order), the names are fixed up front, so every process of a
+    `--workers` run, and a resumed run, names an input alike; without them, the first input to
+    arrive with a stem takes it."""
+
+    def __init__(self, inputs: Sequence[str] | None = None):
+        self.stems: dict[str, int] = {}  # stem -> the input that took it
+        self.fixed: list[str] | None = None
+        if inputs is not None:
+            self.fixed = [self(index, path) for index, path in enumerate(inputs)]
+
+    def __call__(self, index: int, path: str) -> str:
+        if self.fixed is not None and index < len(self.fixed):
+            return self.fixed[index]
+        stem = Path(path).stem
+        if self.stems.setdefault(stem, index) != index:
+            stem = f"{stem}-input{index}"
+        return stem

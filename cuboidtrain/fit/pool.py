@@ -4,7 +4,8 @@ Fitter (models loaded once per worker) and one torch thread.
 `fit_groups` yields `(index, records)` per input as fits complete: in input order in this
 process, in completion order from a pool (the index says which input). Inputs go to the
 workers in chunks of `CHUNK`, at most two chunks a worker in flight, so a kill loses at most
-those and memory does not grow with the run.
+those and memory does not grow with the run. A per-fit writer (`explain`: `--mesh`'s files) goes
+to each worker as a pickled copy and writes there.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ CHUNK = 4  # inputs a task: at ~16 ms a mask, enough to hide the pickling, littl
 Group = tuple[int, list[dict]]  # (input index, its records)
 
 _fitter = None  # the worker's own Fitter, built once by `_start_worker`
+_explain = None  # and its per-fit writer (a pickled copy of the parent's: `--mesh`), or None
 
 
 def fit_one(fitter, index: int, path: str, explain: Callable | None = None) -> Group:
@@ -40,14 +42,14 @@ def fit_groups(jobs: Sequence[tuple[int, str]], fitter=None, checkpoints: Sequen
         for index, path in jobs:
             yield fit_one(fitter, index, path, explain)
         return
-    yield from _pooled(jobs, list(map(str, checkpoints)), options, workers)
+    yield from _pooled(jobs, list(map(str, checkpoints)), options, workers, explain)
 
 
-def _pooled(jobs, checkpoints, options, workers) -> Iterator[Group]:
+def _pooled(jobs, checkpoints, options, workers, explain: Callable | None = None) -> Iterator[Group]:
     chunks = [list(jobs[i:i + CHUNK]) for i in range(0, len(jobs), CHUNK)]
     context = get_context("spawn")  # fork after torch has threads is unsafe
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
-                             initargs=(checkpoints, options, os.getpid())) as pool:
+                             initargs=(checkpoints, options, os.getpid(), explain)) as pool:
         pending, queued = set(), iter(chunks)
         try:
             while True:
@@ -63,19 +65,20 @@ def _pooled(jobs, checkpoints, options, workers) -> Iterator[Group]:
                 future.cancel()
 
 
-def _start_worker(checkpoints: list[str], options: FitOptions, parent: int) -> None:
+def _start_worker(checkpoints: list[str], options: FitOptions, parent: int, explain: Callable | None = None) -> None:
     import logging
 
     import torch
 
     from cuboidtrain.fit.fitter import Fitter
 
-    global _fitter
+    global _fitter, _explain
     # A spawned worker writes to the terminal behind the parent's progress bar: on a 20,000-mask
     # run its warnings tore the bar every few lines. A fit's warnings are in its record: errors only here.
     logging.basicConfig(level=logging.ERROR, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)
     _fitter = Fitter.from_files(checkpoints, replace(options))
+    _explain = explain
     threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
 
 
@@ -87,4 +90,4 @@ def _exit_with(parent: int) -> None:
 
 
 def _fit_chunk(chunk: list[tuple[int, str]]) -> list[Group]:
-    return [fit_one(_fitter, index, path) for index, path in chunk]
+    return [fit_one(_fitter, index, path, _explain) for index, path in chunk]
