@@ -308,6 +308,7 @@ def localize_experiment(
     temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
     refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes, as infer."),
     margin: float = typer.Option(FIT.margin, help="Framing margin, as infer."),
+    cuboid: bool = typer.Option(FIT.cuboid, "--cuboid", help="The ratios of the perspective box fitted to each mask (infer --cuboid), not the Tabulator's."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="acc(m, l), one row per m."),
     heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figures 10-11's heat map of acc(m, l)."),
@@ -321,7 +322,7 @@ def localize_experiment(
     from cuboidtrain.fit.chain import load_models
 
     out = localize_setup(json_out, threads)
-    options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
+    options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device, cuboid=cuboid).validate()
     config = experiment.ExperimentConfig(
         buildings=buildings, max_m=max_m, top_l=top_l, seed=seed, streets=streets, scene=scene,
         mask_size=mask_size, oracle=oracle, oracle_noise=oracle_noise,

@@ -159,6 +159,7 @@ def run_experiment(config: ExperimentConfig, models: list[CuboidNet] | None = No
     return {
         "format": "cuboid-fit/localization-experiment", "version": 1,
         "settings": asdict(config) | {"refine_steps": options.refine_steps, "margin": options.margin,
+                                       "cuboid": options.cuboid,
                                        "checkpoints": list(checkpoints or []),
                                        "model": None if model is None else {"shape": model.shape, "size": model.size}},
         "m": list(range(1, config.max_m + 1)), "l": list(range(1, config.top_l + 1)),

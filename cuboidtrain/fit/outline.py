@@ -31,7 +31,7 @@ class MaskFitWeights:
     overhang: float = 0.5  # model outline over background (occlusion-tolerant, robust)
     robust_px: float = 3.0  # scale of the Cauchy-like saturation of the tolerant terms
     corners: float = 0.15  # pull of a confidence-1 network corner, per px
-    ratios: float = 0.3  # pull of log depth/height and log width/height toward the network's head
+    ratios: float = 1.0  # pull of log depth/height and log width/height toward the network's head
     samples_per_edge: int = 4
     max_boundary_points: int = 120
 
@@ -239,7 +239,7 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
 
 def fit_mask(mask: np.ndarray, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
              prior_ratios: np.ndarray | None = None, weights: MaskFitWeights = MaskFitWeights(),
-             starts: int = 2, iterations: int = 20) -> CuboidFit:
+             starts: int = 2, iterations: int = 12) -> CuboidFit:
     """Cuboid params that explain a binary mask (input resolution), started from the lift of the
     network corners (the `starts` best lift hypotheses) and pulled toward them by confidence.
     `prior_ratios` (the network's ratio head, `shape.ratio_names` order) anchors the extents the

@@ -33,8 +33,8 @@ INFINITE = 1e-9
 # Between INFINITE and this, a vanishing point is tried both as finite and as at infinity:
 # near-frontal views put it far out, where noisy corners fix it poorly.
 DOUBTFUL = 0.05
-LINE_STEPS = 25  # principal-point candidates on the line of two finite vanishing points
-FOCAL_STEPS = 25  # focal-length candidates (x the corners' mean radius) with one finite
+LINE_STEPS = 9  # principal-point candidates on the line of two finite vanishing points
+FOCAL_STEPS = 9  # focal-length candidates (x the corners' mean radius) with one finite
 KEEP = 3  # the best (intrinsics, signs) by the linear solve's residual become LM starts
 
 
