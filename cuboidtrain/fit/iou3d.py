@@ -19,10 +19,9 @@ import numpy as np
 
 # Corner i of a box has bit 0 for its x side, bit 1 for y, bit 2 for z (0: the - side).
 _SIGNS = np.array([[(i >> a) & 1 for a in range(3)] for i in range(8)], dtype=np.float64) - 0.5
-# Each face as 4 corner indices in cyclic order: the axis held, its side, then the other two bits walked round.
-_FACES = np.array([[next(i for i in range(8) if (i >> axis) & 1 == side and (i >> u) & 1 == bu and (i >> v) & 1 == bv)
-                    for bu, bv in ((0, 0), (1, 0), (1, 1), (0, 1))]
-                   for axis in range(3) for side in (0, 1) for u, v in [tuple(a for a in range(3) if a != axis)]])
+# Each face as 4 corner indices in cyclic order: the axis it holds at one side, the other two walked round.
+_FACES = np.array([[(side << axis) | (bu << u) | (bv << v) for bu, bv in ((0, 0), (1, 0), (1, 1), (0, 1))]
+                   for axis, u, v in ((0, 1, 2), (1, 2, 0), (2, 0, 1)) for side in (0, 1)])
 # Table 1's corner order (shared.shapes): index = 4 * FRONT + 2 * LEFT + BOTTOM.
 _TABLE1_LEFT, _TABLE1_BOTTOM, _TABLE1_FRONT = (np.array([(c >> b) & 1 for c in range(8)], dtype=bool) for b in (1, 0, 2))
 RELATIVE_TOLERANCE = 1e-9  # of the boxes' scale: the slack that makes coplanar faces count once
