@@ -14,7 +14,8 @@ mean corner error is then in 256 px units by construction. Beside it:
   depth/height and width/height relative errors of the record's ratios, the yaw error
   (degrees, modulo a half turn) and the 3D IoU of the box up to scale (Objectron's
   measure, the fit scaled about the camera so that its centre's depth is the truth's),
-  against the camera each sample was drawn with (its `params`). The networks-only
+  against the camera each sample was drawn with (its `params`), and the focal length's
+  relative error, which explains most of a low 3D IoU. The networks-only
   record has no box: its yaw and 3D IoU are those of its keypoints lifted
   (`cuboidtrain.fit.lift.lift`); `--cuboid`'s are its fitted box's;
 * shape selection (box against twobox, `--shape auto`) on the noisy sets;
@@ -43,7 +44,8 @@ The JSON (--json; also printed on one line after the tables):
   (fraction of the span), `depth_height_mean_rel` / `..._median_rel` and
   `width_height_mean_rel` / `..._median_rel` (|fit / true - 1|), `posed` (masks with a
   true camera), `yaw_mean_deg` / `yaw_median_deg` ([0, 90] degrees), `iou3d_mean` /
-  `iou3d_median` (in [0, 1]); networks rows without --no-eval add `eval_mean_256`,
+  `iou3d_median` (in [0, 1]), `focal_mean_rel` / `focal_median_rel` (|fit / true - 1|, over
+  the perspective fits); networks rows without --no-eval add `eval_mean_256`,
   `refiner_iou`, `s_peaks_dark_256`, `t_alone_256` and `skipped` (eval's);
 * `selection` (networks; set -> share of masks given their true shape), `cuboid_selection`
   (--cuboid); `mask_ms` (path -> set -> median ms a mask of the selection run);
@@ -250,11 +252,11 @@ def show(result: dict) -> None:
 
 
 def where_table(rows: list[dict]) -> Table:
-    """Where the error is: hull against interior corners (mean / median), NME, ratio, yaw and 3D IoU errors."""
+    """Where the error is: hull against interior corners (mean / median), NME, ratio, yaw, 3D IoU and focal errors."""
     table = Table(title="Where the error is (256 px units; ratios: relative error; yaw: degrees modulo a half turn; "
                         "3D IoU up to scale; mean / median; networks' yaw and 3D IoU: its keypoints lifted)")
     for column in ("set", "shape", "path", "all px", "hull px", "interior px", "interior share", "NME % span",
-                   "depth/height", "width/height", "yaw deg", "3D IoU"):
+                   "depth/height", "width/height", "yaw deg", "3D IoU", "focal"):
         table.add_column(column)
     for r in rows:
         table.add_row(r["set"], r["shape"], r["path"], f"{r['infer_mean_256']:.2f} / {r['infer_median_256']:.2f}",
@@ -264,7 +266,8 @@ def where_table(rows: list[dict]) -> Table:
                       f"{100 * r['depth_height_mean_rel']:.1f}% / {100 * r['depth_height_median_rel']:.1f}%",
                       f"{100 * r['width_height_mean_rel']:.1f}% / {100 * r['width_height_median_rel']:.1f}%",
                       f"{r['yaw_mean_deg']:.1f} / {r['yaw_median_deg']:.1f}",
-                      f"{r['iou3d_mean']:.3f} / {r['iou3d_median']:.3f}")
+                      f"{r['iou3d_mean']:.3f} / {r['iou3d_median']:.3f}",
+                      f"{100 * r['focal_mean_rel']:.0f}% / {100 * r['focal_median_rel']:.0f}%")
     return table
 
 

@@ -12,7 +12,8 @@ row: the same networks with random weights, on the very same samples.
 With `paths` (`cuboidtrain eval` always) it also scores the answer a user gets, per path,
 in each sample's own px (a 256 px spool's, whatever the model's size), against the
 sample's truth (`cuboidtrain.fit.where`: corners on the true hull against the hidden
-interior ones, NME as a share of the building's span, ratio, yaw and 3D IoU errors):
+interior ones, NME as a share of the building's span, ratio, yaw, 3D IoU and focal length
+errors):
 
 * `networks`: the chain's keypoints mapped back by the sample's framing, the Tabulator's
   ratios; it has no box, so its yaw and 3D IoU are those of its corners lifted
@@ -27,23 +28,23 @@ The networks run batched; the cuboid fits and the lifts then run one sample at a
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from dataclasses import replace
 from pathlib import Path
-
-import math
 
 import numpy as np
 import torch
 
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.train.data import SKIP_REASONS, Source, SpoolBatches, prepare_batch
+from cuboidtrain.fit.chain import Candidate
 from cuboidtrain.fit.cuboid import NonFiniteCuboid, fit_candidate
 from cuboidtrain.fit.fitter import Fitter, NonFiniteFit
 from cuboidtrain.fit.masks import silhouette
 from cuboidtrain.fit.where import CornerErrors, Truth, score, summarise
 from cuboidtrain.models.refine import mask_iou
-from cuboidtrain.models.networks import CuboidNet, build_model
+from cuboidtrain.models.networks import ChainOutput, CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
 from shared.errors import UsageError
 from shared.files import non_finite
@@ -133,7 +134,7 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float,
     return errors, score_paths(fitter, model, out, framed, batch["sources"])
 
 
-def score_paths(fitter: Fitter, model: CuboidNet, out, framed: np.ndarray,
+def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.ndarray,
                 sources: list[Source]) -> dict[str, list[CornerErrors | None]]:
     """Each path's scores (`where.score`) for the rows of one batch's chain output (`Fitter.predict`
     on the framed masks (B, S, S)); None where a path gave no answer (a non-finite output, a
@@ -153,7 +154,7 @@ def score_paths(fitter: Fitter, model: CuboidNet, out, framed: np.ndarray,
     return scored
 
 
-def _cuboid_score(candidate, source: Source, truth: Truth) -> CornerErrors | None:
+def _cuboid_score(candidate: Candidate, source: Source, truth: Truth) -> CornerErrors | None:
     """The cuboid of `candidate` fitted to its sample's own noisy mask, the building's pieces
     together (what `Fitter` fits: `masks.silhouette`), and scored; None if there is no fit."""
     mask = silhouette(source.sample.noisy)
@@ -320,7 +321,8 @@ def format_paths(paths: dict[str, dict]) -> list[str]:
             ("depth/height rel %", lambda f: pair(f, "depth_height", 100, 1, "_rel")),
             ("width/height rel %", lambda f: pair(f, "width_height", 100, 1, "_rel")),
             ("yaw error deg", lambda f: pair(f, "yaw", unit="_deg")),
-            ("3D IoU", lambda f: pair(f, "iou3d", digits=3))]
+            ("3D IoU", lambda f: pair(f, "iou3d", digits=3)),
+            ("focal length rel %", lambda f: pair(f, "focal", 100, 1, "_rel"))]
     names = list(paths)
     lines = ["paths        in the samples' own px, mean / median; networks' yaw and 3D IoU: its corners lifted",
              f"  {'':<22}" + "".join(f"{name:<20}" for name in names)]

@@ -235,7 +235,8 @@ def test_evaluate_honours_the_fit_options_margin(spool_of_another_size):
 # --- the paths a user gets: networks only against the cuboid fit ------------------------------------
 
 PATH_FIGURES = ("mean_px", "median_px", "hull_mean_px", "interior_mean_px", "nme_mean", "depth_height_mean_rel",
-                "width_height_mean_rel", "yaw_mean_deg", "yaw_median_deg", "iou3d_mean", "iou3d_median")
+                "width_height_mean_rel", "yaw_mean_deg", "yaw_median_deg", "iou3d_mean", "iou3d_median",
+                "focal_median_rel")
 
 
 def test_an_oracle_scores_both_paths_near_the_truth(box_spool, box_samples):

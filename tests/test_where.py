@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from cuboidtrain.fit.geometry import describe, from_sample_params, rotation_matrices, rotation_vector
-from cuboidtrain.fit.where import (Truth, camera_boxes, corner_errors, hull_corners, iou_up_to_scale, score,
-                                   solid_yaw_deg, summarise, yaw_error_deg)
+from cuboidtrain.fit.where import (Truth, camera_boxes, corner_errors, focal_error, hull_corners, iou_up_to_scale,
+                                   score, solid_yaw_deg, summarise, yaw_error_deg)
 from shared.shapes import get_shape
 
 RATIOS = {"depth_height": 0.5, "width_height": 2.0}
@@ -62,7 +62,7 @@ def test_the_truth_against_itself_has_no_yaw_error_and_a_3d_iou_of_one(shape, sc
     for view in _views(shape, scene, 10):
         truth = _truth(view)
         errors = score(view.keypoints, view.ratios, truth, truth.camera)
-        assert errors.yaw_deg == 0.0 and errors.iou3d == pytest.approx(1.0, abs=1e-7)
+        assert errors.yaw_deg == 0.0 and errors.iou3d == pytest.approx(1.0, abs=1e-7) and errors.focal == 0.0
         assert errors.hull.max() == 0 and errors.interior.max() == 0
 
 
@@ -104,6 +104,10 @@ def test_3d_iou_is_taken_at_the_truths_depth():
     weak = truth.vector.copy()
     weak[8] = 0.0  # an infinitely far camera: a point at the truth's depth
     assert iou_up_to_scale(replace(truth, vector=weak), truth) == 0.0
+    assert np.isnan(focal_error(replace(truth, vector=weak), truth))
+    farther = truth.vector.copy()
+    farther[7] += np.log(2.0)  # twice the px per height unit at the same depth: twice the focal length
+    assert focal_error(replace(truth, vector=farther), truth) == pytest.approx(1.0)
 
 
 def test_the_networks_corners_are_lifted_for_their_3d_figures():

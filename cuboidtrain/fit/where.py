@@ -25,6 +25,7 @@ networks' corners lifted by `lift.lift`: they have no box of their own) with the
   follows from its focal length and picture: an error of focal length shows as an error
   of size (a weak-perspective fit, infinitely far, is a point at the truth's depth: IoU 0).
   The centre is the solid's centroid (a twobox's parts weighted by volume).
+* focal length: its relative error, which explains most of a low 3D IoU (`focal_error`).
 """
 from __future__ import annotations
 
@@ -34,8 +35,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from cuboidtrain.fit.geometry import (CameraParams, canonical, euler_angles, from_sample_params, rotated_points,
-                                      rotation_matrices)
+from cuboidtrain.fit.geometry import (CameraParams, canonical, describe, euler_angles, from_sample_params,
+                                      rotated_points, rotation_matrices)
 from cuboidtrain.fit.iou3d import OrientedBox, union_iou
 from cuboidtrain.fit.lift import lift
 from shared.shapes import Shape, get_shape
@@ -61,6 +62,7 @@ class CornerErrors:
     width_height: np.ndarray
     yaw_deg: float = math.nan  # `yaw_error_deg`; NaN without a true camera
     iou3d: float = math.nan  # `iou_up_to_scale`; NaN without a true camera
+    focal: float = math.nan  # `focal_error`; NaN without a true camera, or for a weak-perspective fit
 
 
 @dataclass(frozen=True)
@@ -102,7 +104,17 @@ def score(keypoints: np.ndarray, ratios: dict, truth: Truth, camera: CameraParam
         return errors
     if camera is None:
         camera = lift(np.asarray(keypoints, dtype=np.float64), truth.shape).camera
-    return replace(errors, yaw_deg=yaw_error_deg(camera, truth.camera), iou3d=iou_up_to_scale(camera, truth.camera))
+    return replace(errors, yaw_deg=yaw_error_deg(camera, truth.camera), iou3d=iou_up_to_scale(camera, truth.camera),
+                   focal=focal_error(camera, truth.camera))
+
+
+def focal_error(camera: CameraParams, truth: CameraParams) -> float:
+    """|fitted focal length / true - 1|; NaN for a weak-perspective fit (infinitely long focal
+    length). What most often sinks the 3D IoU: a near-frontal view leaves the focal length and
+    the box's size across the view nearly free together (the size follows the focal length at
+    the truth's depth)."""
+    fitted = describe(camera, residual_px=0.0).focal_px
+    return abs(fitted / describe(truth, residual_px=0.0).focal_px - 1) if math.isfinite(fitted) else math.nan
 
 
 def solid_yaw_deg(camera: CameraParams) -> float:
@@ -152,8 +164,9 @@ def iou_up_to_scale(camera: CameraParams, truth: CameraParams) -> float:
 
 
 def summarise(errors: list[CornerErrors]) -> dict[str, float]:
-    """Means and medians over many fits (corners pooled; ratios pooled over parts; yaw and 3D
-    IoU over the fits that have them, `posed` counting those; NaN where there is none)."""
+    """Means and medians over many fits (corners pooled; ratios pooled over parts; yaw, 3D IoU
+    and focal length over the fits that have them, `posed` counting those with a true camera;
+    NaN where there is none)."""
     pooled = {name: np.concatenate([getattr(e, name) for e in errors]) if errors else np.zeros(0)
               for name in ("hull", "interior", "depth_height", "width_height")}
     nme = np.array([e.nme for e in errors])
@@ -164,10 +177,11 @@ def summarise(errors: list[CornerErrors]) -> dict[str, float]:
     out["nme_mean"], out["nme_median"] = _mean_median(nme)
     for name in ("depth_height", "width_height"):
         out[f"{name}_mean_rel"], out[f"{name}_median_rel"] = _mean_median(pooled[name])
-    yaw, iou3d = (np.array([getattr(e, name) for e in errors]) for name in ("yaw_deg", "iou3d"))
+    yaw, iou3d, focal = (np.array([getattr(e, name) for e in errors]) for name in ("yaw_deg", "iou3d", "focal"))
     out["posed"] = int(np.isfinite(iou3d).sum())
     out["yaw_mean_deg"], out["yaw_median_deg"] = _mean_median(yaw[np.isfinite(yaw)])
     out["iou3d_mean"], out["iou3d_median"] = _mean_median(iou3d[np.isfinite(iou3d)])
+    out["focal_mean_rel"], out["focal_median_rel"] = _mean_median(focal[np.isfinite(focal)])
     return out
 
 
