@@ -10,8 +10,14 @@ mean corner error is then in 256 px units by construction. Beside it:
   and the error budget they carry: R's IoU, S's peak error (DARK on S's maps
   against the truth), T alone on true heat maps, and the whole chain;
 * where the error is (`cuboidtrain.fit.where`): corners on the true silhouette's hull
-  against the hidden interior ones, NME as a share of the building's image span, and
-  the depth/height and width/height relative errors of the record's ratios;
+  against the hidden interior ones, NME as a share of the building's image span, the
+  depth/height and width/height relative errors of the record's ratios, the yaw error
+  (degrees, modulo a half turn) and the 3D IoU of the box up to scale (Objectron's
+  measure, the fit scaled about the camera so that its centre's depth is the truth's),
+  against the camera each sample was drawn with (its `params`), and the focal length's
+  relative error, which explains most of a low 3D IoU. The networks-only
+  record has no box: its yaw and 3D IoU are those of its keypoints lifted
+  (`cuboidtrain.fit.lift.lift`); `--cuboid`'s are its fitted box's;
 * shape selection (box against twobox, `--shape auto`) on the noisy sets;
 * the whole `infer` path's latency per mask (median of --latency-repeats single-mask
   calls, both models, the shape chosen), with the `paper` arch at the same size as the
@@ -24,6 +30,26 @@ and the median ms per mask of the selection run (both models, both cuboid fits).
     .venv/bin/python benchmarks/bench_accuracy.py --samples 300 --json bench-accuracy.json
 
 Spools are drawn on first use under --spools (seeded, so every run scores the same masks).
+
+The JSON (--json; also printed on one line after the tables):
+
+* `command`, `models` (shape -> checkpoint), `threads`, `targets` (set -> mean px bound,
+  `selection`, `latency_ms`);
+* `rows`: networks only, one per (set, shape); `cuboid_rows` (--cuboid): the same keys for
+  `infer --cuboid`. Each row: `set`, `shape`, `path`, `samples`, `size` (model px);
+  `infer_mean_256` / `infer_median_256` (mean / median over masks of the per-mask mean
+  corner error, 256 px units); `failed` (error records); from `where.summarise`, over the
+  masks that did not fail: `hull_mean_px` / `hull_median_px` and `interior_mean_px` /
+  `interior_median_px` (corners pooled), `interior_share`, `nme_mean` / `nme_median`
+  (fraction of the span), `depth_height_mean_rel` / `..._median_rel` and
+  `width_height_mean_rel` / `..._median_rel` (|fit / true - 1|), `posed` (masks with a
+  true camera), `yaw_mean_deg` / `yaw_median_deg` ([0, 90] degrees), `iou3d_mean` /
+  `iou3d_median` (in [0, 1]), `focal_mean_rel` / `focal_median_rel` (|fit / true - 1|, over
+  the perspective fits); networks rows without --no-eval add `eval_mean_256`,
+  `refiner_iou`, `s_peaks_dark_256`, `t_alone_256` and `skipped` (eval's);
+* `selection` (networks; set -> share of masks given their true shape), `cuboid_selection`
+  (--cuboid); `mask_ms` (path -> set -> median ms a mask of the selection run);
+* `latency`: `shipped_ms`, `paper_arch_ms`, `ratio`, and `cuboid_ms` with --cuboid.
 """
 from __future__ import annotations
 
@@ -49,8 +75,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import build_model
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.models.zoo import default_checkpoints
-from cuboidtrain.fit.where import corner_errors as split_errors, summarise
-from shared.shapes import get_shape
+from cuboidtrain.fit.where import Truth, score, summarise
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 
@@ -73,36 +98,48 @@ def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
     return spool
 
 
-def write_masks(spool: Path, samples: int, folder: Path) -> tuple[list[str], list[np.ndarray], list[str], list[dict]]:
-    """The first `samples` samples' noisy masks as PNGs: their paths, true keypoints, shapes and ratios."""
-    paths, truths, shapes, ratios = [], [], [], []
+def write_masks(spool: Path, samples: int, folder: Path) -> tuple[list[str], list[Truth]]:
+    """The first `samples` samples' noisy masks as PNGs: their paths, and their truths (keypoints,
+    ratios, camera)."""
+    paths, truths = [], []
     for name in enumerate_spool(spool)[:samples]:
         sample = decode(read_sample_bytes(spool, name))
         path = folder / f"{spool.name}-{len(paths):04d}.png"
         cv2.imwrite(str(path), sample.noisy.astype(np.uint8) * 255)
         paths.append(str(path))
-        truths.append(sample.keypoints)
-        shapes.append(sample.shape)
-        ratios.append(sample.ratios)
-    return paths, truths, shapes, ratios
+        truths.append(Truth.of_sample(sample))
+    return paths, truths
 
 
-def corner_errors(records: list[dict], truths: list[np.ndarray]) -> list[float]:
+def fit_records(fitter: Fitter, files: list[str]) -> tuple[list[dict], list]:
+    """`infer`'s records (`Fitter.records`) and the Fits behind them, None for an error record: a
+    cuboid's camera, which the 3D figures need, is in its Fit, not in the record. The Fits are
+    caught through `records`' per-fit hook (`explain`), which adds no warning here."""
+    fits = [None] * len(files)
+
+    def keep(index: int, path: str, fit) -> tuple[str, ...]:
+        fits[index] = fit
+        return ()
+
+    return fitter.records(files, explain=keep), fits
+
+
+def corner_errors(records: list[dict], truths: list[Truth]) -> list[float]:
     """Mean corner error per record, in the input's px (256 px units here); a failed record is NaN."""
     errors = []
     for record, truth in zip(records, truths):
         if record["error"] is not None:
             errors.append(float("nan"))
             continue
-        errors.append(float(np.linalg.norm(np.asarray(record["keypoints"]) - truth, axis=1).mean()))
+        errors.append(float(np.linalg.norm(np.asarray(record["keypoints"]) - truth.keypoints, axis=1).mean()))
     return errors
 
 
-def where_figures(shape: str, records: list[dict], truths: list[np.ndarray], ratios: list[dict]) -> dict:
-    """Hull / interior corner error, NME and ratio errors of the records that did not fail."""
-    geometry = get_shape(shape)
-    return summarise([split_errors(geometry, np.asarray(r["keypoints"]), t, r["ratios"], q)
-                      for r, t, q in zip(records, truths, ratios) if r["error"] is None])
+def where_figures(records: list[dict], fits: list, truths: list[Truth]) -> dict:
+    """Hull / interior corner error, NME, ratio, yaw and 3D IoU errors of the records that did not
+    fail: a cuboid record's 3D box is its fit's, a networks-only record's its keypoints lifted."""
+    return summarise([score(np.asarray(r["keypoints"]), r["ratios"], t, None if f.cuboid is None else f.cuboid.fit.camera)
+                      for r, f, t in zip(records, fits, truths) if r["error"] is None])
 
 
 def eval_figures(model, spool: Path, samples: int) -> dict:
@@ -151,12 +188,12 @@ def main() -> None:
                 chosen, total, times = 0, 0, []
                 for shape, model in models.items():
                     spool = spool_for(args.spools, shape, scene, args.samples)
-                    files, truths, _, true_ratios = write_masks(spool, args.samples, Path(tmp))
-                    records = Fitter([model], replace(options, shape=shape)).records(files)
+                    files, truths = write_masks(spool, args.samples, Path(tmp))
+                    records, fits = fit_records(Fitter([model], replace(options, shape=shape)), files)
                     errors = corner_errors(records, truths)
                     row = {"set": scene, "shape": shape, "path": variant, "samples": len(files), "size": model.size,
                            "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
-                           "failed": int(np.isnan(errors).sum())} | where_figures(shape, records, truths, true_ratios)
+                           "failed": int(np.isnan(errors).sum())} | where_figures(records, fits, truths)
                     if not args.no_eval and variant == "networks":
                         row |= eval_figures(model, spool, args.samples)
                     rows.append(row)
@@ -215,10 +252,11 @@ def show(result: dict) -> None:
 
 
 def where_table(rows: list[dict]) -> Table:
-    """Where the error is: hull against interior corners (mean / median), NME, ratio errors."""
-    table = Table(title="Where the error is (256 px units; ratios: relative error, mean / median)")
+    """Where the error is: hull against interior corners (mean / median), NME, ratio, yaw, 3D IoU and focal errors."""
+    table = Table(title="Where the error is (256 px units; ratios: relative error; yaw: degrees modulo a half turn; "
+                        "3D IoU up to scale; mean / median; networks' yaw and 3D IoU: its keypoints lifted)")
     for column in ("set", "shape", "path", "all px", "hull px", "interior px", "interior share", "NME % span",
-                   "depth/height", "width/height"):
+                   "depth/height", "width/height", "yaw deg", "3D IoU", "focal"):
         table.add_column(column)
     for r in rows:
         table.add_row(r["set"], r["shape"], r["path"], f"{r['infer_mean_256']:.2f} / {r['infer_median_256']:.2f}",
@@ -226,7 +264,10 @@ def where_table(rows: list[dict]) -> Table:
                       f"{r['interior_mean_px']:.2f} / {r['interior_median_px']:.2f}", f"{100 * r['interior_share']:.0f}%",
                       f"{100 * r['nme_mean']:.2f} / {100 * r['nme_median']:.2f}",
                       f"{100 * r['depth_height_mean_rel']:.1f}% / {100 * r['depth_height_median_rel']:.1f}%",
-                      f"{100 * r['width_height_mean_rel']:.1f}% / {100 * r['width_height_median_rel']:.1f}%")
+                      f"{100 * r['width_height_mean_rel']:.1f}% / {100 * r['width_height_median_rel']:.1f}%",
+                      f"{r['yaw_mean_deg']:.1f} / {r['yaw_median_deg']:.1f}",
+                      f"{r['iou3d_mean']:.3f} / {r['iou3d_median']:.3f}",
+                      f"{100 * r['focal_mean_rel']:.0f}% / {100 * r['focal_median_rel']:.0f}%")
     return table
 
 

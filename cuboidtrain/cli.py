@@ -112,15 +112,17 @@ def evaluate(
     extractor: ExtractorChoice = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP),
     pdm_components: str = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP),
     refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes before S (as in infer)."),
+    cuboid: bool = typer.Option(False, "--cuboid", help="Also fit each sample's cuboid (as infer --cuboid) and score both paths side by side: networks only and cuboid."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
-    """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's."""
+    """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's; then
+    where the error is, per path, in the samples' own px: hull and interior corners, NME, ratio, yaw and 3D IoU."""
     from cuboidtrain.evaluate import evaluate_checkpoint, format_report
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
     options = FitOptions(refine_steps=refine_steps, extractor=extractor.value, pdm_components=pdm_components,
-                         device=device).validate()
+                         device=device, cuboid=cuboid).validate()
     checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
     result = evaluate_checkpoint(checkpoint, spool, options, batch_size=batch_size, max_samples=max_samples)
     typer.echo(json_text(result, indent=2) if as_json else format_report(result))

@@ -8,20 +8,43 @@ keypoints) it reports the median, PCK, the ratios' error, the Refiner's IoU and
 the Tabulator alone on rendered heat maps x3, so a bad number can be traced to
 the network that caused it. `evaluate_checkpoint` adds the paper's reference
 row: the same networks with random weights, on the very same samples.
+
+With `paths` (`cuboidtrain eval` always) it also scores the answer a user gets, per path,
+in each sample's own px (a 256 px spool's, whatever the model's size), against the
+sample's truth (`cuboidtrain.fit.where`: corners on the true hull against the hidden
+interior ones, NME as a share of the building's span, ratio, yaw, 3D IoU and focal length
+errors):
+
+* `networks`: the chain's keypoints mapped back by the sample's framing, the Tabulator's
+  ratios; it has no box, so its yaw and 3D IoU are those of its corners lifted
+  (`cuboidtrain.fit.lift.lift`);
+* `cuboid`, with FitOptions(cuboid=True) (`eval --cuboid`): the cuboid fitted to the
+  sample's own noisy mask from the same batch row (`Fitter.candidate`, then
+  `cuboid.fit_candidate`, as `infer --cuboid` fits a mask).
+
+The networks run batched; the cuboid fits and the lifts then run one sample at a time
+(each fit is batched over its own starts inside the solver).
 """
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.train.data import SKIP_REASONS, SpoolBatches, prepare_batch
-from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.train.data import SKIP_REASONS, Source, SpoolBatches, prepare_batch
+from cuboidtrain.fit.chain import Candidate
+from cuboidtrain.fit.cuboid import NonFiniteCuboid, fit_candidate
+from cuboidtrain.fit.fitter import Fitter, NonFiniteFit
+from cuboidtrain.fit.masks import silhouette
+from cuboidtrain.fit.where import CornerErrors, Truth, score, summarise
 from cuboidtrain.models.refine import mask_iou
-from cuboidtrain.models.networks import CuboidNet, build_model
+from cuboidtrain.models.networks import ChainOutput, CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
 from shared.errors import UsageError
 from shared.files import non_finite
@@ -32,6 +55,7 @@ from shared.spool import check_spool, enumerate_spool, read_sample_bytes
 log = logging.getLogger(__name__)
 
 PCK_THRESHOLDS = (0.5, 1.0, 2.0, 5.0)  # px
+PATHS = ("networks", "cuboid")
 
 
 def keypoint_errors(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
@@ -42,15 +66,17 @@ def keypoint_errors(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 
 
 def load_batches(spool: Path, shape: str, size: int, batch_size: int, max_samples: int | None,
-                 margin: float = DEFAULT_MARGIN) -> tuple[list[dict], dict[str, int]]:
+                 margin: float = DEFAULT_MARGIN, keep_sources: bool = False) -> tuple[list[dict], dict[str, int]]:
     """The first `max_samples` samples of this shape, in name order, as packed batches; samples of
     another size are framed at `size` as `infer` frames a mask, with `margin` (so a 256 px spool
-    serves any model).
+    serves any model). `keep_sources`: each batch also holds its samples as read and their
+    framings (`sources`, what `paths` scores against).
 
     Read once and kept, so two models can be evaluated on the very same samples
     even while a generator evicts from the spool. Returns the skip counts too.
     """
-    reader, names = SpoolBatches(spool, shape, size, reframe="other-sizes", margin=margin), enumerate_spool(spool)
+    reader = SpoolBatches(spool, shape, size, reframe="other-sizes", margin=margin, keep_sources=keep_sources)
+    names = enumerate_spool(spool)
     wanted = len(names) if max_samples is None else max_samples
     batches, skipped, kept, position = [], dict.fromkeys(SKIP_REASONS, 0), 0, 0
     while kept < wanted and position < len(names):
@@ -85,33 +111,78 @@ def _nothing_to_evaluate(spool: Path, shape: str, size: int, names: list[str]) -
 
 
 @torch.inference_mode()
-def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float) -> dict[str, torch.Tensor]:
+def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float,
+                   paths: bool = False) -> tuple[dict[str, torch.Tensor], dict[str, list]]:
     """Per-sample errors of one batch, on the CPU, the keypoints read as the Fitter reads them
-    (T's, or its extractor's off S's heat maps)."""
+    (T's, or its extractor's off S's heat maps); with `paths`, each path's scores too."""
     x = prepare_batch(batch, fitter.device, sigma, model.size)
     out = fitter.predict(model, x["x1"])  # the chain as infer runs it
     t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
     decoded_alone = fitter.codecs[model.shape].decode(x["x3"], t_alone).keypoints  # the extractor on perfect maps
-    return {
+    errors = {
         "keypoint": keypoint_errors(out.keypoints, x["x4"]).cpu(),  # (B, N)
         "ratio": (out.ratios.float() - x["ratios"]).abs().cpu(),  # (B, R)
         "iou": mask_iou(out.refined, x["x2"]).cpu(),  # (B,)
         "tabulator": keypoint_errors(t_alone, x["x4"]).cpu(),  # (B, N)
         "extractor": keypoint_errors(decoded_alone, x["x4"]).cpu(),  # (B, N)
     }
+    if not paths:
+        return errors, {}
+    if "sources" not in batch:
+        raise ValueError("scoring the paths needs the samples as read: load_batches(..., keep_sources=True)")
+    framed = (x["x1"][:, 0] > 0).cpu().numpy()
+    return errors, score_paths(fitter, model, out, framed, batch["sources"])
 
 
-def measure(model: CuboidNet, batches: list[dict], sigma: float,
-            options: FitOptions | None = None) -> dict[str, torch.Tensor]:
+def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.ndarray,
+                sources: list[Source]) -> dict[str, list[CornerErrors | None]]:
+    """Each path's scores (`where.score`) for the rows of one batch's chain output (`Fitter.predict`
+    on the framed masks (B, S, S)); None where a path gave no answer (a non-finite output, a
+    failed cuboid fit). `cuboid` only with the Fitter's options' `cuboid`."""
+    scored: dict[str, list] = {name: [] for name in PATHS[: 2 if fitter.options.cuboid else 1]}
+    for row, source in enumerate(sources):
+        truth = Truth.of_sample(source.sample)
+        try:
+            candidate = fitter.candidate(model, out, row, framed[row], source.framing)
+        except NonFiniteFit:
+            for answers in scored.values():
+                answers.append(None)
+            continue
+        scored["networks"].append(score(source.framing.to_input(candidate.keypoints), candidate.ratios, truth))
+        if fitter.options.cuboid:
+            scored["cuboid"].append(_cuboid_score(candidate, source, truth))
+    return scored
+
+
+def _cuboid_score(candidate: Candidate, source: Source, truth: Truth) -> CornerErrors | None:
+    """The cuboid of `candidate` fitted to its sample's own noisy mask, the building's pieces
+    together (what `Fitter` fits: `masks.silhouette`), and scored; None if there is no fit."""
+    mask = silhouette(source.sample.noisy)
+    if mask is None:
+        return None
+    try:
+        fitted = fit_candidate(candidate, mask)
+    except NonFiniteCuboid:
+        return None
+    return score(fitted.fit.keypoints, fitted.fit.ratios, truth, fitted.fit.camera)
+
+
+def measure(model: CuboidNet, batches: list[dict], sigma: float, options: FitOptions | None = None,
+            paths: bool = False) -> dict:
     """Per-sample errors over all batches (keypoint (S, N) px, ratio (S, R), iou (S,), ...), in
-    the batches' order; the model's train/eval mode is restored afterwards."""
+    the batches' order; with `paths` (batches read with their sources), `paths` too: each path's
+    list of `where.CornerErrors` (None where it gave no answer). The model's train/eval mode is
+    restored afterwards."""
     was_training = model.training
     fitter = Fitter([model], options)  # on the options' device, in eval mode: BatchNorm on running statistics
     try:
-        parts = [_measure_batch(fitter, model, batch, sigma) for batch in batches]
+        parts = [_measure_batch(fitter, model, batch, sigma, paths) for batch in batches]
     finally:
         model.train(was_training)  # a trainer that validates mid-run keeps training in train mode
-    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+    errors = {key: torch.cat([p[0][key] for p in parts]) for key in parts[0][0]}
+    if paths:
+        errors["paths"] = {name: [e for p in parts for e in p[1][name]] for name in parts[0][1]}
+    return errors
 
 
 def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict:
@@ -130,9 +201,26 @@ def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict:
     }
 
 
+def summarise_paths(scored: dict[str, list[CornerErrors | None]]) -> dict[str, dict]:
+    """Per path: samples, failed (no answer), corner mean / median px (all corners pooled) and
+    `where.summarise`'s figures; a figure without data (no interior corner, no answer) is None."""
+    result = {}
+    for name, errors in scored.items():
+        answered = [e for e in errors if e is not None]
+        corners = np.concatenate([np.concatenate([e.hull, e.interior]) for e in answered]) if answered else np.zeros(0)
+        figures = {"samples": len(errors), "failed": len(errors) - len(answered),
+                   "mean_px": float(corners.mean()) if len(corners) else math.nan,
+                   "median_px": float(np.median(corners)) if len(corners) else math.nan} | summarise(answered)
+        result[name] = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in figures.items()}
+    return result
+
+
 def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | None = None,
-             batch_size: int = 32, max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS) -> dict:
-    """Metrics of `model` on the first `max_samples` samples of its shape and size in `spool`.
+             batch_size: int = 32, max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS,
+             paths: bool = False) -> dict:
+    """Metrics of `model` on the first `max_samples` samples of its shape and size in `spool`;
+    with `paths`, each path's figures in the samples' own px (`paths`: networks, and cuboid
+    with `options.cuboid`).
 
     Samples of another shape or size, corrupt or vanished ones are skipped and
     counted. ValueError when none is left, naming what the spool holds instead.
@@ -140,18 +228,20 @@ def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | 
     options = (options or FitOptions()).validate()
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
-    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples, options.margin)
-    return report(model, batches, skipped, sigma, options, pck_thresholds)
+    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples, options.margin, paths)
+    return report(model, batches, skipped, sigma, options, pck_thresholds, paths)
 
 
 def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, options: FitOptions | None = None,
-           thresholds=PCK_THRESHOLDS) -> dict:
-    """The metrics of `model` on batches already read (`load_batches`)."""
+           thresholds=PCK_THRESHOLDS, paths: bool = False) -> dict:
+    """The metrics of `model` on batches already read (`load_batches`; with `keep_sources` for `paths`)."""
     options = (options or FitOptions()).validate()
-    errors = measure(model, batches, sigma, options)
+    errors = measure(model, batches, sigma, options, paths)
     result = {"shape": model.shape, "size": model.size, "sigma": sigma, "samples": len(errors["iou"]),
               "extractor": options.extractor, "refine_steps": options.refine_steps, "skipped": skipped}
     result.update(_summarise(errors, model.shape, thresholds))
+    if paths:
+        result["paths"] = summarise_paths(errors["paths"])
     if (found := non_finite(result)) is not None:  # never a nan in a table or a JSON as if it were a figure
         raise UsageError(f"evaluation of the {model.shape} model: {found[0]} is {found[1]}: its outputs are not "
                          f"finite (its weights are a diverged training's?); no metric to report")
@@ -166,17 +256,18 @@ def _check_counts(batch_size: int, max_samples: int | None) -> None:
 
 
 def evaluate_checkpoint(checkpoint: Path, spool: Path, options: FitOptions | None = None, batch_size: int = 32,
-                        max_samples: int | None = None, random_init_seed: int = 0) -> dict:
-    """`evaluate` for a saved model, plus Table 3's reference row: random weights on the same samples."""
+                        max_samples: int | None = None, random_init_seed: int = 0, paths: bool = True) -> dict:
+    """`evaluate` for a saved model (with `paths`), plus Table 3's reference row: random weights on
+    the same samples (its figures only)."""
     options = (options or FitOptions()).validate()  # before the model and the spool are read
     model, ckpt = load_model(checkpoint)
     spool = check_spool(spool)
     _check_counts(batch_size, max_samples)
-    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples, options.margin)
-    result = report(model, batches, skipped, ckpt["sigma"], options)
+    batches, skipped = load_batches(spool, model.shape, model.size, batch_size, max_samples, options.margin, paths)
+    result = report(model, batches, skipped, ckpt["sigma"], options, paths=paths)
     random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"], arch=model.arch)
     random_model.pdm = model.pdm  # the same shape model: only the networks' weights differ
-    baseline = report(random_model, batches, skipped, ckpt["sigma"], options)
+    baseline = report(random_model, batches, skipped, ckpt["sigma"], replace(options, cuboid=False))
     result.update({
         "random_init_mean_px_error": baseline["mean_px_error"],
         "random_init_median_px_error": baseline["median_px_error"],
@@ -211,4 +302,29 @@ def format_report(result: dict) -> str:
     lines += [f"  {name:<22} {err:.4f}" for name, err in result["per_ratio_error"].items()]
     lines.append("per keypoint (px)")
     lines += [f"  {name:<22} {err:.3f}" for name, err in result["per_keypoint_px_error"].items()]
+    if "paths" in result:
+        lines += format_paths(result["paths"])
     return "\n".join(lines)
+
+
+def format_paths(paths: dict[str, dict]) -> list[str]:
+    """The paths side by side: mean / median of each figure (`summarise_paths`)."""
+    def pair(figures, key, scale=1.0, digits=2, unit=""):
+        mean, median = figures[f"{key}_mean{unit}"], figures[f"{key}_median{unit}"]
+        return "-" if mean is None else f"{scale * mean:.{digits}f} / {scale * median:.{digits}f}"
+
+    rows = [("answered", lambda f: f"{f['samples'] - f['failed']} of {f['samples']}"),
+            ("corners px", lambda f: "-" if f["mean_px"] is None else f"{f['mean_px']:.2f} / {f['median_px']:.2f}"),
+            ("hull corners px", lambda f: pair(f, "hull", unit="_px")),
+            ("interior corners px", lambda f: pair(f, "interior", unit="_px")),
+            ("NME % of span", lambda f: pair(f, "nme", 100)),
+            ("depth/height rel %", lambda f: pair(f, "depth_height", 100, 1, "_rel")),
+            ("width/height rel %", lambda f: pair(f, "width_height", 100, 1, "_rel")),
+            ("yaw error deg", lambda f: pair(f, "yaw", unit="_deg")),
+            ("3D IoU", lambda f: pair(f, "iou3d", digits=3)),
+            ("focal length rel %", lambda f: pair(f, "focal", 100, 1, "_rel"))]
+    names = list(paths)
+    lines = ["paths        in the samples' own px, mean / median; networks' yaw and 3D IoU: its corners lifted",
+             f"  {'':<22}" + "".join(f"{name:<20}" for name in names)]
+    lines += [f"  {label:<22}" + "".join(f"{show(paths[name]):<20}" for name in names) for label, show in rows]
+    return lines

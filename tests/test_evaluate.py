@@ -1,6 +1,7 @@
 """Evaluation: the metric functions on hand-made values, and `evaluate` on tiny spools."""
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -229,3 +230,48 @@ def test_evaluate_honours_the_fit_options_margin(spool_of_another_size):
                                options=FitOptions(device="cpu", margin=margin))["mean_px_error"]
               for margin in (0.1, 0.3)}
     assert errors[0.1] != errors[0.3]  # another framing, other inputs, other answers
+
+
+# --- the paths a user gets: networks only against the cuboid fit ------------------------------------
+
+PATH_FIGURES = ("mean_px", "median_px", "hull_mean_px", "interior_mean_px", "nme_mean", "depth_height_mean_rel",
+                "width_height_mean_rel", "yaw_mean_deg", "yaw_median_deg", "iou3d_mean", "iou3d_median",
+                "focal_median_rel")
+
+
+def test_an_oracle_scores_both_paths_near_the_truth(box_spool, box_samples):
+    oracle = Oracle(box_samples, "box", SIZE)
+    result = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu", cuboid=True), batch_size=4,
+                      paths=True)
+    networks, cuboid = result["paths"]["networks"], result["paths"]["cuboid"]
+    assert networks["samples"] == cuboid["samples"] == 6 and networks["failed"] == 0
+    assert networks["mean_px"] == pytest.approx(0, abs=1e-5)  # the truth's corners, back in the sample's px
+    assert networks["posed"] == 6 and networks["yaw_median_deg"] < 0.01 and networks["iou3d_median"] > 0.999
+    assert cuboid["failed"] == 0 and cuboid["median_px"] < 2.0  # the cuboid fitted to the noisy mask from there
+    assert all(isinstance(cuboid[k], float) and math.isfinite(cuboid[k]) for k in PATH_FIGURES)
+    without = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu"), paths=True)
+    assert list(without["paths"]) == ["networks"]  # the cuboid path only where the options ask for it
+    assert "paths" not in evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu"))
+
+
+def test_eval_cuboid_reports_both_paths_with_finite_numbers(tmp_path):
+    from typer.testing import CliRunner
+
+    from cuboidtrain.cli import app
+    from tests.conftest import fill_spool
+
+    spool = tmp_path / "spool"
+    fill_spool(spool, 5, size=48)  # framed at the model's 32 px as infer frames a mask; scored in their own 48 px
+    config = train_config(shape="box", size=SIZE, steps=1, sigma=1.5)
+    checkpoint = save_checkpoint(tmp_path / "model.pt", tiny_model("box", SIZE, seed=2), config, step=1)
+    args = ["eval", "--spool", str(spool), "--checkpoint", str(checkpoint), "--device", "cpu", "--cuboid"]
+    result = CliRunner().invoke(app, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    paths = json.loads(result.output)["paths"]
+    assert list(paths) == ["networks", "cuboid"]
+    for figures in paths.values():
+        assert figures["samples"] == 5 and figures["posed"] == 5 - figures["failed"]
+        assert all(isinstance(figures[k], float) and math.isfinite(figures[k]) for k in PATH_FIGURES), figures
+        assert 0 <= figures["iou3d_mean"] <= 1 and 0 <= figures["yaw_mean_deg"] <= 90
+    table = CliRunner().invoke(app, args)
+    assert table.exit_code == 0 and "3D IoU" in table.output and "cuboid" in table.output, table.output

@@ -199,21 +199,27 @@ class Fitter:
         if framed_mask.shape != (model.size, model.size):
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
         x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
-        out = self.predict(model, x1)
-        keypoints = out.keypoints[0].double().cpu().numpy()
+        return self.candidate(model, self.predict(model, x1), 0, framed_mask, framing)
+
+    def candidate(self, model: CuboidNet, out: ChainOutput, row: int, framed_mask: np.ndarray,
+                  framing: Framing | None = None) -> Candidate:
+        """Row `row` of the chain's output for a batch of framed masks (`predict`) -> its Candidate,
+        as `fit_framed` makes it for one mask (`eval` runs the networks batched, then fits each
+        row's cuboid from here). NonFiniteFit where that row's output is not finite."""
+        keypoints = out.keypoints[row].double().cpu().numpy()
         geometry = get_shape(model.shape)
-        if not (np.isfinite(keypoints).all() and torch.isfinite(out.ratios[0]).all()):
+        if not (np.isfinite(keypoints).all() and torch.isfinite(out.ratios[row]).all()):
             raise NonFiniteFit(f"the {model.shape} model's output is not finite (NaN or Infinity in its keypoints or "
                                f"ratios): its weights are a diverged training's, or the mask broke it; no fit")
         return Candidate(
             shape=model.shape,
             keypoints=keypoints,
-            ratios=geometry.ratio_dict(out.ratios[0].cpu().tolist()),
+            ratios=geometry.ratio_dict(out.ratios[row].cpu().tolist()),
             confidence=confidence(geometry, keypoints, framed_mask),
             refine_steps=out.refine_steps,
             refine_converged=out.refine_converged,
-            refined=out.refined[0, 0].float().cpu().numpy(),
-            heatmaps=out.heatmaps[0].float().cpu().numpy(),
+            refined=out.refined[row, 0].float().cpu().numpy(),
+            heatmaps=out.heatmaps[row].float().cpu().numpy(),
             framed=framed_mask,
             framing=framing,
         )

@@ -1,19 +1,45 @@
 """Where a fit's error is (the issue "A real cuboid", Must have 7): corner error split into
 the corners the true outline shows (vertices of the true silhouette's convex hull) and the
-interior ones it hides, NME as a share of the building's image span, and the relative
-error of depth/height and width/height.
+interior ones it hides, NME as a share of the building's image span, the relative error of
+depth/height and width/height, the yaw error and the 3D IoU of the box up to scale.
 
 Hidden corners carry most of the error (measured on main, 25 box masks a scene: hull
 3.0-9.2 px mean, interior 10.3-21.5 px), so one mean hides where a fit can improve.
+
+The 3D figures compare a fitted camera (`geometry.CameraParams`: a cuboid fit's own, or the
+networks' corners lifted by `lift.lift`: they have no box of their own) with the truth's
+(`geometry.from_sample_params` of a generated sample's `params`):
+
+* yaw: the record's `yaw_deg` (`geometry.describe`: the camera-frame rotation is
+  Rz(roll) Rx(pitch) Ry(yaw), camera tilt included, so the truth's is its describe()d yaw,
+  not `params["yaw_deg"]`, which is taken before the camera's tilt). A `mirror`ed
+  description poses the reflected solid, which is the same solid seen at -yaw (F Ry(y) F =
+  Ry(-y)), so both are compared as solids: -yaw where mirrored. A box, and the face normals
+  of a twobox, are the same under a half turn about the vertical, and a fit may name
+  its sides either way (`CameraParams.naming`): the error is taken modulo 180 degrees,
+  in [0, 90].
+* 3D IoU up to scale (Objectron's measure, `iou3d`): both solids in camera coordinates,
+  the fit scaled about the camera centre (which leaves its picture unchanged) so that its
+  centre's depth equals the truth's. A monocular fit knows distance only in units of its
+  own size, and this normalisation keeps the truth's distance, so the fit's size then
+  follows from its focal length and picture: an error of focal length shows as an error
+  of size (a weak-perspective fit, infinitely far, is a point at the truth's depth: IoU 0).
+  The centre is the solid's centroid (a twobox's parts weighted by volume).
+* focal length: its relative error, which explains most of a low 3D IoU (`focal_error`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from shared.shapes import Shape
+from cuboidtrain.fit.geometry import (CameraParams, canonical, describe, euler_angles, from_sample_params,
+                                      rotated_points, rotation_matrices)
+from cuboidtrain.fit.iou3d import OrientedBox, union_iou
+from cuboidtrain.fit.lift import lift
+from shared.shapes import Shape, get_shape
 
 HULL_TOLERANCE_PX = 0.25  # a corner this close to a hull vertex is one (collinear hull edges)
 
@@ -34,6 +60,30 @@ class CornerErrors:
     nme: float  # mean corner error / the true keypoints' longer bounding-box side
     depth_height: np.ndarray  # relative error per part, |fit / true - 1|
     width_height: np.ndarray
+    yaw_deg: float = math.nan  # `yaw_error_deg`; NaN without a true camera
+    iou3d: float = math.nan  # `iou_up_to_scale`; NaN without a true camera
+    focal: float = math.nan  # `focal_error`; NaN without a true camera, or for a weak-perspective fit
+
+
+@dataclass(frozen=True)
+class Truth:
+    """What a generated sample says a fit should be: keypoints (N, 2) px, the nested ratios, and
+    its camera (None for a sample whose params do not pose it)."""
+
+    shape: Shape
+    keypoints: np.ndarray
+    ratios: dict
+    camera: CameraParams | None
+
+    @classmethod
+    def of_sample(cls, sample) -> Truth:
+        """A `shared.sample.Sample`'s truth, in its own px."""
+        shape = get_shape(sample.shape)
+        try:
+            camera = from_sample_params(shape, sample.params)
+        except (KeyError, TypeError, ValueError):  # another writer's sample, without the generator's params
+            camera = None
+        return cls(shape, np.asarray(sample.keypoints, dtype=np.float64), sample.ratios, camera)
 
 
 def corner_errors(shape: Shape, keypoints: np.ndarray, truth: np.ndarray, ratios: dict, true_ratios: dict) -> CornerErrors:
@@ -45,8 +95,78 @@ def corner_errors(shape: Shape, keypoints: np.ndarray, truth: np.ndarray, ratios
     return CornerErrors(error[on_hull], error[~on_hull], float(error.mean()) / span, relative[0::2], relative[1::2])
 
 
+def score(keypoints: np.ndarray, ratios: dict, truth: Truth, camera: CameraParams | None = None) -> CornerErrors:
+    """All the figures of one fit against its truth. `camera`: the fit's cuboid (a cuboid fit's
+    `CuboidFit.camera`); None for the networks' corners alone, which are then lifted
+    (`lift.lift`, its defaults) to get a yaw and a box."""
+    errors = corner_errors(truth.shape, keypoints, truth.keypoints, ratios, truth.ratios)
+    if truth.camera is None:
+        return errors
+    if camera is None:
+        camera = lift(np.asarray(keypoints, dtype=np.float64), truth.shape).camera
+    return replace(errors, yaw_deg=yaw_error_deg(camera, truth.camera), iou3d=iou_up_to_scale(camera, truth.camera),
+                   focal=focal_error(camera, truth.camera))
+
+
+def focal_error(camera: CameraParams, truth: CameraParams) -> float:
+    """|fitted focal length / true - 1|; NaN for a weak-perspective fit (infinitely long focal
+    length). What most often sinks the 3D IoU: a near-frontal view leaves the focal length and
+    the box's size across the view nearly free together (the size follows the focal length at
+    the truth's depth)."""
+    fitted = describe(camera, residual_px=0.0).focal_px
+    return abs(fitted / describe(truth, residual_px=0.0).focal_px - 1) if math.isfinite(fitted) else math.nan
+
+
+def solid_yaw_deg(camera: CameraParams) -> float:
+    """The yaw of the solid a camera poses, in degrees: the yaw of its rotation R (camera =
+    R F X + T, F the mirror), which is the record's `yaw_deg` (`describe`) negated where
+    mirrored: the record poses F R F (see the module's notes)."""
+    vector, _ = canonical(camera.vector, camera.mirror)
+    return euler_angles(rotation_matrices(vector[None, 2:5])[0])[1]
+
+
+def yaw_error_deg(camera: CameraParams, truth: CameraParams) -> float:
+    """|yaw difference| of the two solids modulo a half turn, in [0, 90] degrees."""
+    difference = (solid_yaw_deg(camera) - solid_yaw_deg(truth)) % 180.0
+    return float(min(difference, 180.0 - difference))
+
+
+def camera_boxes(camera: CameraParams) -> list[OrientedBox] | None:
+    """The parts of the solid a camera poses, in camera coordinates (x right, y down, z forward;
+    units: the height of the only / RIGHT part); None for a weak-perspective camera (k <= 0:
+    infinitely far)."""
+    vector, mirror = canonical(camera.vector, camera.mirror)
+    if vector[8] <= 1e-9:
+        return None
+    points = rotated_points(vector[None], camera.shape, np.array([mirror]))[0] + [vector[5], vector[6], 1 / vector[8]]
+    return [OrientedBox.from_corners(points[list(part)]) for part in camera.shape.parts]
+
+
+def centroid(boxes: list[OrientedBox]) -> np.ndarray:
+    """The solid's centre of volume."""
+    volumes = np.array([b.volume for b in boxes])
+    return (volumes[:, None] * np.array([b.centre for b in boxes])).sum(0) / volumes.sum()
+
+
+def iou_up_to_scale(camera: CameraParams, truth: CameraParams) -> float:
+    """3D IoU of the solid `camera` poses with the truth's, the fit scaled about the camera
+    centre so that its centroid's depth is the truth's (see the module's notes)."""
+    fitted, true = camera_boxes(camera), camera_boxes(truth)
+    if true is None:
+        raise ValueError("the true camera is weak-perspective: no depth to scale a fit to")
+    if fitted is None:
+        return 0.0
+    depth = centroid(fitted)[2]
+    if not depth > 0:  # behind the camera: no picture of it
+        return 0.0
+    factor = centroid(true)[2] / depth
+    return union_iou([b.scaled(factor) for b in fitted], true)
+
+
 def summarise(errors: list[CornerErrors]) -> dict[str, float]:
-    """Means and medians over many fits (corners pooled; ratios pooled over parts)."""
+    """Means and medians over many fits (corners pooled; ratios pooled over parts; yaw, 3D IoU
+    and focal length over the fits that have them, `posed` counting those with a true camera;
+    NaN where there is none)."""
     pooled = {name: np.concatenate([getattr(e, name) for e in errors]) if errors else np.zeros(0)
               for name in ("hull", "interior", "depth_height", "width_height")}
     nme = np.array([e.nme for e in errors])
@@ -57,6 +177,11 @@ def summarise(errors: list[CornerErrors]) -> dict[str, float]:
     out["nme_mean"], out["nme_median"] = _mean_median(nme)
     for name in ("depth_height", "width_height"):
         out[f"{name}_mean_rel"], out[f"{name}_median_rel"] = _mean_median(pooled[name])
+    yaw, iou3d, focal = (np.array([getattr(e, name) for e in errors]) for name in ("yaw_deg", "iou3d", "focal"))
+    out["posed"] = int(np.isfinite(iou3d).sum())
+    out["yaw_mean_deg"], out["yaw_median_deg"] = _mean_median(yaw[np.isfinite(yaw)])
+    out["iou3d_mean"], out["iou3d_median"] = _mean_median(iou3d[np.isfinite(iou3d)])
+    out["focal_mean_rel"], out["focal_median_rel"] = _mean_median(focal[np.isfinite(focal)])
     return out
 
 

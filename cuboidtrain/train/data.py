@@ -34,7 +34,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from cuboidtrain.fit.codec import render_heatmaps
-from cuboidtrain.fit.masks import frame, silhouette, warp
+from cuboidtrain.fit.masks import Framing, frame, silhouette, warp
 from cuboidtrain.fit.options import DEFAULT_MARGIN
 from shared.sample import BIT_SHIFTS, Sample, collate, decode_record, from_record, to_record
 from shared.shapes import get_shape
@@ -55,12 +55,12 @@ class CutOff(Exception):
     """A sample whose visible part cannot frame the whole shape (see MAX_OUTSIDE)."""
 
 
-def frame_as_infer(sample: Sample, size: int, margin: float = DEFAULT_MARGIN) -> Sample:
+def frame_as_infer(sample: Sample, size: int, margin: float = DEFAULT_MARGIN) -> tuple[Sample, Framing]:
     """The sample as `infer` would see it (train as you infer): the noisy mask's building
     (`cuboidtrain.fit.masks.silhouette`: its pieces, together) framed at `size` by
     `cuboidtrain.fit.masks.frame`, the clean mask and the keypoints carried by the same map. A
     generated sample is framed by its clean silhouette; a real mask can only be framed by what
-    is visible of it."""
+    is visible of it. Returns the framed sample and its Framing (the map back to the sample's px)."""
     building = silhouette(sample.noisy)
     if building is None:
         raise CutOff("no visible piece to frame")
@@ -69,7 +69,16 @@ def frame_as_infer(sample: Sample, size: int, margin: float = DEFAULT_MARGIN) ->
     reach = MAX_OUTSIDE * size
     if keypoints.min() < -0.5 - reach or keypoints.max() > size - 0.5 + reach:
         raise CutOff(f"a corner lies more than {reach:g} px outside the frame")
-    return replace(sample, size=size, noisy=framed, clean=warp(sample.clean, framing), keypoints=keypoints)
+    return replace(sample, size=size, noisy=framed, clean=warp(sample.clean, framing), keypoints=keypoints), framing
+
+
+@dataclass(frozen=True)
+class Source:
+    """A sample as the spool holds it, and the map from the px a batch frames it in to its own
+    (the identity for a sample the batch keeps at its own size): what eval fits a cuboid to."""
+
+    sample: Sample
+    framing: Framing
 
 
 class SpoolBatches(Dataset):
@@ -78,18 +87,20 @@ class SpoolBatches(Dataset):
     `reframe` (REFRAME_MODES): `always` frames every sample as `infer` frames a mask, at
     `size` (training: train as you infer); `other-sizes` only those of another size (eval:
     the generator's framing where it fits, so the paper's metric stays the paper's); `never`
-    skips samples of another size. `margin`: the framing's, as FitOptions' (eval passes its own)."""
+    skips samples of another size. `margin`: the framing's, as FitOptions' (eval passes its own).
+    `keep_sources`: each batch also holds its samples as read, with their framings (`Source`)."""
 
     def __init__(self, spool: str | Path, shape: str, size: int, reframe: str = "never",
-                 margin: float = DEFAULT_MARGIN):
+                 margin: float = DEFAULT_MARGIN, keep_sources: bool = False):
         if reframe not in REFRAME_MODES:
             raise ValueError(f"reframe {reframe!r}: expected one of {', '.join(REFRAME_MODES)}")
         self.spool, self.shape, self.size, self.reframe, self.margin = Path(spool), shape, size, reframe, margin
+        self.keep_sources = keep_sources
 
     def __getitem__(self, names: list[str]) -> dict:
-        records, kept, vanished, skipped = [], [], [], dict.fromkeys(SKIP_REASONS, 0)
+        records, kept, vanished, sources, skipped = [], [], [], [], dict.fromkeys(SKIP_REASONS, 0)
         for name in names:
-            reason, record = self._read(name)
+            reason, record, source = self._read(name)
             if reason:
                 skipped[reason] += 1
                 if reason == "vanished":
@@ -97,36 +108,44 @@ class SpoolBatches(Dataset):
                 continue
             records.append(record)
             kept.append(name)
+            sources.append(source)
         batch = collate(records, unpack=False) if records else {}
         batch = {k: torch.from_numpy(v) for k, v in batch.items()}
         batch["names"] = kept
         batch["vanished"] = vanished  # evicted before they were read: the trainer's census counts them
         batch["skipped"] = skipped
+        if self.keep_sources:
+            batch["sources"] = sources
         return batch
 
-    def _read(self, name: str) -> tuple[str | None, dict | None]:
+    def _read(self, name: str) -> tuple[str | None, dict | None, Source | None]:
+        """(skip reason or None, the record to batch, its Source where `keep_sources`)."""
         try:
             data = read_sample_bytes(self.spool, name)
         except OSError:  # a folder or an unreadable file under a sample's name: not a sample
-            return "corrupt", None
+            return "corrupt", None, None
         if data is None:
-            return "vanished", None
+            return "vanished", None, None
         try:
             record = decode_record(data)
             # decode_record checks the byte fields, not the ratio record; collate needs it whole
             get_shape(record["shape"]).ratio_vector(record["ratios"])
         except (ValueError, KeyError, TypeError):
-            return "corrupt", None
+            return "corrupt", None, None
         if record["shape"] != self.shape:
-            return "other_shape", None
+            return "other_shape", None, None
         if self.reframe == "always" or (self.reframe == "other-sizes" and record["size"] != self.size):
+            sample = from_record(record)
             try:
-                return None, to_record(frame_as_infer(from_record(record), self.size, self.margin))
+                framed, framing = frame_as_infer(sample, self.size, self.margin)
             except CutOff:
-                return "cut_off", None
+                return "cut_off", None, None
+            return None, to_record(framed), Source(sample, framing) if self.keep_sources else None
         if record["size"] != self.size:
-            return "other_size", None
-        return None, record
+            return "other_size", None, None
+        if not self.keep_sources:
+            return None, record, None
+        return None, record, Source(from_record(record), Framing(1.0, (0.0, 0.0), self.size, (self.size, self.size)))
 
     def __len__(self) -> int:  # DataLoader asks; the sampler decides what an epoch is
         return len(enumerate_spool(self.spool))
