@@ -97,7 +97,9 @@ def camera_box(fit: CuboidFit) -> CameraBox:
     distance = NOMINAL_DISTANCE if nominal else 1.0 / p[8]
     points = rotated + np.array([p[5], p[6], distance])
     scale = 1.0 if len(shape.parts) == 1 else max(1.0, math.exp(p[12]))  # the taller part is 1 high
-    return CameraBox(shape=shape, corners=points[camera.naming()] / scale, focal=float(math.exp(p[7]) * distance),
+    # The same expression as CameraParams.pinhole's, so the header's focal length is the record's to the last bit.
+    focal = math.exp(p[7]) * NOMINAL_DISTANCE if nominal else math.exp(p[7]) / p[8]
+    return CameraBox(shape=shape, corners=points[camera.naming()] / scale, focal=float(focal),
                      principal=(float(p[9]), float(p[10])), nominal=nominal)
 
 
