@@ -65,6 +65,7 @@ def plot_accuracy(path: str | Path, result: dict, title: str | None = None) -> N
     settings = result["settings"]
     if title is None:
         source = (f"oracle ratios, relative noise {settings['oracle_noise']:g}" if settings["oracle"]
+                  else "ratios of the fitted cuboid (--cuboid)" if settings.get("cuboid")
                   else "predicted ratios (R, S, T)")
         title = (f"Localization accuracy acc(m, l): {settings['buildings']} buildings, "
                  f"{settings['streets']} street(s), {source}")
