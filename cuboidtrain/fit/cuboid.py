@@ -20,7 +20,7 @@ import numpy as np
 
 from cuboidtrain.fit.chain import Candidate
 from cuboidtrain.fit.geometry import CuboidFit
-from cuboidtrain.fit.outline import bilinear, fit_mask, signed_distance_field
+from cuboidtrain.fit.outline import MaskTarget, bilinear, fit_mask
 from shared.shapes import get_shape
 
 # An outline corner's score falls with its distance to the input's outline, at this scale:
@@ -52,8 +52,9 @@ class FittedCuboid:
                             for on, s in zip(fit.on_outline, self.corner_scores)]}
 
 
-def fit_candidate(candidate: Candidate, mask: np.ndarray) -> FittedCuboid:
-    """The cuboid of `candidate`'s class fitted to `mask` (H, W) bool, the input component."""
+def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget) -> FittedCuboid:
+    """The cuboid of `candidate`'s class fitted to `mask` (H, W) bool, the input component (or its
+    MaskTarget, shared by the shape classes tried)."""
     if candidate.framing is None:
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
     shape = get_shape(candidate.shape)
@@ -62,10 +63,11 @@ def fit_candidate(candidate: Candidate, mask: np.ndarray) -> FittedCuboid:
     prior = shape.ratio_vector(candidate.ratios)
     # The Tabulator's head is unbounded: a ratio <= 0 anchors nothing (its log is -inf or NaN), so no anchor then.
     prior = prior if (prior > 0).all() and np.isfinite(prior).all() else None
-    fit = fit_mask(mask, shape, corners, peaks, prior_ratios=prior)
+    target = mask if isinstance(mask, MaskTarget) else MaskTarget.of(mask)
+    fit = fit_mask(target, shape, corners, peaks, prior_ratios=prior)
     check_finite(fit)
     named_peaks = peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
-    return FittedCuboid(fit, corner_scores(fit, mask, named_peaks))
+    return FittedCuboid(fit, corner_scores(fit, target.sdf, named_peaks))
 
 
 def heatmap_peaks(heatmaps: np.ndarray) -> np.ndarray:
@@ -73,11 +75,11 @@ def heatmap_peaks(heatmaps: np.ndarray) -> np.ndarray:
     return np.clip(heatmaps.reshape(len(heatmaps), -1).max(1).astype(np.float64), 0.0, 1.0)
 
 
-def corner_scores(fit: CuboidFit, mask: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+def corner_scores(fit: CuboidFit, sdf: np.ndarray, peaks: np.ndarray) -> np.ndarray:
     """(N,) in [0, 1]: a corner the fitted outline shows scores by how close it lies to the input's
     outline (an occluder that removed it lowers it); a hidden one keeps its heat map's peak, the
     only evidence there is for it."""
-    distance = np.abs(bilinear(signed_distance_field(mask), fit.keypoints))
+    distance = np.abs(bilinear(sdf, fit.keypoints))  # sdf: the input's signed distance to its outline
     seen = np.exp(-0.5 * (distance / CORNER_SCORE_PX) ** 2)
     return np.where(fit.on_outline, seen, peaks)
 

@@ -29,6 +29,7 @@ from cuboidtrain.fit.chain import (Candidate, Explanation, choose, confidence, e
                                    no_explanation, score)
 from cuboidtrain.fit.codec import make_codec
 from cuboidtrain.fit.cuboid import FittedCuboid, fit_candidate
+from cuboidtrain.fit.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.fit.options import FitOptions
@@ -179,7 +180,8 @@ class Fitter:
         for model in self.models:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing))
-        cuboids = {c.shape: fit_candidate(c, mask) for c in candidates} if self.options.cuboid else {}
+        target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
+        cuboids = {c.shape: fit_candidate(c, target) for c in candidates} if self.options.cuboid else {}
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution
             candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
         best = choose(candidates)

@@ -242,7 +242,21 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     return np.concatenate(residuals, axis=1), (np.concatenate(gradients, axis=1) if derivatives else None)
 
 
-def fit_mask(mask: np.ndarray, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
+@dataclass(frozen=True)
+class MaskTarget:
+    """What the fit reads of a mask, computed once for every shape class tried: its outline
+    points and its signed distance field."""
+
+    mask: np.ndarray  # (H, W) bool
+    outline: np.ndarray  # (M, 2) px
+    sdf: np.ndarray  # (H, W) px, positive outside
+
+    @classmethod
+    def of(cls, mask: np.ndarray, weights: MaskFitWeights = MaskFitWeights()) -> MaskTarget:
+        return cls(mask, boundary_points(mask, weights.max_boundary_points), signed_distance_field(mask))
+
+
+def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
              prior_ratios: np.ndarray | None = None, weights: MaskFitWeights = MaskFitWeights(),
              starts: int = 2, iterations: int = 12) -> CuboidFit:
     """Cuboid params that explain a binary mask (input resolution), started from the lift of the
@@ -252,8 +266,8 @@ def fit_mask(mask: np.ndarray, shape: Shape, corners: np.ndarray, confidence: np
     lifted = lift(corners, shape, confidence, k_starts=(0.0, 0.3), iterations=15, tolerance=1e-9, polish=0)
     order = np.argsort(lifted.costs)[:starts]
     x0, mirrors = lifted.hypotheses[order], lifted.mirrors[order]
-    outline = boundary_points(mask, weights.max_boundary_points)
-    sdf = signed_distance_field(mask)
+    target = mask if isinstance(mask, MaskTarget) else MaskTarget.of(mask, weights)
+    mask, outline, sdf = target.mask, target.outline, target.sdf
     # Boundary terms are normalised so the corner pull means the same whatever the outline length.
     norm = 1 / np.sqrt(len(outline))
     pull = weights.corners * np.sqrt(np.clip(confidence, 0.05, 1.0))[None, :, None]
