@@ -195,9 +195,9 @@ def infer(
         from cuboidtrain.fit.cluster import require_distributed
 
         require_distributed(cluster)  # before the models load: a missing extra is a one-line error
+    inputs = gather_inputs(paths or [], from_list, glob)  # nothing to fit is one line before the models load
     checkpoints = default_checkpoints(checkpoint, options.shapes)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
-    inputs = gather_inputs(paths or [], from_list, glob)
     batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None,
                   cluster=cluster)
     explainer = make_explainer(explain, overlay, len(inputs), batch.indexed())

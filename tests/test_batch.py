@@ -97,3 +97,32 @@ def test_without_a_terminal_progress_is_log_lines_and_a_summary(tmp_path, masks,
     shapes = {r["shape"] for r in read_records(tmp_path / "o.jsonl")} - {None}
     assert "fitted 10 in" in summary and "1 failed" in summary
     assert all(f"{shape} " in summary for shape in shapes)
+
+
+def limit_file_size(size: int):
+    """For a child process: the kernel refuses (EFBIG) any write that would take a file past `size` bytes,
+    a disk that fills under the writer (tests/test_faults.py's file_size_limit, across processes)."""
+    import resource
+
+    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (size, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun_resumes(tmp_path, masks, workers):
+    out, folder = tmp_path / "out.jsonl", str(Path(masks[0]).parent)
+    command = [sys.executable, "-m", "cuboidtrain", "infer", folder, "--jsonl", str(out), "--device", "cpu"]
+    env = os.environ | {"OMP_NUM_THREADS": "1"}
+    full = subprocess.run(command + ["--workers", workers], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=120, preexec_fn=limit_file_size(8 * 1024))  # room for about ten records
+    lines = [line for line in full.stderr.splitlines() if line.startswith("error:")]
+    assert full.returncode == 2 and "Traceback" not in full.stderr, full.stderr
+    kept = read_records(out)
+    assert 4 <= len(kept) < 40 and out.stat().st_size <= 8 * 1024
+    assert lines == [f"error: --jsonl {out}: file size limit reached after {len(kept)} records (all kept); "
+                     f"expected free space: make some and rerun to resume"]
+    assert out.read_bytes().endswith(b"\n") and out.read_bytes().count(b"\n") == len(kept)  # whole records only
+    resumed = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert resumed.returncode == 1 and f"holds {len(kept)} of the 40 inputs" in resumed.stderr  # m020 is no image
+    records = read_records(out)
+    assert [r["index"] for r in records] == list(range(40))
+    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(masks, FitOptions(device="cpu"))

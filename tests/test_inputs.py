@@ -46,6 +46,18 @@ def test_some_missing_inputs_go_on_to_their_error_records(tmp_path):
     assert gather_inputs([good, str(tmp_path / "gone.png")]) == [good, str(tmp_path / "gone.png")]
 
 
+def test_a_list_naming_missing_files_is_refused_whole_naming_the_first_few(tmp_path):
+    good, = touch(tmp_path / "a.png")
+    gone = [str(tmp_path / f"gone{i}.png") for i in range(4)]
+    listing = tmp_path / "paths.txt"
+    listing.write_text("\n".join([good, gone[0], good, *gone[1:]]) + "\n")
+    with pytest.raises(UsageError) as caught:
+        gather_inputs([], from_list=str(listing))
+    assert str(caught.value) == (f"--from-list {listing}: 4 of 6 listed paths do not exist "
+                                 f"(first: {gone[0]}, {gone[1]}, {gone[2]}, ...); "
+                                 f"expected existing mask files or folders")
+
+
 @pytest.mark.parametrize("setup, message", [
     (lambda t: ([str(t / "empty")], None, None), "a folder with no files matching *.png"),
     (lambda t: ([str(t / "full")], None, "*.gif"), "no files matching *.gif"),
@@ -71,12 +83,19 @@ def test_nothing_to_fit_is_a_usage_error_naming_what_was_expected(tmp_path, setu
     (["{tmp}/full", "--jsonl", "{tmp}/full/a.png/out.jsonl"], "--jsonl"),
     (["{tmp}/full", "--jsonl", "{tmp}/empty"], "--jsonl"),
     (["{tmp}/full", "--workers", "2", "--explain", "{tmp}/pics"], "expected --workers 1"),
+    (["--from-list", "{tmp}/stale.txt", "--jsonl", "{tmp}/o.jsonl"],
+     "--from-list {tmp}/stale.txt: 1 of 2 listed paths do not exist (first: {tmp}/full/gone.png); expected"),
+    (["--from-list", "-", "--jsonl", "{tmp}/o.jsonl"], "--from-list stdin: 1 of 2 listed paths do not exist"),
 ])
 def test_cli_nothing_to_fit_or_nowhere_to_write_is_one_line(tmp_path, args, message):
     (tmp_path / "empty").mkdir()
     touch(tmp_path / "full/a.png")
     (tmp_path / "empty.txt").write_text("\n")
-    result = runner.invoke(app, ["infer"] + [a.format(tmp=tmp_path) for a in args])
+    (tmp_path / "stale.txt").write_text(f"{tmp_path}/full/a.png\n{tmp_path}/full/gone.png\n")
+    result = runner.invoke(app, ["infer"] + [a.format(tmp=tmp_path) for a in args],
+                           input=(tmp_path / "stale.txt").read_text())
+    message = message.format(tmp=tmp_path)
     assert result.exit_code == 2, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and message in lines[0], result.output
+    assert not (tmp_path / "o.jsonl").exists()  # refused before any fit

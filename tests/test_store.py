@@ -69,3 +69,26 @@ def test_a_full_disk_keeps_every_whole_record_and_says_so_in_one_line(tmp_path, 
     assert "\n" not in str(caught.value)
     monkeypatch.undo()
     assert [r["input"] for r in read_records(out)] == ["a.png"] and out.read_text().endswith("\n")
+
+
+def test_an_out_that_cannot_be_opened_or_synced_is_one_line_naming_it(tmp_path, monkeypatch):
+    out = tmp_path / "out.jsonl"
+
+    def read_only(*args):
+        raise OSError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(store_module.os, "open", read_only)  # a file of another user, as that user sees it
+    with pytest.raises(UsageError) as caught:
+        RecordStore(out).__enter__()
+    assert str(caught.value) == (f"--jsonl {out}: cannot open it to write (Permission denied); "
+                                 f"expected a file this user can read and write")
+    monkeypatch.undo()
+
+    def io_error(fd):
+        raise OSError(errno.EIO, "Input/output error")
+
+    with pytest.raises(UsageError, match=r"cannot write after 1 records \(Input/output error; the whole ones on disk"):
+        with RecordStore(out) as store:
+            store.write(0, [record("a.png")])
+            monkeypatch.setattr(store_module.os, "fsync", io_error)
+    assert store.fd == -1  # closed all the same

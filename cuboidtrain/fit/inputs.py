@@ -5,7 +5,8 @@ goes on). A folder is walked recursively, in sorted order, for the files `--glob
 (default: the image extensions below); hidden names (`.tmp-...`, `.DS_Store`) are skipped.
 A list file (`--from-list FILE`, `-` for stdin) holds one path a line, each taken as above;
 blank lines and lines starting with `#` are skipped; relative paths are from the current
-folder. Nothing to fit is a UsageError naming what was expected, before any model loads.
+folder; every listed path must exist (a list naming missing files is refused whole). Nothing
+to fit is a UsageError naming what was expected, before any model loads.
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ def gather_inputs(paths: Sequence[str], from_list: str | None = None, glob: str 
         listed = read_list(from_list)
         if not listed:
             raise UsageError(f"--from-list {from_list}: no paths in it; expected one mask path a line")
+        check_listed(from_list, listed)
         given += listed
     if not given:
         raise UsageError("no inputs: expected mask PATHs (files or folders) or --from-list FILE")
@@ -45,6 +47,17 @@ def gather_inputs(paths: Sequence[str], from_list: str | None = None, glob: str 
         log.warning("%d of %d inputs do not exist (the first: %s); their records say so",
                     len(missing), len(inputs), missing[0])
     return inputs
+
+
+def check_listed(source: str, listed: list[str], named: int = 3) -> None:
+    """A list file whose paths do not all exist is refused whole, before any fit: a list is
+    written by a program, and one stale or mistyped path usually means the whole list is off
+    (made in another folder, or before the files were moved)."""
+    missing = [p for p in listed if not Path(p).exists()]
+    if missing:
+        first = ", ".join(missing[:named]) + (", ..." if len(missing) > named else "")
+        raise UsageError(f"--from-list {'stdin' if source == '-' else source}: {len(missing)} of {len(listed)} "
+                         f"listed paths do not exist (first: {first}); expected existing mask files or folders")
 
 
 def expand(path: str, glob: str | None) -> list[str]:

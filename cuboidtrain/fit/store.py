@@ -82,7 +82,11 @@ class RecordStore:
 
     def __enter__(self) -> "RecordStore":
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:  # a read-only file or file system, a folder we may not write in
+            raise UsageError(f"--jsonl {self.path}: cannot open it to write ({exc.strerror}); "
+                             f"expected a file this user can read and write") from None
         self.records, keep = scan(self.path)
         if os.fstat(self.fd).st_size != keep:  # a torn tail: cut it off for good
             os.ftruncate(self.fd, keep)
@@ -99,19 +103,40 @@ class RecordStore:
             while view:
                 view = view[os.write(self.fd, view):]
         except OSError as exc:
-            os.ftruncate(self.fd, start)
-            os.lseek(self.fd, start, os.SEEK_SET)
-            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise UsageError(f"--jsonl {self.path}: disk full after {len(self.records) + self.written} records "
-                                 f"(all kept); expected free space: make some and rerun to resume") from None
-            raise
+            try:  # a part of this input's lines may be in: cut back to the last whole input
+                os.ftruncate(self.fd, start)
+                os.lseek(self.fd, start, os.SEEK_SET)
+            except OSError:
+                pass  # then the next open cuts the torn tail
+            raise self.failed(exc) from None
         self.written += len(records)
         if time.monotonic() - self.synced > FSYNC_SECONDS:
+            self.sync()
+
+    def sync(self) -> None:
+        try:
             os.fsync(self.fd)
-            self.synced = time.monotonic()
+        except OSError as exc:  # a delayed write failed (a network or thin-provisioned disk full)
+            raise self.failed(exc, kept="the whole ones on disk kept") from None
+        self.synced = time.monotonic()
+
+    def failed(self, exc: OSError, kept: str = "all kept") -> UsageError:
+        """A write that failed, as one line saying the records before it are kept."""
+        count = len(self.records) + self.written
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):  # EFBIG: a file size limit, full all the same
+            what = "disk full" if exc.errno != errno.EFBIG else "file size limit reached"
+            return UsageError(f"--jsonl {self.path}: {what} after {count} records ({kept}); "
+                              f"expected free space: make some and rerun to resume")
+        return UsageError(f"--jsonl {self.path}: cannot write after {count} records ({exc.strerror}; {kept}); "
+                          f"expected a writable file: rerun to resume")
 
     def __exit__(self, *exc) -> None:
         if self.fd >= 0:
-            os.fsync(self.fd)
-            os.close(self.fd)
-            self.fd = -1
+            try:
+                self.sync()
+            except UsageError:
+                if exc[0] is None:  # else the error in flight is the one to report
+                    raise
+            finally:
+                os.close(self.fd)
+                self.fd = -1
