@@ -3,15 +3,21 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_workers.py --masks 400 --workers 1 2
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_workers.py --masks 400 --workers 1 2 --cluster 2
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_workers.py --masks 2000 --workers 1 2 --repeats 3
 
 `--cluster N` adds `infer --cluster local --workers N` (a local Dask cluster, the `cluster` extra).
+`--before DIR` adds `infer --workers N` (the largest of --workers) run from another checkout,
+e.g. `git archive 7e15fd2 | tar -x -C /tmp/before` (the same venv; its own code wins on sys.path).
+`--repeats R` runs the whole set R times, interleaved (1, 2, 1, 2, ...), and adds each run's
+median and best; `--folder DIR` reuses masks written before (`--write-only DIR` writes them).
 
-Times the whole command (start, models, fits, writing the JSONL) and reads its fitting rate.
+Times the whole command (start, models, fits, writing the JSONL, exit) and reads its fitting rate.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -42,24 +48,45 @@ def main() -> None:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--cluster", type=int, nargs="*", default=[], metavar="N",
                         help="also a local Dask cluster of N worker processes")
+    parser.add_argument("--before", type=Path, metavar="DIR", help="also --workers N from the checkout in DIR")
+    parser.add_argument("--repeats", type=int, default=1, help="rounds of all the runs, interleaved")
+    parser.add_argument("--folder", type=Path, help="masks written before (default: written to a temporary folder)")
+    parser.add_argument("--write-only", type=Path, metavar="DIR", help="write --masks masks to DIR and stop")
     args = parser.parse_args()
+    if args.write_only:
+        args.write_only.mkdir(parents=True, exist_ok=True)
+        return write_masks(args.write_only, args.masks, args.size)
     with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp) / "masks"
-        folder.mkdir()
-        write_masks(folder, args.masks, args.size)
-        base = None
-        runs = [(f"workers {w}", ["--workers", str(w)]) for w in args.workers]
-        runs += [(f"dask local cluster {w}", ["--cluster", "local", "--workers", str(w)]) for w in args.cluster]
-        for number, (name, extra) in enumerate(runs):
-            out = Path(tmp) / f"run{number}.jsonl"
-            start = time.perf_counter()
-            done = subprocess.run([sys.executable, "-m", "cuboidtrain", "infer", str(folder), "--jsonl", str(out),
-                                   *extra, "--device", "cpu"], cwd=ROOT, capture_output=True,
-                                  text=True, env=os.environ | {"OMP_NUM_THREADS": "1"})
-            seconds = time.perf_counter() - start
-            summary = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "(no summary)"
-            base = base or seconds
-            print(f"{name}: {seconds:.1f} s wall, speed-up {base / seconds:.2f}x; {summary}", flush=True)
+        folder = args.folder
+        if folder is None:
+            folder = Path(tmp) / "masks"
+            folder.mkdir()
+            write_masks(folder, args.masks, args.size)
+        runs = [(f"workers {w}", ["--workers", str(w)], ROOT) for w in args.workers]
+        if args.before:
+            w = max(args.workers)
+            runs.append((f"workers {w}, {args.before}", ["--workers", str(w)], args.before.resolve()))
+        runs += [(f"dask local cluster {w}", ["--cluster", "local", "--workers", str(w)], ROOT) for w in args.cluster]
+        times = {name: [] for name, _, _ in runs}
+        for repeat in range(args.repeats):
+            base = None
+            for number, (name, extra, tree) in enumerate(runs):
+                out = Path(tmp) / f"run{repeat}-{number}.jsonl"
+                start = time.perf_counter()
+                done = subprocess.run([sys.executable, "-m", "cuboidtrain", "infer", str(folder), "--jsonl", str(out),
+                                       *extra, "--device", "cpu"], cwd=tree, capture_output=True,
+                                      text=True, env=os.environ | {"OMP_NUM_THREADS": "1"})
+                seconds = time.perf_counter() - start
+                summary = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "(no summary)"
+                base = base or seconds
+                times[name].append(seconds)
+                print(f"{name}: {seconds:.1f} s wall, speed-up {base / seconds:.2f}x; {summary}", flush=True)
+        if args.repeats > 1:
+            first = runs[0][0]
+            for name, seconds in times.items():
+                median, best = statistics.median(seconds), min(seconds)
+                print(f"{name}: median {median:.2f} s ({statistics.median(times[first]) / median:.2f}x), "
+                      f"best {best:.2f} s ({min(times[first]) / best:.2f}x) of {len(seconds)}", flush=True)
 
 
 if __name__ == "__main__":

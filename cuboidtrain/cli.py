@@ -171,11 +171,7 @@ def infer(
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.fit.batch import Batch, run_batch
-    from cuboidtrain.fit.chain import write_records
-    from cuboidtrain.fit.fitter import Fitter, Writers
-    from cuboidtrain.fit.mesh import MeshWriter, check_mesh_options
-    from cuboidtrain.models.zoo import default_checkpoints
+    from cuboidtrain.fit.mesh import MeshWriter, check_mesh_options  # no torch: before the workers' warm-up
 
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
@@ -196,6 +192,15 @@ def infer(
 
         require_distributed(cluster)  # before the models load: a missing extra is a one-line error
     inputs = gather_inputs(paths or [], from_list, glob)  # nothing to fit is one line before the models load
+    if cluster is None:
+        from cuboidtrain.fit.pool import warm_up
+
+        warm_up(workers)  # the workers' torch import, beside this process's below (no torch imported yet)
+    from cuboidtrain.fit.batch import Batch, run_batch
+    from cuboidtrain.fit.chain import write_records
+    from cuboidtrain.fit.fitter import Fitter, Writers
+    from cuboidtrain.models.zoo import default_checkpoints
+
     checkpoints = default_checkpoints(checkpoint, options.shapes)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
     batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None,

@@ -77,6 +77,56 @@ def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp
     assert records[20]["error"] and sum(r["error"] is not None for r in records) == 1
 
 
+def descendants(pid: int) -> list[int]:
+    """The processes under `pid` (its children, theirs, ...), from /proc."""
+    children = {}
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_bytes()
+        except OSError:
+            continue
+        children.setdefault(int(stat.rsplit(b")", 1)[1].split()[1]), []).append(int(entry))
+    found, todo = [], [pid]
+    while todo:
+        below = children.get(todo.pop(), [])
+        found += below
+        todo += below
+    return sorted(found)
+
+
+def running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_bytes().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except OSError:
+        return False
+
+
+def test_two_workers_killed_leave_no_process_behind_and_resume_to_one_process_s_records(tmp_path, masks):
+    out, folder = tmp_path / "out.jsonl", str(Path(masks[0]).parent)
+    env = os.environ | {"OMP_NUM_THREADS": "1"}
+    run = subprocess.Popen(infer_command(folder, out, "--workers", "2"), cwd=ROOT, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 8):
+        time.sleep(0.01)
+    under = descendants(run.pid)  # the fork server and the two workers it forked
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    kept = len(read_records(out))
+    assert 8 <= kept < 40, "killed mid-way"
+    assert len(under) >= 3
+    deadline = time.monotonic() + 10  # a worker looks for its parent every second
+    while time.monotonic() < deadline and any(map(running, under)):
+        time.sleep(0.1)
+    assert not [pid for pid in under if running(pid)], "workers outlived a killed infer"
+    resumed = subprocess.run(infer_command(folder, out, "--workers", "2"), cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=120)
+    assert resumed.returncode == 1 and f"holds {kept} of the 40 inputs" in resumed.stderr  # m020 is no image
+    records = read_records(out)
+    assert [r["index"] for r in records] == list(range(40))
+    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(masks, SLOW)
+
+
 def test_two_workers_give_the_records_of_one_process(masks):
     options = FitOptions(device="cpu")
     assert reference(masks[:16], options, workers=2) == reference(masks[:16], options)
