@@ -12,6 +12,7 @@ from cuboidtrain.models.checkpoint import MODEL_FORMAT, load_checkpoint, load_mo
 from cuboidtrain.cli import app
 from cuboidtrain.models.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
 from cuboidtrain.fit.codec import make_codec
+from tests.conftest import write_mask_pngs
 from cuboidtrain.fit.pdm import MIN_SAMPLES
 from shared.sample import encode
 from shared.spool import SpoolWriter
@@ -156,7 +157,8 @@ def test_a_corrupt_shipped_model_is_a_one_line_error(tmp_path, monkeypatch):
     (tmp_path / "box.pt").write_bytes(b"not a model at all")
     (tmp_path / "twobox.pt").write_bytes(b"")
     monkeypatch.setenv("CUBOID_MODELS", str(tmp_path))
-    result = runner.invoke(app, ["infer", "anything.png", "--json", "-"])
+    mask = write_mask_pngs(tmp_path, 1)[0]  # a real input: inputs are checked before the models load
+    result = runner.invoke(app, ["infer", mask, "--json", "-"])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code != 0 and len(lines) == 1 and "box.pt" in lines[0], result.output
     with pytest.raises(ValueError, match="box.pt"):
