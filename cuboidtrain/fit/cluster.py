@@ -102,8 +102,8 @@ def keep_freed_memory() -> None:
     """Undo, in this worker, the MALLOC_TRIM_THRESHOLD_=65536 a Dask nanny gives its workers
     (`distributed.nanny.pre-spawn-environ`). It turns off glibc's adaptive thresholds: every
     buffer of a fit over 128 KB is then mmap'ed, freed to the kernel and faulted in again on
-    the next fit. Measured: 200 fits 6.10 s with it (1.4 million page faults, 2.3 s of it in the
-    kernel), 3.63 s after this (BENCHMARKS.md). glibc only; elsewhere nothing to undo."""
+    the next fit. Measured: 200 fits 5.4 to 5.8 s with it (1.2 to 1.4 million page faults, about
+    2 s in the kernel), 3.2 to 3.3 s after this (BENCHMARKS.md). glibc only; elsewhere nothing to undo."""
     import ctypes
     import ctypes.util
 
