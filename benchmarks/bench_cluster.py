@@ -87,10 +87,10 @@ def ray_run(folder: str, out: str, actors: int, batch_size: int) -> None:
           f"({count / (end - ready):.1f} masks/s)", flush=True)
 
 
-def write_masks(folder: Path, count: int, size: int) -> None:
-    from benchmarks.bench_workers import write_masks as write
+def masks_folder(given: Path | None, tmp: Path, count: int, size: int) -> Path:
+    from benchmarks.bench_workers import masks_folder as folder
 
-    write(folder, count, size)
+    return folder(given, tmp, count, size)
 
 
 def timed(command: list[str]) -> tuple[float, str]:
@@ -124,11 +124,7 @@ def main() -> None:
     except ImportError:
         has_ray = False
     with tempfile.TemporaryDirectory() as tmp:
-        folder = args.folder
-        if folder is None:
-            folder = Path(tmp) / "masks"
-            folder.mkdir()
-            write_masks(folder, args.masks, args.size)
+        folder = masks_folder(args.folder, Path(tmp), args.masks, args.size)
         infer = [sys.executable, "-m", "cuboidtrain", "infer", str(folder), "--device", "cpu", "--jsonl"]
         runs = {"1 process": lambda out: infer + [out],
                 "--workers 2 (pool)": lambda out: infer + [out, "--workers", "2"],

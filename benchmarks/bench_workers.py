@@ -30,6 +30,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+def masks_folder(given: Path | None, tmp: Path, count: int, size: int) -> Path:
+    """The masks to fit: `given` (written before), else `count` new ones written under `tmp`."""
+    if given is not None:
+        return given
+    folder = tmp / "masks"
+    folder.mkdir()
+    write_masks(folder, count, size)
+    return folder
+
+
 def write_masks(folder: Path, count: int, size: int) -> None:
     from cuboidgen.config import PAPER
     from cuboidgen.occluders import OccluderLibrary
@@ -57,11 +67,7 @@ def main() -> None:
         args.write_only.mkdir(parents=True, exist_ok=True)
         return write_masks(args.write_only, args.masks, args.size)
     with tempfile.TemporaryDirectory() as tmp:
-        folder = args.folder
-        if folder is None:
-            folder = Path(tmp) / "masks"
-            folder.mkdir()
-            write_masks(folder, args.masks, args.size)
+        folder = masks_folder(args.folder, Path(tmp), args.masks, args.size)
         runs = [(f"workers {w}", ["--workers", str(w)], ROOT) for w in args.workers]
         if args.before:
             w = max(args.workers)
