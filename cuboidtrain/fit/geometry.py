@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -72,9 +73,7 @@ def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, theta)
     a = np.where(small, 1.0 - theta**2 / 6, np.sin(theta) / safe)
     b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(theta)) / safe**2)
-    x, y, z = rotvec.T
-    zero = np.zeros_like(x)
-    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=1).reshape(-1, 3, 3)
+    k = _skew(rotvec)
     return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
@@ -124,22 +123,31 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
     jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
     jac[..., 2:5] = d_rotated @ _rotation_derivative(params[:, 2:5], objects, rot)
-    jac[..., 5] = 0.0
     jac[..., 0, 5] = jac[..., 1, 6] = (s / den)
     jac[..., 7] = offset
     jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
     jac[..., 0, 9] = jac[..., 1, 10] = 1.0
     if len(shape.parts) == 2:
         w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
-        middle, top_left = np.zeros(shape.num_keypoints, dtype=bool), np.zeros(shape.num_keypoints, dtype=bool)
-        for c, corner in enumerate(shape.parts[0]):
-            middle[corner] |= bool(_SIDES[c, 0])  # the RIGHT part's LEFT corners: x = middle
-        for c, corner in enumerate(shape.parts[1]):
-            middle[corner] |= not _SIDES[c, 0]
-            top_left[corner] |= not _SIDES[c, 1]  # the LEFT part's top: y = 1/2 - hL
+        middle, top_left = _split_corners(shape)
         jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
         jac[..., 12] = d_object[..., 1] * np.where(top_left, -h_left, 0.0)[..., None]
     return image, jac
+
+
+@lru_cache(maxsize=None)
+def _split_corners(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool each, for a two-part shape: the corners on the wall between the parts (x =
+    middle, moved by the split) and the LEFT part's top corners (y = 1/2 - hL). Fixed per shape:
+    computed once, not on every solver iteration."""
+    middle, top_left = np.zeros(shape.num_keypoints, dtype=bool), np.zeros(shape.num_keypoints, dtype=bool)
+    for c, corner in enumerate(shape.parts[0]):
+        middle[corner] |= bool(_SIDES[c, 0])  # the RIGHT part's LEFT corners: x = middle
+    for c, corner in enumerate(shape.parts[1]):
+        middle[corner] |= not _SIDES[c, 0]
+        top_left[corner] |= not _SIDES[c, 1]  # the LEFT part's top: y = 1/2 - hL
+    middle.flags.writeable = top_left.flags.writeable = False  # shared by every caller
+    return middle, top_left
 
 
 def _rotation_derivative(rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray) -> np.ndarray:

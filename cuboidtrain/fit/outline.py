@@ -201,10 +201,13 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     value, slope = _weighted(dist, weights.outside, weights.inside, weights, tolerant_when_positive=False)
     residuals.append(value)
     if derivatives:
-        pick = lambda field: np.choose(part[..., None], [np.take_along_axis(field(j), e[..., None], 1)  # noqa: E731
-                                                         for j, (_, e) in enumerate(found)])
-        start, direction = pick(lambda j: hulls[j].start), pick(lambda j: hulls[j].direction)
-        normal, corner = pick(lambda j: hulls[j].normal), pick(lambda j: ends[j])
+        def pick(per_part: list[np.ndarray]) -> np.ndarray:
+            """Each outline point's value of its nearest part's nearest edge slot."""
+            return np.choose(part[..., None], [np.take_along_axis(v, e[..., None], 1)
+                                               for v, (_, e) in zip(per_part, found)])
+
+        start, direction = pick([h.start for h in hulls]), pick([h.direction for h in hulls])
+        normal, corner = pick([h.normal for h in hulls]), pick(ends)
         d_start, d_end = _offset_gradient(points, start, direction, normal)
         m = np.arange(len(outline))[None]
         d = np.zeros((b, len(outline), n, 2))
@@ -275,23 +278,23 @@ def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, c
     # ratio_names order: depth/height, width/height (per part): each pulled by its own weight.
     anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None]
 
-    def residual(x, rows):
-        return jacobian(x, rows, derivatives=False)
-
-    def jacobian(x, rows, derivatives=True):
-        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
+    def terms(x, image, derivatives):
         fit, d_fit = silhouette_terms(image, shape, outline, sdf, weights, derivatives)
         prior = ((image - corners) * pull).reshape(len(x), -1) * norm
-        values = [fit * norm, prior]
-        if prior_ratios is not None:
-            values.append(anchor * np.log(ratios(x, shape) / prior_ratios))
-        if not derivatives:
-            return np.concatenate(values, axis=1)
+        extents = [anchor * np.log(ratios(x, shape) / prior_ratios)] if prior_ratios is not None else []
+        return np.concatenate([fit * norm, prior, *extents], axis=1), d_fit
+
+    def residual(x, rows):  # a trial step needs no derivatives: the plain projection
+        return terms(x, project(x, shape, mirrors[rows]), derivatives=False)[0]
+
+    def jacobian(x, rows):
+        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
+        values, d_fit = terms(x, image, derivatives=True)
         rows_jac = [np.einsum("brnd,bndp->brp", d_fit, d_image) * norm,
                     (d_image * (pull * norm)[..., None]).reshape(len(x), -1, x.shape[1])]
         if prior_ratios is not None:
             rows_jac.append(anchor[:, :, None] * log_ratio_jacobian(x, shape))
-        return np.concatenate(values, axis=1), np.concatenate(rows_jac, axis=1)
+        return values, np.concatenate(rows_jac, axis=1)
 
     solved = levenberg_marquardt(residual, x0, iterations, tolerance=1e-7, jacobian=jacobian)
     best = int(np.argmin(solved.cost))
