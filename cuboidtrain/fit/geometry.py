@@ -37,6 +37,7 @@ from shared.camera import Cuboid, Extents, Intrinsics, Pose, viewer_order
 from shared.shapes import Shape, get_shape
 
 NUM_PARAMS = {1: 11, 2: 13}  # by number of parts
+WEAK_K = 1e-9  # k at or below this is weak perspective: no finite focal length
 _SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)  # left, bottom, front
 _MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
@@ -231,11 +232,29 @@ class CameraParams:
     def ratios(self) -> np.ndarray:
         return ratios(self.vector, self.shape)[0]
 
+    @property
+    def weak(self) -> bool:
+        """Weak perspective (k <= 0, to rounding): the camera is infinitely far, no focal length."""
+        return bool(self.vector[8] <= WEAK_K)
+
+    def camera_points(self, distance: float | None = None) -> np.ndarray:
+        """(N, 3) corners in the camera's frame (x right, y down, z forward), in the model's
+        corner labels and height units of the only / RIGHT part: R F X + (tx, ty, 1/k).
+        `distance` stands in for 1/k (a weak-perspective camera has none)."""
+        p = self.vector
+        rotated = rotated_points(p[None], self.shape, np.array([self.mirror]))[0]
+        return rotated + np.array([p[5], p[6], 1.0 / p[8] if distance is None else distance])
+
+    def focal_px(self) -> float:
+        """The record's `focal_px`: f = s / k of the k >= 0 twin (`canonical`), inf for weak perspective."""
+        vector, _ = canonical(self.vector, self.mirror)
+        return math.inf if vector[8] <= WEAK_K else float(math.exp(vector[7]) / vector[8])
+
     def pinhole(self) -> tuple[Cuboid, Intrinsics] | None:
         """The same cuboid in shared.camera's terms (height units of the taller part), or
         None for a weak-perspective fit (k <= 0: the camera is infinitely far)."""
         p, shape = self.vector, self.shape
-        if p[8] <= 1e-9:
+        if self.weak:
             return None
         w, d = math.exp(p[0]), math.exp(p[1])
         rot = rotation_matrices(p[None, 2:5])[0]

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cuboidtrain.fit.geometry import CuboidFit, rotated_points
+from cuboidtrain.fit.geometry import CuboidFit
 from cuboidtrain.fit.inputs import OutputNames
 from shared.errors import UsageError
 from shared.files import atomic_path
@@ -92,10 +92,8 @@ def camera_box(fit: CuboidFit) -> CameraBox:
     perspective) takes 1/k = NOMINAL_DISTANCE instead."""
     camera = fit.camera
     shape, p = camera.shape, camera.vector
-    rotated = rotated_points(p[None], shape, np.array([camera.mirror]))[0]
-    nominal = camera.pinhole() is None
-    distance = NOMINAL_DISTANCE if nominal else 1.0 / p[8]
-    points = rotated + np.array([p[5], p[6], distance])
+    nominal = camera.weak
+    points = camera.camera_points(NOMINAL_DISTANCE if nominal else None)
     scale = 1.0 if len(shape.parts) == 1 else max(1.0, math.exp(p[12]))  # the taller part is 1 high
     # The same expression as CameraParams.pinhole's, so the header's focal length is the record's to the last bit.
     focal = math.exp(p[7]) * NOMINAL_DISTANCE if nominal else math.exp(p[7]) / p[8]

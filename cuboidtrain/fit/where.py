@@ -35,8 +35,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from cuboidtrain.fit.geometry import (CameraParams, canonical, describe, euler_angles, from_sample_params,
-                                      rotated_points, rotation_matrices)
+from cuboidtrain.fit.geometry import CameraParams, canonical, euler_angles, from_sample_params, rotation_matrices
 from cuboidtrain.fit.iou3d import OrientedBox, union_iou
 from cuboidtrain.fit.lift import lift
 from shared.shapes import Shape, get_shape
@@ -113,8 +112,8 @@ def focal_error(camera: CameraParams, truth: CameraParams) -> float:
     length). What most often sinks the 3D IoU: a near-frontal view leaves the focal length and
     the box's size across the view nearly free together (the size follows the focal length at
     the truth's depth)."""
-    fitted = describe(camera, residual_px=0.0).focal_px
-    return abs(fitted / describe(truth, residual_px=0.0).focal_px - 1) if math.isfinite(fitted) else math.nan
+    fitted = camera.focal_px()
+    return abs(fitted / truth.focal_px() - 1) if math.isfinite(fitted) else math.nan
 
 
 def solid_yaw_deg(camera: CameraParams) -> float:
@@ -135,10 +134,10 @@ def camera_boxes(camera: CameraParams) -> list[OrientedBox] | None:
     """The parts of the solid a camera poses, in camera coordinates (x right, y down, z forward;
     units: the height of the only / RIGHT part); None for a weak-perspective camera (k <= 0:
     infinitely far)."""
-    vector, mirror = canonical(camera.vector, camera.mirror)
-    if vector[8] <= 1e-9:
+    camera = CameraParams(camera.shape, *canonical(camera.vector, camera.mirror))
+    if camera.weak:
         return None
-    points = rotated_points(vector[None], camera.shape, np.array([mirror]))[0] + [vector[5], vector[6], 1 / vector[8]]
+    points = camera.camera_points()
     return [OrientedBox.from_corners(points[list(part)]) for part in camera.shape.parts]
 
 
