@@ -42,34 +42,46 @@ _SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype
 _MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
 
-def _box(x_right, x_left, y_top, y_bottom, depth) -> np.ndarray:
-    """(B, 8, 3) corners of axis-aligned boxes in Table 1 order; arguments are (B,) arrays
-    (shared.camera.box_corners, batched)."""
-    left, bottom, front = _SIDES[:, 0], _SIDES[:, 1], _SIDES[:, 2]
-    x = np.where(left, x_left[:, None], x_right[:, None])
-    y = np.where(bottom, y_bottom[:, None], y_top[:, None])
-    z = np.where(front, -depth[:, None] / 2, depth[:, None] / 2)
-    return np.stack([x, y, z], axis=-1)
+@lru_cache(maxsize=None)
+def object_basis(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    """Object corners as an affine map of theta = (w, d) for box, (w, d, m, hL) for twobox:
+    X = coef @ theta + const, coef (N, 3, Q), const (N, 3), in Table 1's corner order (m is
+    the x of the plane between the parts, hL the LEFT part's height). Height of the only /
+    RIGHT part is 1. Every coefficient is 0, +-1/2 or +-1, so the product is exact."""
+    n, q = shape.num_keypoints, 2 * len(shape.parts)
+    coef, const = np.zeros((n, 3, q)), np.zeros((n, 3))
+    for index, part in enumerate(shape.parts):
+        for c, corner in enumerate(part):
+            left, bottom, front = _SIDES[c]
+            coef[corner, 2, 1] = 0.5 - front  # z = -d/2 front, +d/2 back
+            if index == 0:  # the only part, or the RIGHT one: x from m (or -w/2) to w/2
+                coef[corner, 0, 0] = 0.5 if not left else (0.0 if q == 4 else -0.5)
+                if left and q == 4:
+                    coef[corner, 0, 2] = 1.0
+                const[corner, 1] = bottom - 0.5
+            else:  # LEFT part: x from -w/2 to m, top at 1/2 - hL
+                coef[corner, 0, 0] = -0.5 if left else 0.0
+                coef[corner, 0, 2] = 0.0 if left else 1.0
+                const[corner, 1] = 0.5
+                coef[corner, 1, 3] = 0.0 if bottom else -1.0
+    coef.flags.writeable = const.flags.writeable = False  # shared by every caller
+    return coef, const
 
 
 def object_points(params: np.ndarray, shape: Shape, mirror: np.ndarray) -> np.ndarray:
     """(B, N, 3) labelled object corners for (B, P) params; `mirror` (B,) bool reflects x."""
+    coef, const = object_basis(shape)
     w, d = np.exp(params[:, 0]), np.exp(params[:, 1])
-    half = np.full_like(w, 0.5)
-    if len(shape.parts) == 1:
-        points = _box(w / 2, -w / 2, -half, half, d)
-    else:
-        middle = w / 2 - params[:, 11] * w
-        points = np.empty((len(params), 14, 3))
-        points[:, list(shape.parts[0])] = _box(w / 2, middle, -half, half, d)
-        points[:, list(shape.parts[1])] = _box(middle, -w / 2, half - np.exp(params[:, 12]), half, d)
+    theta = [w, d] if len(shape.parts) == 1 else [w, d, w / 2 - params[:, 11] * w, np.exp(params[:, 12])]
+    n, q = len(const), coef.shape[2]
+    points = (np.stack(theta, axis=1) @ coef.reshape(n * 3, q).T).reshape(-1, n, 3) + const
     points[..., 0] *= np.where(mirror, -1.0, 1.0)[:, None]
     return points
 
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     """(B, 3) rotation vectors -> (B, 3, 3) matrices (Rodrigues, stable near 0)."""
-    theta = np.linalg.norm(rotvec, axis=1)
+    theta = np.sqrt((rotvec * rotvec).sum(1))
     small = theta < 1e-8
     safe = np.where(small, 1.0, theta)
     a = np.where(small, 1.0 - theta**2 / 6, np.sin(theta) / safe)
@@ -166,9 +178,14 @@ def _rotation_derivative(rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarra
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    zero = np.zeros_like(x)
-    return np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*v.shape[:-1], 3, 3)
+    """(..., 3) -> (..., 3, 3) cross-product matrices [v]x: one product with a fixed sign table
+    (exact: every entry is +-1 or 0), a quarter of the cost of stacking nine arrays."""
+    return (v @ _SKEW).reshape(*v.shape[:-1], 3, 3)
+
+
+_SKEW = np.zeros((3, 9))  # row k: where v_k goes in [v]x, flattened
+for _k, _at, _sign in ((2, 1, -1.0), (1, 2, 1.0), (2, 3, 1.0), (0, 5, -1.0), (1, 6, -1.0), (0, 7, 1.0)):
+    _SKEW[_k, _at] = _sign
 
 
 def ratios(params: np.ndarray, shape: Shape) -> np.ndarray:

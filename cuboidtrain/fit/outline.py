@@ -10,6 +10,7 @@ move; about 55 ms a shape with forward-difference Jacobians.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -66,23 +67,31 @@ def signed_distance_field(mask: np.ndarray) -> np.ndarray:
 
 def bilinear(field: np.ndarray, points: np.ndarray) -> np.ndarray:
     """`field` sampled at (..., 2) x, y points, clamped at the border."""
-    return bilinear_with_gradient(field, points)[0]
+    _, _, fx, fy, (tl, tr, bl, br) = _cell(field, np.nan_to_num(points, nan=-1.0))
+    return (tl * (1 - fx) + tr * fx) * (1 - fy) + (bl * (1 - fx) + br * fx) * fy
 
 
 def bilinear_with_gradient(field: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`field` sampled at (..., 2) x, y points, clamped at the border, and its gradient (..., 2)
     (zero across a clamped coordinate)."""
-    h, w = field.shape
     points = np.nan_to_num(points, nan=-1.0)  # a diverged trial step: costed, then rejected by LM
-    x = np.clip(points[..., 0], 0, w - 1.001)
-    y = np.clip(points[..., 1], 0, h - 1.001)
-    x0, y0 = x.astype(int), y.astype(int)
-    fx, fy = x - x0, y - y0
-    tl, tr, bl, br = field[y0, x0], field[y0, x0 + 1], field[y0 + 1, x0], field[y0 + 1, x0 + 1]
+    x, y, fx, fy, (tl, tr, bl, br) = _cell(field, points)
     top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
     gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
     gy = np.where(y == points[..., 1], bottom - top, 0.0)
     return top * (1 - fy) + bottom * fy, np.stack([gx, gy], axis=-1)
+
+
+def _cell(field: np.ndarray, points: np.ndarray):
+    """The clamped x, y of (..., 2) finite points, their fractions in their pixel cell, and the
+    field at the cell's four corners (top-left, top-right, bottom-left, bottom-right)."""
+    h, w = field.shape
+    x = np.clip(points[..., 0], 0, w - 1.001)
+    y = np.clip(points[..., 1], 0, h - 1.001)
+    x0, y0 = x.astype(int), y.astype(int)
+    flat = field.ravel()
+    at = y0 * w + x0  # one flat index for the four corners: cheaper than four 2D lookups
+    return x, y, x - x0, y - y0, (flat[at], flat[at + 1], flat[at + w], flat[at + w + 1])
 
 
 _PAIRS = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])  # 28 candidate hull edges
@@ -96,40 +105,51 @@ HULL_SLOTS = 8
 
 @dataclass(frozen=True)
 class HullEdges:
-    """The hull edges of (B, 8, 2) convex parts, HULL_SLOTS a part (unused slots invalid)."""
+    """The hull edges of (..., 8, 2) convex parts, HULL_SLOTS a part (unused slots invalid)."""
 
-    start: np.ndarray  # (B, E, 2)
-    direction: np.ndarray  # (B, E, 2) end - start
-    normal: np.ndarray  # (B, E, 2) outward unit normal
-    valid: np.ndarray  # (B, E) a real hull edge: all the other corners lie on its inner side
-    pairs: np.ndarray  # (B, E, 2) the part's corner indices (0-7) at its start and end
+    start: np.ndarray  # (..., E, 2)
+    direction: np.ndarray  # (..., E, 2) end - start
+    normal: np.ndarray  # (..., E, 2) outward unit normal
+    valid: np.ndarray  # (..., E) a real hull edge: all the other corners lie on its inner side
+    pairs: np.ndarray  # (..., E, 2) the part's corner indices (0-7) at its start and end
+
+    def swapped(self) -> HullEdges:
+        """The hulls of (B, 2, ...) two-part shapes with the parts exchanged: each part's other."""
+        return HullEdges(*(v[:, ::-1] for v in (self.start, self.direction, self.normal, self.valid, self.pairs)))
 
 
 def hull_edges(corners: np.ndarray) -> HullEdges:
-    """Every corner pair tested as an edge at once (no per-hypothesis convexHull call),
-    then the edges packed into the first slots."""
+    """The hulls of (..., 8, 2) convex parts: every corner pair tested as an edge at once (no
+    per-hypothesis convexHull call), then the edges packed into the first slots."""
+    lead = corners.shape[:-2]
+    corners = corners.reshape(-1, 8, 2)
     a, b = corners[:, _PAIRS[:, 0]], corners[:, _PAIRS[:, 1]]
     direction = b - a
     normal = direction @ _QUARTER_TURN.T
-    normal /= np.linalg.norm(normal, axis=-1, keepdims=True) + 1e-12
+    normal /= np.sqrt((normal * normal).sum(-1, keepdims=True)) + 1e-12
     side = np.einsum("bkd,bnd->bkn", normal, corners) - np.einsum("bkd,bkd->bk", normal, a)[..., None]
     flip = np.where(side.sum(-1) > 0, -1.0, 1.0)  # outward: away from the rest
     normal *= flip[..., None]
     side *= flip[..., None]
     is_edge = (side <= 1e-9 * (1 + np.abs(side).max(-1, keepdims=True))).all(-1)
     slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
-    take = lambda v: np.take_along_axis(v, slots[..., None], 1)  # noqa: E731
-    return HullEdges(take(a), take(direction), take(normal), np.take_along_axis(is_edge, slots, 1), _PAIRS[slots])
+    take = (np.arange(len(corners))[:, None], slots)  # plain indexing: take_along_axis costs more per call
+    fields = (a[take], direction[take], normal[take], is_edge[take], _PAIRS[slots])
+    return HullEdges(*(v.reshape(*lead, *v.shape[1:]) for v in fields))
 
 
-def polygon_distance(points: np.ndarray, hull: HullEdges) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance (positive outside) of (B, M, 2) points to convex hulls given by their
-    edges: the largest outward offset over hull edges (exact inside, a lower bound outside),
-    and which edge slot gives it (B, M)."""
-    offset = np.einsum("bmd,bkd->bmk", points, hull.normal) - np.einsum("bkd,bkd->bk", hull.start, hull.normal)[:, None]
-    offset = np.where(hull.valid[:, None], offset, -np.inf)
-    edge = offset.argmax(-1)
-    return np.take_along_axis(offset, edge[..., None], -1)[..., 0], edge
+def polygon_offsets(points: np.ndarray, hull: HullEdges) -> np.ndarray:
+    """(..., M, E): the outward offset of (..., M, 2) points (or (M, 2), the same for every hull)
+    from each hull edge's line; -inf for unused slots."""
+    along = np.einsum("...md,...kd->...mk", points, hull.normal)
+    offset = along - np.einsum("...kd,...kd->...k", hull.start, hull.normal)[..., None, :]
+    return np.where(hull.valid[..., None, :], offset, -np.inf)
+
+
+def polygon_distance(points: np.ndarray, hull: HullEdges) -> np.ndarray:
+    """Signed distance (positive outside) of (..., M, 2) points to convex hulls given by their
+    edges: the largest outward offset over hull edges (exact inside, a lower bound outside)."""
+    return polygon_offsets(points, hull).max(-1)
 
 
 def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray,
@@ -185,64 +205,79 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     (positive outside: a missed building pixel, linear; inside: robust), and points along the
     model's outline edges sampled on the mask's signed distance field (over background:
     robust, an occluded part may be there; inside the mask: linear), each weighted by the
-    square root of its share of the edge's length, so every outline px counts once."""
+    square root of its share of the edge's length, so every outline px counts once.
+    A twobox's two parts are one batch axis (B, P, ...): numpy's per-call cost, paid once."""
     b, n = image.shape[:2]
-    hulls = [hull_edges(image[:, list(p)]) for p in shape.parts]
-    # Each edge slot's two corners, as indices into the shape's N corners: (B, E, 2).
-    ends = [np.asarray(p)[hull.pairs] for p, hull in zip(shape.parts, hulls)]
-    rows = np.arange(b)[:, None]
-    residuals, gradients = [], []
+    parts = _part_corners(shape)  # (P, 8) the shape's corner indices of each part
+    hull = hull_edges(image[:, parts])  # fields (B, P, E, ...)
+    ends = parts[np.arange(len(parts))[:, None, None], hull.pairs]  # (B, P, E, 2) shape corner indices
+    outline_value, outline_gradient = _outline_rows(outline, hull, ends, n, weights, derivatives)
+    edge_value, edge_gradient = _edge_rows(hull, ends, sdf, n, weights, derivatives)
+    residuals = np.concatenate([outline_value, edge_value], axis=1)
+    return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
 
-    # The mask's outline points against the nearest part's silhouette.
-    points = np.broadcast_to(outline, (b, *outline.shape))
-    found = [polygon_distance(points, hull) for hull in hulls]
-    part = np.argmin([dist for dist, _ in found], axis=0) if len(hulls) > 1 else np.zeros((b, len(outline)), dtype=int)
-    dist = np.choose(part, [dist for dist, _ in found])
+
+@lru_cache(maxsize=None)
+def _part_corners(shape: Shape) -> np.ndarray:
+    """(P, 8): the shape's corner indices of each convex part."""
+    parts = np.array(shape.parts)
+    parts.flags.writeable = False  # shared by every caller
+    return parts
+
+
+def _outline_rows(outline: np.ndarray, hull: HullEdges, ends: np.ndarray, n: int, weights: MaskFitWeights,
+                  derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
+    their derivatives (B, M, N, 2)."""
+    offsets = polygon_offsets(outline, hull)  # (B, P, M, E)
+    per_part = offsets.max(-1)  # (B, P, M)
+    dist = per_part.min(1)  # the nearest part
     value, slope = _weighted(dist, weights.outside, weights.inside, weights, tolerant_when_positive=False)
-    residuals.append(value)
-    if derivatives:
-        def pick(per_part: list[np.ndarray]) -> np.ndarray:
-            """Each outline point's value of its nearest part's nearest edge slot."""
-            return np.choose(part[..., None], [np.take_along_axis(v, e[..., None], 1)
-                                               for v, (_, e) in zip(per_part, found)])
+    if not derivatives:
+        return value, None
+    b, m = dist.shape
+    rows, points = np.arange(b)[:, None], np.arange(m)[None]
+    part = per_part.argmin(1)  # (B, M)
+    edge = offsets[rows, part, points].argmax(-1)  # (B, M): the edge slot that gives the distance
+    at = (rows, part, edge)
+    d_start, d_end = _offset_gradient(outline, hull.start[at], hull.direction[at], hull.normal[at])
+    corner = ends[at]  # (B, M, 2)
+    d = np.zeros((b, m, n, 2))
+    d[rows, points, corner[..., 0]] = slope[..., None] * d_start
+    d[rows, points, corner[..., 1]] += slope[..., None] * d_end
+    return value, d
 
-        start, direction = pick([h.start for h in hulls]), pick([h.direction for h in hulls])
-        normal, corner = pick([h.normal for h in hulls]), pick(ends)
-        d_start, d_end = _offset_gradient(points, start, direction, normal)
-        m = np.arange(len(outline))[None]
-        d = np.zeros((b, len(outline), n, 2))
-        d[rows, m, corner[..., 0]] = slope[..., None] * d_start
-        d[rows, m, corner[..., 1]] += slope[..., None] * d_end
-        gradients.append(d)
 
-    # The model's outline edges, sampled on the mask's distance field.
+def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: np.ndarray, n: int, weights: MaskFitWeights,
+               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points along the model's outline edges sampled on the mask's distance field: (B, P E T)
+    residuals, and their derivatives (B, P E T, N, 2)."""
     count = weights.samples_per_edge
     t = (np.arange(count) + 0.5) / count
-    for k, hull in enumerate(hulls):
-        samples = hull.start[:, :, None] + hull.direction[:, :, None] * t[:, None]  # (B, E, T, 2)
-        flat = samples.reshape(b, -1, 2)
-        keep = np.repeat(hull.valid, count, axis=1)
-        for j, other in enumerate(hulls):  # a twobox outline inside the other part is no outline
-            if j != k:
-                keep &= polygon_distance(flat, other)[0] > 0
-        over, gradient = bilinear_with_gradient(sdf, flat)
-        value, slope = _weighted(over, weights.overhang, weights.outside, weights, tolerant_when_positive=True)
-        full = np.linalg.norm(hull.direction, axis=-1)  # (B, E)
-        root = np.repeat(np.sqrt(full / count), count, axis=1)  # sqrt of each sample's share of the edge
-        residuals.append(np.where(keep, value * root, 0.0))
-        if derivatives:
-            # d root / d end = (direction / L) / (2 count root); the start's is its negative.
-            d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=1) / (2 * root[..., None] + 1e-12)
-            share = np.tile(t, hull.valid.shape[1])[None, :, None]
-            along = slope[..., None] * gradient * root[..., None]
-            scale = keep[..., None].astype(np.float64)
-            corner = np.repeat(ends[k], count, axis=1)  # (B, E T, 2)
-            r = np.arange(flat.shape[1])[None]
-            d = np.zeros((b, flat.shape[1], n, 2))
-            d[rows, r, corner[..., 0]] = scale * (along * (1 - share) - value[..., None] * d_root)
-            d[rows, r, corner[..., 1]] += scale * (along * share + value[..., None] * d_root)
-            gradients.append(d)
-    return np.concatenate(residuals, axis=1), (np.concatenate(gradients, axis=1) if derivatives else None)
+    samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
+    b, p = samples.shape[:2]
+    flat = samples.reshape(b, p, -1, 2)
+    keep = np.repeat(hull.valid, count, axis=-1)  # (B, P, E T)
+    if p == 2:  # a twobox outline inside the other part is no outline
+        keep &= polygon_distance(flat, hull.swapped()) > 0
+    over, gradient = bilinear_with_gradient(sdf, flat) if derivatives else (bilinear(sdf, flat), None)
+    value, slope = _weighted(over, weights.overhang, weights.outside, weights, tolerant_when_positive=True)
+    full = np.sqrt((hull.direction * hull.direction).sum(-1))  # (B, P, E)
+    root = np.repeat(np.sqrt(full / count), count, axis=-1)  # sqrt of each sample's share of the edge
+    residuals = np.where(keep, value * root, 0.0).reshape(b, -1)
+    if not derivatives:
+        return residuals, None
+    # d root / d end = (direction / L) / (2 count root); the start's is its negative.
+    d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=-2) / (2 * root[..., None] + 1e-12)
+    share = np.tile(t, hull.valid.shape[-1])[:, None]
+    along = slope[..., None] * gradient * root[..., None]
+    scale = keep[..., None].astype(np.float64)
+    corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
+    index = (np.arange(b)[:, None, None], np.arange(p)[None, :, None], np.arange(flat.shape[2])[None, None])
+    d = np.zeros((b, p, flat.shape[2], n, 2))
+    d[(*index, corner[..., 0])] = scale * (along * (1 - share) - value[..., None] * d_root)
+    d[(*index, corner[..., 1])] += scale * (along * share + value[..., None] * d_root)
+    return residuals, d.reshape(b, -1, n, 2)
 
 
 @dataclass(frozen=True)

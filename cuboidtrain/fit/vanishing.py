@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cuboidtrain.fit.geometry import _MIRROR_X, _SIDES, rotation_vector
+from cuboidtrain.fit.geometry import _MIRROR_X, object_basis, rotation_vector
 from shared.shapes import Shape
 
 # A vanishing point whose homogeneous w is below this share of its norm (in corner-span
@@ -93,29 +93,6 @@ def intrinsics(vps: np.ndarray, finite: np.ndarray) -> list[tuple[float, np.ndar
     return []
 
 
-def _object_basis(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
-    """Object corners as an affine map of theta = (w, d) for box, (w, d, m, hL) for twobox:
-    X = coef @ theta + const, coef (N, 3, Q), const (N, 3); `geometry.object_points`' layout
-    (m is the x of the plane between the parts, hL the LEFT part's height)."""
-    n, q = shape.num_keypoints, 2 * len(shape.parts)
-    coef, const = np.zeros((n, 3, q)), np.zeros((n, 3))
-    for index, part in enumerate(shape.parts):
-        for c, corner in enumerate(part):
-            left, bottom, front = _SIDES[c]
-            coef[corner, 2, 1] = 0.5 - front  # z = -d/2 front, +d/2 back
-            if index == 0:  # the only part, or the RIGHT one: x from m (or -w/2) to w/2
-                coef[corner, 0, 0] = 0.5 if not left else (0.0 if q == 4 else -0.5)
-                if left and q == 4:
-                    coef[corner, 0, 2] = 1.0
-                const[corner, 1] = bottom - 0.5
-            else:  # LEFT part: x from -w/2 to m, top at 1/2 - hL
-                coef[corner, 0, 0] = -0.5 if left else 0.0
-                coef[corner, 0, 2] = 0.0 if left else 1.0
-                const[corner, 1] = 0.5
-                coef[corner, 1, 3] = 0.0 if bottom else -1.0
-    return coef, const
-
-
 def _extents_and_translation(image: np.ndarray, m: np.ndarray, coef: np.ndarray,
                              const: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """theta (C, Q) and T (C, 3) for C candidate cameras at once: normalised image corners
@@ -159,7 +136,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     focal = np.repeat(focals, len(_SIGNS))
     principal = np.repeat(principals, len(_SIGNS), axis=0)
     m = (np.array(bases)[:, None] * _SIGNS[None, :, None, :]).reshape(-1, 3, 3)
-    coef, const = _object_basis(shape)
+    coef, const = object_basis(shape)
     theta, t, rms = _extents_and_translation((unit[None] - principal[:, None]) / focal[:, None, None], m, coef, const)
     camera = np.einsum("cij,cnj->cni", m, np.einsum("njq,cq->cnj", coef, theta) + const) + t[:, None]
     good = np.flatnonzero(_plausible(theta) & (camera[..., 2] > 0).all(1))
