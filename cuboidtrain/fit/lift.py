@@ -50,10 +50,14 @@ def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: fl
     (B * (P + 1) rows): numpy's per-call cost is paid once per iteration, not per column.
     Every hypothesis stops once one reaches a cost of `enough` (the lift's exact match).
     """
+    # An analytic Jacobian costs less than a second evaluation of the residuals at the same
+    # point, so every trial step computes it, and a taken step (most are) needs no other;
+    # forward differences cost P + 1 evaluations: only after a taken step.
+    trial_jacobian = jacobian is not None
     if jacobian is None:
         jacobian = partial(_forward_differences, residual, step)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverged trial step: costed inf, rejected
-        return _solve(residual, jacobian, x0, iterations, tolerance, enough)
+        return _solve(residual, jacobian, x0, iterations, tolerance, enough, trial_jacobian)
 
 
 def _forward_differences(residual, step: float, x: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -65,29 +69,42 @@ def _forward_differences(residual, step: float, x: np.ndarray, rows: np.ndarray)
     return r, (values[:, 1:] - r[:, None]).transpose(0, 2, 1) / step
 
 
-def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float, enough: float) -> Solved:
+def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float, enough: float,
+           trial_jacobian: bool) -> Solved:
     x = x0.copy()
     b, p = x.shape
     rows = np.arange(b)
     damping, growth = np.full(b, 1e-3), np.full(b, 2.0)
-    cost = 0.5 * (residual(x, rows) ** 2).sum(1)
     active = np.ones(b, dtype=bool)
-    stale = np.ones(b, dtype=bool)  # x moved since its normal equations were formed
     jtj, grad = np.zeros((b, p, p)), np.zeros((b, p))
+
+    def normal_equations(at: np.ndarray, r: np.ndarray, jac: np.ndarray) -> None:
+        jtj[at] = jac.transpose(0, 2, 1) @ jac
+        grad[at] = np.einsum("bmp,bm->bp", jac, r)
+
+    if trial_jacobian:
+        r, jac = jacobian(x, rows)
+        normal_equations(rows, r, jac)
+        cost = 0.5 * (r**2).sum(1)
+    else:
+        cost = 0.5 * (residual(x, rows) ** 2).sum(1)
+    stale = np.full(b, not trial_jacobian)  # x moved since its normal equations were formed
     eye = np.eye(p)
     for _ in range(iterations):
         redo = np.flatnonzero(active & stale)
         if len(redo):  # a rejected step leaves x, and so J, as they were: no new Jacobian
-            r, jac = jacobian(x[redo], redo)  # (B', M), (B', M, P)
-            jtj[redo] = jac.transpose(0, 2, 1) @ jac
-            grad[redo] = np.einsum("bmp,bm->bp", jac, r)
+            normal_equations(redo, *jacobian(x[redo], redo))  # (B', M), (B', M, P)
             stale[redo] = False
         live = np.flatnonzero(active)
         diag = np.einsum("bii->bi", jtj[live]) + 1e-9
         system = jtj[live] + (damping[live, None] * diag)[:, :, None] * eye
         delta = -np.linalg.solve(system, grad[live, :, None])[..., 0]
         trial = x[live] + delta
-        new_cost = np.nan_to_num(0.5 * (residual(trial, live) ** 2).sum(1), nan=np.inf)
+        if trial_jacobian:  # the trial's Jacobian with its residuals: kept if the step is taken
+            trial_r, trial_jac = jacobian(trial, live)
+        else:
+            trial_r = residual(trial, live)
+        new_cost = np.nan_to_num(0.5 * (trial_r**2).sum(1), nan=np.inf)
         gain = cost[live] - new_cost
         # Nielsen's damping update (Madsen, Nielsen & Tingleff 2004, sec. 3.2): by how well the
         # linear model predicted the gain; fewer rejected steps than a fixed /3, x4.
@@ -95,7 +112,10 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         rho = gain / np.where(predicted > 0, predicted, np.inf)
         better = gain > 0
         x[live[better]] = trial[better]
-        stale[live[better]] = True
+        if trial_jacobian:
+            normal_equations(live[better], trial_r[better], trial_jac[better])
+        else:
+            stale[live[better]] = True
         cost[live] = np.where(better, new_cost, cost[live])
         damping[live] = np.where(better, damping[live] * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
                                  damping[live] * growth[live])

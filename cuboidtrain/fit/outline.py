@@ -67,14 +67,14 @@ def signed_distance_field(mask: np.ndarray) -> np.ndarray:
 
 def bilinear(field: np.ndarray, points: np.ndarray) -> np.ndarray:
     """`field` sampled at (..., 2) x, y points, clamped at the border."""
-    _, _, fx, fy, (tl, tr, bl, br) = _cell(field, np.nan_to_num(points, nan=-1.0))
+    _, _, fx, fy, (tl, tr, bl, br) = _cell(field, np.fmax(points, -1.0))
     return (tl * (1 - fx) + tr * fx) * (1 - fy) + (bl * (1 - fx) + br * fx) * fy
 
 
 def bilinear_with_gradient(field: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`field` sampled at (..., 2) x, y points, clamped at the border, and its gradient (..., 2)
     (zero across a clamped coordinate)."""
-    points = np.nan_to_num(points, nan=-1.0)  # a diverged trial step: costed, then rejected by LM
+    points = np.fmax(points, -1.0)
     x, y, fx, fy, (tl, tr, bl, br) = _cell(field, points)
     top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
     gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
@@ -83,12 +83,14 @@ def bilinear_with_gradient(field: np.ndarray, points: np.ndarray) -> tuple[np.nd
 
 
 def _cell(field: np.ndarray, points: np.ndarray):
-    """The clamped x, y of (..., 2) finite points, their fractions in their pixel cell, and the
-    field at the cell's four corners (top-left, top-right, bottom-left, bottom-right)."""
+    """The clamped x, y of (..., 2) points, their fractions in their pixel cell, and the
+    field at the cell's four corners (top-left, top-right, bottom-left, bottom-right).
+    Callers pass np.fmax(points, -1): a NaN of a diverged trial step becomes -1, clamped to
+    the border like any point off the field (costed, then rejected by LM)."""
     h, w = field.shape
-    x = np.clip(points[..., 0], 0, w - 1.001)
-    y = np.clip(points[..., 1], 0, h - 1.001)
-    x0, y0 = x.astype(int), y.astype(int)
+    x = np.minimum(np.maximum(points[..., 0], 0), w - 1.001)  # np.clip's wrapper costs more than the two
+    y = np.minimum(np.maximum(points[..., 1], 0), h - 1.001)
+    x0, y0 = x.astype(np.intp), y.astype(np.intp)
     flat = field.ravel()
     at = y0 * w + x0  # one flat index for the four corners: cheaper than four 2D lookups
     return x, y, x - x0, y - y0, (flat[at], flat[at + 1], flat[at + w], flat[at + w + 1])

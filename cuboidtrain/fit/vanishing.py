@@ -58,7 +58,8 @@ def edges_by_axis(shape: Shape) -> list[list[tuple[int, int]]]:
 def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]]) -> np.ndarray:
     """Homogeneous (3,) least-squares common point of the edges' lines, unit norm."""
     h = np.hstack([points, np.ones((len(points), 1))])
-    lines = np.array([np.cross(h[a], h[b]) for a, b in edges])
+    ends = np.asarray(edges)
+    lines = np.cross(h[ends[:, 0]], h[ends[:, 1]])
     lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True) + 1e-12
     return np.linalg.svd(lines)[2][-1]
 
@@ -119,23 +120,25 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     in `geometry`'s layout; empty when no candidate camera gives a box in front of it."""
     unit, centre, scale = _normalise(np.asarray(points, dtype=np.float64))
     vps = np.array([vanishing_point(unit, edges) for edges in edges_by_axis(shape)])
-    focals, principals, bases = [], [], []
+    focals, principals, directions = [], [], []
     for finite in _finiteness_choices(np.abs(vps[:, 2])):
         directions_xy = np.where(finite[:, None], vps[:, :2] / np.where(finite, vps[:, 2], 1.0)[:, None], vps[:, :2])
         for focal, principal in intrinsics(vps, finite):
             rays = np.where(finite[:, None], (directions_xy - principal) / focal, directions_xy)
-            directions = np.hstack([rays, finite[:, None].astype(np.float64)])
-            u, _, vt = np.linalg.svd(directions / np.linalg.norm(directions, axis=1, keepdims=True))
             focals.append(focal)
             principals.append(principal)
-            bases.append((u @ vt).T)  # nearest orthogonal matrix; columns = the object axes in the camera
+            directions.append(np.hstack([rays, finite[:, None].astype(np.float64)]))
     p = 11 if len(shape.parts) == 1 else 13
     if not focals:
         return np.zeros((0, p)), np.zeros(0, dtype=bool)
+    # The nearest orthogonal matrices, all candidates in one SVD call: columns = the object axes in the camera.
+    directions = np.array(directions)
+    u, _, vt = np.linalg.svd(directions / np.linalg.norm(directions, axis=2, keepdims=True))
+    bases = (u @ vt).transpose(0, 2, 1)
     # Every candidate camera times every sign choice of the axes, solved at once.
     focal = np.repeat(focals, len(_SIGNS))
     principal = np.repeat(principals, len(_SIGNS), axis=0)
-    m = (np.array(bases)[:, None] * _SIGNS[None, :, None, :]).reshape(-1, 3, 3)
+    m = (bases[:, None] * _SIGNS[None, :, None, :]).reshape(-1, 3, 3)
     coef, const = object_basis(shape)
     theta, t, rms = _extents_and_translation((unit[None] - principal[:, None]) / focal[:, None, None], m, coef, const)
     camera = np.einsum("cij,cnj->cni", m, np.einsum("njq,cq->cnj", coef, theta) + const) + t[:, None]
