@@ -11,7 +11,13 @@ record), torch eager. Random weights unless --checkpoint (the same arithmetic).
 TorchScript (BN folded), onnxruntime with basic optimisation only, and with
 spinning worker threads (onnxruntime's default; OnnxPipeline turns it off).
 
+`--records N` times instead what a user waits for: the whole `infer` record of one 256 px
+PNG with the shipped models, both shape classes tried, networks only against `--cuboid`
+(the cuboid fit to the mask: issue 20's bar is 50 ms median on one thread), interleaved
+mask by mask over N generated masks (box and twobox, `paper-clean`, `paper`, `street`).
+
     .venv/bin/python benchmarks/bench_infer.py --sizes 64 128 256 --threads 2 --repeats 30
+    .venv/bin/python benchmarks/bench_infer.py --records 60 --threads 1 --repeats 5
 """
 from __future__ import annotations
 
@@ -31,7 +37,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from cuboidgen.config import PAPER
+from cuboidgen.config import PAPER, SCENES
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
 from cuboidtrain.models.checkpoint import load_model
@@ -43,6 +49,7 @@ from cuboidtrain.fit.options import FitOptions
 from shared.sample import signed
 
 TARGET_MS = 150.0  # docs/contract.md, "Targets": R+S+T at 256x256, batch 1, 2-core CPU
+CUBOID_TARGET_MS = 50.0  # issue 20, Must have 9: the whole --cuboid record, both shape classes, one thread
 
 
 def median_ms(call, repeats: int, warmup: int) -> float:
@@ -141,6 +148,50 @@ def bench_size(model, size: int, threads: int, repeats: int, warmup: int, folder
             "variants_ms": {name: value for name, value in ms.items() if name not in ("eager", "onnxruntime")}}
 
 
+def record_masks(count: int, folder: Path) -> list[Path]:
+    """`count` generated 256 px noisy masks as PNGs, cycling through box and twobox in each scene."""
+    library = OccluderLibrary.builtin(variants_per_kind=2, seed=0)
+    kinds = [(shape, scene) for scene in ("paper-clean", "paper", "street") for shape in ("box", "twobox")]
+    paths = []
+    for index in range(count):
+        shape, scene = kinds[index % len(kinds)]
+        path = folder / f"record-{index:03d}-{scene}-{shape}.png"
+        cv2.imwrite(str(path), make_sample(shape, SCENES[scene], 256, 1000 + index, library).noisy.astype(np.uint8) * 255)
+        paths.append(path)
+    return paths
+
+
+def bench_records(count: int, repeats: int, folder: Path) -> dict:
+    """Median ms of the whole record (`Fitter.records` of one PNG), networks only and `--cuboid`,
+    timed in turn on each mask (so load spikes hit both), `repeats` times over `count` masks."""
+    paths = record_masks(count, folder)
+    fitters = {"networks": Fitter.from_shipped(FitOptions(device="cpu")),
+               "cuboid": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))}
+    times = {name: [] for name in fitters}
+    for fitter in fitters.values():  # warm-up: first calls allocate
+        fitter.records(paths[:2])
+    for _ in range(repeats):
+        for path in paths:
+            for name, fitter in fitters.items():
+                start = time.perf_counter()
+                fitter.records([path])
+                times[name].append(time.perf_counter() - start)
+    medians = {name: 1000 * statistics.median(t) for name, t in times.items()}
+    return {"masks": count, "repeats": repeats, "networks_ms": medians["networks"], "cuboid_ms": medians["cuboid"],
+            "cuboid_p90_ms": 1000 * float(np.percentile(times["cuboid"], 90)),
+            "cuboid_vs_networks": medians["cuboid"] / medians["networks"], "cuboid_target_ms": CUBOID_TARGET_MS}
+
+
+def records_table(row: dict, threads: int) -> Table:
+    t = Table(title=f"the whole infer record, shipped models, both shape classes, {threads} thread(s): "
+                    f"median over {row['masks']} masks x {row['repeats']}")
+    for col in ("networks only", "--cuboid", "--cuboid p90", "ratio", f"<= {CUBOID_TARGET_MS:.0f}"):
+        t.add_column(col, justify="right")
+    t.add_row(f"{row['networks_ms']:.1f}", f"{row['cuboid_ms']:.1f}", f"{row['cuboid_p90_ms']:.1f}",
+              f"{row['cuboid_vs_networks']:.2f}", "yes" if row["cuboid_ms"] <= CUBOID_TARGET_MS else "no")
+    return t
+
+
 SHORT = {"eager_channels_last": "eager CL", "torchscript_frozen": "TS frozen",
          "onnxruntime_basic_opt": "ort basic", "onnxruntime_spinning": "ort spinning"}
 
@@ -170,10 +221,22 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--variants", action="store_true",
                         help="Also time channels_last eager, frozen TorchScript, onnxruntime basic opt / spinning.")
+    parser.add_argument("--records", type=int, default=0, metavar="N",
+                        help="Time the whole infer record instead, networks only vs --cuboid, over N masks.")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
+    if args.records:
+        with tempfile.TemporaryDirectory() as tmp:
+            row = bench_records(args.records, args.repeats, Path(tmp))
+        result = {"threads": args.threads, "torch": torch.__version__, "cpus": os.cpu_count(),
+                  "loadavg_before": load_before, "loadavg_after": os.getloadavg(), "records": row}
+        Console(width=150).print(records_table(row, args.threads))
+        print(json.dumps(result))
+        if args.json:
+            args.json.write_text(json.dumps(result, indent=2))
+        return
     if args.checkpoint:
         model, _ = load_model(args.checkpoint)
         models = [model]
