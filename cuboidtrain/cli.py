@@ -146,8 +146,8 @@ def watch(
 
 @app.command()
 def infer(
-    paths: Optional[list[str]] = typer.Argument(None, metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id; a folder: its images, recursively."),
-    from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders), one a line; - for stdin."),
+    paths: Optional[list[str]] = typer.Argument(None, metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id; a folder: its images, recursively. Or a URL fsspec reads (s3://bucket/masks/, gs://..., file://...; a glob in it is expanded)."),
+    from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders, or URLs), one a line; - for stdin."),
     glob: Optional[str] = typer.Option(None, metavar="PATTERN", help=f"In folders, the files matching this (e.g. '*_mask.png'); default {DEFAULT_GLOB_HELP}."),
     checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl)."),

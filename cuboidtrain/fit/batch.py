@@ -1,9 +1,10 @@
 """`cuboidtrain infer` over many inputs, in labelled phases: resume from OUT, fit (in this process or
 a pool), store each input's records as it completes, report progress, summarise.
 
-The pieces have a module each: `inputs` (what to fit), `store` (the JSONL file and its
-resume), `pool` (where fits run on this machine), `cluster` (on a Dask cluster, imported only
-for `--cluster`), `progress` (what the user sees).
+The pieces have a module each: `inputs` (what to fit), `storage` (where a mask is read from: a
+local path or an fsspec URL), `store` (the JSONL file and its resume), `pool` (where fits run on
+this machine), `cluster` (on a Dask cluster, imported only for `--cluster`), `progress` (what
+the user sees).
 """
 from __future__ import annotations
 

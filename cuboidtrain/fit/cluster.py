@@ -6,8 +6,8 @@ so `batch.run_batch` stores, resumes and reports them the same way. ADDRESS `loc
 LocalCluster on 127.0.0.1 with `workers` processes of one thread; `tcp://host:8786` joins a running
 scheduler. Inputs go out as chunks of paths (`pool.CHUNK`), at most two chunks a worker thread in
 flight: the workers read the masks themselves, so every worker must see the same paths (a shared
-file system). Each worker thread builds its Fitter once, on its first chunk, and keeps it for
-every later chunk of the same models and options.
+file system) or reach the same URLs (an object store: `storage`). Each worker thread builds its
+Fitter once, on its first chunk, and keeps it for every later chunk of the same models and options.
 """
 from __future__ import annotations
 

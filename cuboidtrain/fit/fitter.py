@@ -107,9 +107,9 @@ class Fitter:
     # --- fitting ---------------------------------------------------------------------------
 
     def fit(self, mask: str | Path | np.ndarray) -> Fit:
-        """The building of a mask image file or array (H, W) (object > half its maximum, or `label_id`):
-        its pieces of at least 1% of the largest one's area, together (`masks.silhouette`);
-        ValueError when it has none, or the file cannot be read."""
+        """The building of a mask image file, URL (`s3://...`, read by fsspec: `storage`) or array (H, W)
+        (object > half its maximum, or `label_id`): its pieces of at least 1% of the largest one's area,
+        together (`masks.silhouette`); ValueError when it has none, or the file cannot be read."""
         return self._fit_parts(mask, all_components=False)[0]
 
     def fit_all(self, mask: str | Path | np.ndarray) -> list[Fit]:
@@ -154,7 +154,7 @@ class Fitter:
 
     def _read(self, mask: str | Path | np.ndarray) -> np.ndarray:
         if isinstance(mask, (str, Path)):
-            return load_mask(Path(mask), self.options.label_id)
+            return load_mask(mask, self.options.label_id)  # a URL stays a string
         return to_mask(mask, self.options.label_id)
 
     def _fit_parts(self, mask, all_components: bool) -> list[Fit]:

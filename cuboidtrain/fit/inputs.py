@@ -7,14 +7,19 @@ A list file (`--from-list FILE`, `-` for stdin) holds one path a line, each take
 blank lines and lines starting with `#` are skipped; relative paths are from the current
 folder; every listed path must exist (a list naming missing files is refused whole). Nothing
 to fit is a UsageError naming what was expected, before any model loads.
+
+A PATH may also be a URL fsspec reads (`s3://bucket/masks/`, `file:///data/masks/`: `storage`):
+a URL folder (a prefix) is walked as a folder is, by the same rules; a URL with glob characters
+(`s3://bucket/masks/*_mask.png`) is expanded by the store, as a shell expands a local one.
 """
 from __future__ import annotations
 
 import logging
 import sys
 from collections.abc import Iterable, Sequence
-from pathlib import Path
+from pathlib import Path, PurePath, PurePosixPath
 
+from cuboidtrain.fit.storage import Lookup, has_glob, is_url
 from shared.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -26,19 +31,20 @@ DEFAULT_GLOB_HELP = "*.png, *.jpg, *.jpeg, *.bmp, *.tif, *.tiff, *.webp"
 def gather_inputs(paths: Sequence[str], from_list: str | None = None, glob: str | None = None) -> list[str]:
     """The inputs in order: the PATHs given, then the list file's. Folders expand to their
     matching files (sorted). A UsageError when there is nothing to fit."""
-    given = list(paths)
+    given, lookup = list(paths), Lookup()
     if from_list is not None:
         listed = read_list(from_list)
         if not listed:
             raise UsageError(f"--from-list {from_list}: no paths in it; expected one mask path a line")
-        check_listed(from_list, listed)
+        check_listed(from_list, listed, lookup=lookup)
         given += listed
     if not given:
         raise UsageError("no inputs: expected mask PATHs (files or folders) or --from-list FILE")
+    lookup.look_up(given)  # the URLs among them, many at a time
     inputs = []
     for path in given:
-        inputs += expand(path, glob)
-    missing = [p for p in inputs if not Path(p).exists()]
+        inputs += expand(path, glob, lookup)
+    missing = [p for p in inputs if not lookup.exists(p)]
     if missing and len(missing) == len(inputs):
         raise UsageError(f"{missing[0]}: no such file" + (f" (nor the {len(missing) - 1} other inputs)"
                                                           if len(missing) > 1 else "")
@@ -49,37 +55,70 @@ def gather_inputs(paths: Sequence[str], from_list: str | None = None, glob: str 
     return inputs
 
 
-def check_listed(source: str, listed: list[str], named: int = 3) -> None:
+def check_listed(source: str, listed: list[str], named: int = 3, lookup: Lookup | None = None) -> None:
     """A list file whose paths do not all exist is refused whole, before any fit: a list is
     written by a program, and one stale or mistyped path usually means the whole list is off
     (made in another folder, or before the files were moved)."""
-    missing = [p for p in listed if not Path(p).exists()]
+    lookup = lookup or Lookup()
+    lookup.look_up(listed)  # the URLs among them, many at a time
+    missing = [p for p in listed if not lookup.exists(p)]
     if missing:
         first = ", ".join(missing[:named]) + (", ..." if len(missing) > named else "")
         raise UsageError(f"--from-list {'stdin' if source == '-' else source}: {len(missing)} of {len(listed)} "
                          f"listed paths do not exist (first: {first}); expected existing mask files or folders")
 
 
-def expand(path: str, glob: str | None) -> list[str]:
-    """A folder's matching files, sorted; anything else as given."""
-    folder = Path(path)
-    if not folder.is_dir():
+def expand(path: str, glob: str | None, lookup: Lookup | None = None) -> list[str]:
+    """A folder's matching files, sorted; a URL glob's matches; anything else as given."""
+    lookup = lookup or Lookup()
+    if is_url(path) and has_glob(path):
+        return expand_url_glob(path, glob, lookup)
+    if not lookup.is_folder(path):
         return [path]
-    found = sorted(str(p) for p in walk(folder, glob))
+    if is_url(path):
+        found = sorted(url for url, relative in lookup.under(path) if wanted(PurePosixPath(relative), glob))
+    else:
+        found = sorted(str(p) for p in walk(Path(path), glob))
     if not found:
         raise UsageError(f"{path}: a folder with no files matching {glob or DEFAULT_GLOB_HELP}; "
                          f"expected mask images under it (or another --glob)")
     return found
 
 
+def expand_url_glob(url: str, glob: str | None, lookup: Lookup) -> list[str]:
+    """What a URL's glob matches, sorted, hidden names left out (as a shell's `*` leaves them);
+    a matched folder expands as a folder does."""
+    found = []
+    for name, relative in lookup.matching(url):
+        if not hidden(PurePosixPath(relative)):
+            found += expand(name, glob, lookup) if lookup.is_folder(name) else [name]
+    if not found:
+        raise UsageError(f"{url}: nothing matches it; expected mask images (check the pattern, or give the folder)")
+    return found
+
+
 def walk(folder: Path, glob: str | None) -> Iterable[Path]:
     candidates = folder.rglob(glob) if glob else folder.rglob("*")
     for path in candidates:
-        hidden = any(part.startswith(".") for part in path.relative_to(folder).parts)
-        if hidden or not path.is_file():
+        if hidden(path.relative_to(folder)) or not path.is_file():
             continue
-        if glob or path.suffix.lower() in IMAGE_SUFFIXES:
+        if glob or is_image(path):
             yield path
+
+
+def wanted(relative: PurePath, glob: str | None) -> bool:
+    """Whether a file at `relative` under a folder is an input: `walk`'s rule for a listing
+    (a URL folder's) that `rglob` did not match for us."""
+    return not hidden(relative) and (relative.match(glob) if glob else is_image(relative))
+
+
+def hidden(relative: PurePath) -> bool:
+    """A name starting with `.` (a writer's `.tmp-...`, `.DS_Store`), or anything under one."""
+    return any(part.startswith(".") for part in relative.parts)
+
+
+def is_image(path: PurePath) -> bool:
+    return path.suffix.lower() in IMAGE_SUFFIXES
 
 
 def read_list(source: str) -> list[str]:

@@ -1,6 +1,7 @@
 """Input masks for inference: read them, pick their components, frame them for a model.
 
-`load_mask` turns a PNG or JPG of any size into a bool mask, `components` splits it
+`load_mask` turns a PNG or JPG of any size, a file or a URL fsspec reads (`storage`), into a
+bool mask (one decoding for both: the bytes are read, then decoded), `components` splits it
 into 8-connected objects and `frame` maps one object onto the model's square input
 with a single affine map, kept as a `Framing` so that keypoints predicted at the
 model's resolution go back to the input image's own pixels. Integer coordinates are
@@ -17,11 +18,13 @@ import cv2
 import numpy as np
 
 from cuboidtrain.fit.options import DEFAULT_MARGIN
+from cuboidtrain.fit.storage import is_url, read_bytes
 from shared.errors import UsageError
 
 
-def load_mask(path: Path, label_id: int | None = None) -> np.ndarray:
-    """The object pixels of a mask image file as a bool (H, W) array (`to_mask`'s rules)."""
+def load_mask(path: str | Path, label_id: int | None = None) -> np.ndarray:
+    """The object pixels of a mask image file or URL as a bool (H, W) array (`to_mask`'s rules)."""
+    path = path if is_url(path) else Path(path)  # a Path would fold a URL's `//`
     return to_mask(_read(path), label_id, str(path))
 
 
@@ -65,10 +68,10 @@ def to_mask(image: np.ndarray, label_id: int | None = None, source: str = "mask"
 MAX_PIXELS = 100_000_000  # 10,000 x 10,000: a decoded mask plus its labels then take about 0.6 GB
 
 
-def _read(path: Path) -> np.ndarray:
-    # imdecode from bytes: cv2.imread fails silently on some non-ASCII paths.
+def _read(path: str | Path) -> np.ndarray:
+    # imdecode from bytes: cv2.imread fails silently on some non-ASCII paths, and reads no URL.
     try:
-        data = np.fromfile(str(path), dtype=np.uint8)
+        data = read_bytes(path)
     except OSError as error:
         raise UsageError(f"{path}: cannot read image ({error.strerror or error})") from None
     try:
@@ -85,7 +88,7 @@ def _read(path: Path) -> np.ndarray:
     return image
 
 
-def _check_pixels(path: Path, size: tuple[int, int] | None) -> None:
+def _check_pixels(path: str | Path, size: tuple[int, int] | None) -> None:
     if size is not None and size[0] * size[1] > MAX_PIXELS:
         raise UsageError(f"{path}: image of {size[0]} x {size[1]} px is too large: at most {MAX_PIXELS:,} px "
                          f"(downscale the mask first; the model sees it at 64-256 px anyway)")
