@@ -135,3 +135,49 @@ def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(t
     assert [label.split(":")[0] for label in residual[:3]] == ["input, not the box", "box, not the input", "both"]
     model_minus_input = int(residual[1].split(": ")[1].removesuffix(" px"))
     assert model_minus_input > 1000  # the building's occluded holes, inside the box
+
+
+def fitted_cuboid(shape: str, iou: float, left_height: float = 0.6) -> stage.FittedCuboid:
+    """A fitted cuboid of `shape` with the given IoU; a twobox's LEFT part `left_height` times the RIGHT's."""
+    from cuboidtrain.fit.geometry import CameraParams, describe
+
+    vector = np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0, 0.0, np.log(100.0), 0.2, 64.0, 64.0]
+                      + ([0.5, np.log(left_height)] if shape == "twobox" else []))
+    fit = describe(CameraParams(get_shape(shape), vector, False), 0.0, iou=iou)
+    return stage.FittedCuboid(fit, np.ones(get_shape(shape).num_keypoints))
+
+
+@pytest.mark.parametrize("left_height, seam", [(0.6, False), (1 / 0.6, False), (0.85, False), (0.95, True),
+                                               (1.0, True), (1 / 0.95, True)])
+def test_a_twobox_of_nearly_equal_heights_is_a_box_with_a_seam(left_height, seam):
+    reason = stage.implausible(fitted_cuboid("twobox", 0.9, left_height).fit)
+    assert (reason is not None) == seam
+    if seam:
+        assert "a box with a seam" in reason
+    assert stage.implausible(fitted_cuboid("box", 0.9).fit) is None
+
+
+@pytest.mark.parametrize("box_iou, twobox_iou, left_height, chosen, warned", [
+    (0.90, 0.903, 0.6, "box", False),  # within the margin: the simpler class
+    (0.90, 0.91, 0.6, "twobox", False),  # clearly better and plausible
+    (0.90, 0.95, 0.97, "box", True),  # clearly better, but a box with a seam: set aside, and said
+    (0.90, 0.80, 0.97, "box", False),  # worse anyway: nothing to say
+])
+def test_the_fitted_cuboids_choose_the_class_plausibly(box_iou, twobox_iou, left_height, chosen, warned):
+    from tests.test_infer import candidate
+
+    cuboids = {"box": fitted_cuboid("box", box_iou), "twobox": fitted_cuboid("twobox", twobox_iou, left_height)}
+    for order in (["box", "twobox"], ["twobox", "box"]):
+        best, warnings = stage.choose_cuboid([candidate(s, 0.5) for s in order], cuboids)
+        assert best.shape == chosen and best.confidence == cuboids[chosen].fit.iou
+        assert bool(warnings) == warned
+        if warned:
+            assert "twobox cuboid explained the input better" in warnings[0] and "box with a seam" in warnings[0]
+
+
+def test_when_no_class_is_plausible_all_are_judged_alike():
+    from tests.test_infer import candidate
+
+    cuboids = {"twobox": fitted_cuboid("twobox", 0.9, 1.0)}
+    best, warnings = stage.choose_cuboid([candidate("twobox", 0.5)], cuboids)
+    assert best.shape == "twobox" and warnings == []

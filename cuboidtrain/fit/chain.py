@@ -156,13 +156,13 @@ def score(candidate: Candidate, mask: np.ndarray, keypoints: np.ndarray) -> Scor
     return Scores(confidence=confidence, warnings=tuple(warnings))
 
 
-def choose(candidates: list[Candidate]) -> Candidate:
+def choose(candidates: list[Candidate], margin: float = RICHER_SHAPE_MARGIN) -> Candidate:
     """The best-explained candidate: simplest class first (fewest keypoints), replaced by a richer
-    one only when its confidence is higher by more than RICHER_SHAPE_MARGIN."""
+    one only when its confidence is higher by more than `margin`."""
     ordered = sorted(candidates, key=lambda c: get_shape(c.shape).num_keypoints)
     best = ordered[0]
     for candidate in ordered[1:]:
-        if candidate.confidence > best.confidence + RICHER_SHAPE_MARGIN:
+        if candidate.confidence > best.confidence + margin:
             best = candidate
     return best
 

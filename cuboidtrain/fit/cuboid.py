@@ -6,7 +6,7 @@ input's pixels, start `cuboidtrain.fit.outline.fit_mask` at the input's own reso
 pull the corners the outline leaves free, each weighted by its heat map's peak; the
 Tabulator's ratios anchor the extents. The record's keypoints are then the fitted box's
 projection, its ratios the box's own, and the shape class is chosen by the fitted
-silhouettes' IoU with the input (`chain.choose`, same margin).
+silhouettes' IoU with the input among the plausible fits (`choose_cuboid`).
 
 Measured (BENCHMARKS.md, "infer --cuboid"): clean masks gain strongly, noisy and occluded
 ones little; depth/height gets worse. Hence opt-in.
@@ -14,15 +14,26 @@ ones little; depth/height gets worse. Hence opt-in.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cuboidtrain.fit.chain import Candidate
+from cuboidtrain.fit.chain import Candidate, choose
 from cuboidtrain.fit.geometry import CuboidFit
 from cuboidtrain.fit.outline import MaskTarget, bilinear, fit_mask
 from shared.shapes import get_shape
 
+# Shape selection from the fitted cuboids (Must have 4): each explains the input by its IoU,
+# and a richer class must explain it better by this margin and be plausible. Measured on
+# 1,200 held-out generated masks (BENCHMARKS.md, "Shape selection from the fitted cuboids"):
+# the networks' margin (0.02) chose box for 12% of twobox masks; 0.005 alone chose twobox for
+# 7% of box masks (occluders' notches); with the plausibility gate below, box 96.8% and
+# twobox 94.8% (from 97.3% and 87.8%).
+CUBOID_MARGIN = 0.005
+# A twobox whose parts' heights differ by less than this share is a box with a seam: the
+# generator draws the lower part at 35-85% of the taller's height, and a box fitted as a
+# twobox comes out at 98% (median); true twoboxes at 58% (95th percentile 82%).
+SEAM_HEIGHT_RATIO = 0.9
 # An outline corner's score falls with its distance to the input's outline, at this scale:
 # a clean 256 px mask puts its fitted corners within about 1 px of it (rasterised corners).
 CORNER_SCORE_PX = 2.0
@@ -68,6 +79,34 @@ def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget) -> Fitted
     check_finite(fit)
     named_peaks = peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
     return FittedCuboid(fit, corner_scores(fit, target.sdf, named_peaks))
+
+
+def implausible(fit: CuboidFit) -> str | None:
+    """Why a fitted cuboid is no building the networks were trained on, or None: a twobox whose
+    two parts are (nearly) equally high is a box with a seam, which the box class says in fewer
+    parameters, whatever a few pixels of IoU say (an occluder's notch, contour noise)."""
+    if fit.shape != "twobox":
+        return None
+    ratios = get_shape(fit.shape).ratio_vector(fit.ratios)  # right d/h, w/h, left d/h, w/h: d/h_left over d/h_right
+    heights = ratios[0] / ratios[2]  # the LEFT part's height over the RIGHT's
+    lower = min(heights, 1 / heights)
+    if lower < SEAM_HEIGHT_RATIO:
+        return None
+    return f"its two parts' heights differ by {100 * (1 - lower):.0f}% (< {100 * (1 - SEAM_HEIGHT_RATIO):.0f}%): a box with a seam"
+
+
+def choose_cuboid(candidates: list[Candidate], cuboids: dict[str, FittedCuboid]) -> tuple[Candidate, list[str]]:
+    """The candidate whose fitted cuboid explains the input best (its IoU, richer classes by
+    CUBOID_MARGIN) among the plausible ones, and a warning for each better-explaining class set
+    aside as implausible."""
+    judged = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
+    reasons = {c.shape: implausible(cuboids[c.shape].fit) for c in judged}
+    plausible = [c for c in judged if reasons[c.shape] is None] or judged  # none plausible: judge all alike
+    best = choose(plausible, margin=CUBOID_MARGIN)
+    warnings = [f"the {c.shape} cuboid explained the input better (IoU {c.confidence:.3f} against {best.confidence:.3f}) "
+                f"but was set aside: {reasons[c.shape]}"
+                for c in judged if c not in plausible and c.confidence > best.confidence + CUBOID_MARGIN]
+    return best, warnings
 
 
 def heatmap_peaks(heatmaps: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ from cuboidtrain.device import resolve_device
 from cuboidtrain.fit.chain import (Candidate, Explanation, choose, confidence, error_record, load_models,
                                    no_explanation, score)
 from cuboidtrain.fit.codec import make_codec
-from cuboidtrain.fit.cuboid import FittedCuboid, fit_candidate
+from cuboidtrain.fit.cuboid import FittedCuboid, choose_cuboid, fit_candidate
 from cuboidtrain.fit.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
@@ -182,15 +182,18 @@ class Fitter:
             candidates.append(self.fit_framed(model, framed, framing))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
         cuboids = {c.shape: fit_candidate(c, target) for c in candidates} if self.options.cuboid else {}
-        if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution
+        set_aside: list[str] = []
+        if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
+            best, set_aside = choose_cuboid(candidates, cuboids)
             candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
-        best = choose(candidates)
+        else:
+            best = choose(candidates)
         cuboid = cuboids.get(best.shape)
         keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
         scores = score(best, mask, keypoints)
         return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios if cuboid is None else cuboid.fit.ratios,
                    confidence=scores.confidence, refine_steps=best.refine_steps,
-                   refine_converged=best.refine_converged, warnings=scores.warnings,
+                   refine_converged=best.refine_converged, warnings=scores.warnings + tuple(set_aside),
                    candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid,
                    explanation=Explanation(candidate=best, mask=mask))
 
