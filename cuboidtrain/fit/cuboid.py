@@ -4,7 +4,8 @@ With `FitOptions(cuboid=True)` (`cuboidtrain infer --cuboid`) the Fitter hands e
 class's Candidate here with the input component: the networks' corners, mapped back to the
 input's pixels, start `cuboidtrain.fit.outline.fit_mask` at the input's own resolution and
 pull the corners the outline leaves free, each weighted by its heat map's peak; the
-Tabulator's ratios anchor the extents. The record's keypoints are then the fitted box's
+Tabulator's ratios anchor the extents; the Refiner's completion speaks for the parts an
+occluder hides (`cuboidtrain.fit.completion`). The record's keypoints are then the fitted box's
 projection, its ratios the box's own, and the shape class is chosen by the fitted
 silhouettes' IoU with the input among the plausible fits (`choose_cuboid`).
 
@@ -19,6 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from cuboidtrain.fit.chain import Candidate, choose
+from cuboidtrain.fit.completion import completed_target
 from cuboidtrain.fit.geometry import CuboidFit
 from cuboidtrain.fit.outline import MaskTarget, bilinear, fit_mask
 from shared.shapes import get_shape
@@ -75,7 +77,7 @@ def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget) -> Fitted
     # The Tabulator's head is unbounded: a ratio <= 0 anchors nothing (its log is -inf or NaN), so no anchor then.
     prior = prior if (prior > 0).all() and np.isfinite(prior).all() else None
     target = mask if isinstance(mask, MaskTarget) else MaskTarget.of(mask)
-    fit = fit_mask(target, shape, corners, peaks, prior_ratios=prior)
+    fit = fit_mask(completed_target(candidate, target), shape, corners, peaks, prior_ratios=prior)
     check_finite(fit)
     named_peaks = peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
     return FittedCuboid(fit, corner_scores(fit, target.sdf, named_peaks))
