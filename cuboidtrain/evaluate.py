@@ -20,10 +20,11 @@ errors):
   (`cuboidtrain.fit.lift.lift`);
 * `cuboid`, with FitOptions(cuboid=True) (`eval --cuboid`): the cuboid fitted to the
   sample's own noisy mask from the same batch row (`Fitter.candidate`, then
-  `cuboid.fit_candidate`, as `infer --cuboid` fits a mask).
+  `cuboid.fit_candidates`, as `infer --cuboid` fits a mask, a batch at once).
 
-The networks run batched; the cuboid fits and the lifts then run one sample at a time
-(each fit is batched over its own starts inside the solver).
+The networks run batched, and so do the lifts of their corners (`lift.lift_many`) and the
+cuboid fits (`cuboid.fit_candidates`): a batch's samples are solved at once, one solver for
+all their starts.
 """
 from __future__ import annotations
 
@@ -39,9 +40,11 @@ import torch
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.train.data import SKIP_REASONS, Source, SpoolBatches, prepare_batch
 from cuboidtrain.fit.chain import Candidate
-from cuboidtrain.fit.cuboid import NonFiniteCuboid, fit_candidate
+from cuboidtrain.fit.cuboid import NonFiniteCuboid, fit_candidates
 from cuboidtrain.fit.fitter import Fitter, NonFiniteFit
 from cuboidtrain.fit.masks import silhouette
+from cuboidtrain.fit.geometry import CameraParams
+from cuboidtrain.fit.lift import lift_many
 from cuboidtrain.fit.where import CornerErrors, Truth, score, summarise
 from cuboidtrain.models.refine import mask_iou
 from cuboidtrain.models.networks import ChainOutput, CuboidNet, build_model
@@ -140,31 +143,48 @@ def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.n
     on the framed masks (B, S, S)); None where a path gave no answer (a non-finite output, a
     failed cuboid fit). `cuboid` only with the Fitter's options' `cuboid`."""
     scored: dict[str, list] = {name: [] for name in PATHS[: 2 if fitter.options.cuboid else 1]}
+    candidates: list[Candidate | None] = []
+    truths = [Truth.of_sample(source.sample) for source in sources]
     for row, source in enumerate(sources):
-        truth = Truth.of_sample(source.sample)
         try:
-            candidate = fitter.candidate(model, out, row, framed[row], source.framing)
+            candidates.append(fitter.candidate(model, out, row, framed[row], source.framing))
         except NonFiniteFit:
-            for answers in scored.values():
-                answers.append(None)
-            continue
-        scored["networks"].append(score(source.framing.to_input(candidate.keypoints), candidate.ratios, truth))
-        if fitter.options.cuboid:
-            scored["cuboid"].append(_cuboid_score(candidate, source, truth))
+            candidates.append(None)
+    keypoints = [None if c is None else s.framing.to_input(c.keypoints) for c, s in zip(candidates, sources)]
+    cameras = _lifted(keypoints, truths, model.shape)
+    scored["networks"] = [None if k is None else score(k, c.ratios, t, cameras.get(row))
+                          for row, (k, c, t) in enumerate(zip(keypoints, candidates, truths))]
+    if fitter.options.cuboid:
+        scored["cuboid"] = _cuboid_scores(candidates, sources, truths)
     return scored
 
 
-def _cuboid_score(candidate: Candidate, source: Source, truth: Truth) -> CornerErrors | None:
-    """The cuboid of `candidate` fitted to its sample's own noisy mask, the building's pieces
-    together (what `Fitter` fits: `masks.silhouette`), and scored; None if there is no fit."""
-    mask = silhouette(source.sample.noisy)
-    if mask is None:
-        return None
-    try:
-        fitted = fit_candidate(candidate, mask)
-    except NonFiniteCuboid:
-        return None
-    return score(fitted.fit.keypoints, fitted.fit.ratios, truth, fitted.fit.camera)
+def _lifted(keypoints: list[np.ndarray | None], truths: list[Truth], shape: str) -> dict[int, CameraParams]:
+    """The networks' corners lifted to a cuboid (they have no box of their own), a batch's at once
+    (`lift.lift_many`), for the rows whose truth has a camera to compare with."""
+    rows = [row for row, (k, t) in enumerate(zip(keypoints, truths)) if k is not None and t.camera is not None]
+    if not rows:
+        return {}
+    lifted = lift_many(np.array([keypoints[row] for row in rows]), get_shape(shape))
+    return {row: one.camera for row, one in zip(rows, lifted)}
+
+
+def _cuboid_scores(candidates: list[Candidate | None], sources: list[Source],
+                   truths: list[Truth]) -> list[CornerErrors | None]:
+    """The cuboid of each candidate fitted to its sample's own noisy mask, the building's pieces
+    together (what `Fitter` fits: `masks.silhouette`), the batch's fits solved at once
+    (`cuboid.fit_candidates`), and scored; None where there is no fit."""
+    masks = [None if c is None else silhouette(s.sample.noisy) for c, s in zip(candidates, sources)]
+    fittable = [i for i, m in enumerate(masks) if m is not None]
+    fitted = dict(zip(fittable, fit_candidates([candidates[i] for i in fittable], [masks[i] for i in fittable])))
+    scores: list[CornerErrors | None] = []
+    for i, truth in enumerate(truths):
+        fit = fitted.get(i)
+        if fit is None or isinstance(fit, NonFiniteCuboid):
+            scores.append(None)
+            continue
+        scores.append(score(fit.fit.keypoints, fit.fit.ratios, truth, fit.fit.camera))
+    return scores
 
 
 def measure(model: CuboidNet, batches: list[dict], sigma: float, options: FitOptions | None = None,

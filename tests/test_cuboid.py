@@ -109,8 +109,8 @@ def test_auto_chooses_by_the_fitted_cuboids(masks):
 
 
 def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
-    real = stage.fit_mask
-    monkeypatch.setattr(stage, "fit_mask", lambda *a, **k: replace(real(*a, **k), yaw_deg=float("nan")))
+    real = stage.fit_masks
+    monkeypatch.setattr(stage, "fit_masks", lambda *a, **k: [replace(f, yaw_deg=float("nan")) for f in real(*a, **k)])
     paths, _ = masks
     record = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).records(paths[:1])[0]
     assert record["keypoints"] is None and record["cuboid"] is None
@@ -181,3 +181,29 @@ def test_when_no_class_is_plausible_all_are_judged_alike():
     cuboids = {"twobox": fitted_cuboid("twobox", 0.9, 1.0)}
     best, warnings = stage.choose_cuboid([candidate("twobox", 0.5)], cuboids)
     assert best.shape == "twobox" and warnings == []
+
+
+def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
+    """eval fits a batch of masks at once (`fit_candidates`): each mask's rows read its own outline
+    (padded to the longest), field, corners and anchor, so every fit equals the mask fitted alone;
+    a small mask's shorter outline pads the batch."""
+    from cuboidtrain.fit.masks import frame
+    from cuboidtrain.fit.outline import MaskTarget
+
+    paths, samples = masks
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+    small = cv2.resize(samples[0].clean.astype(np.uint8), (40, 40), interpolation=cv2.INTER_NEAREST) > 0
+    inputs = [s.clean for s in samples] + [small]
+    candidates, targets = [], []
+    for mask in inputs:
+        for model in fitter.models:
+            candidates.append(fitter.fit_framed(model, *frame(mask, model.size)))
+            targets.append(MaskTarget.of(mask))
+    assert len({len(t.outline) for t in targets}) > 1  # the outlines differ in length: padding is tested
+    together = stage.fit_candidates(candidates, targets)
+    for candidate, target, fitted in zip(candidates, targets, together):
+        alone = stage.fit_candidate(candidate, target)
+        assert fitted.fit.shape == candidate.shape
+        np.testing.assert_allclose(fitted.fit.keypoints, alone.fit.keypoints, atol=1e-6)
+        assert fitted.fit.iou == pytest.approx(alone.fit.iou, abs=1e-9)
+        np.testing.assert_allclose(fitted.corner_scores, alone.corner_scores, atol=1e-9)

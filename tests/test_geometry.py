@@ -12,8 +12,8 @@ import pytest
 from cuboidgen.config import SCENES
 from cuboidgen.scene import draw_view
 from cuboidtrain.fit.geometry import canonical, describe, from_sample_params, outline_corners
-from cuboidtrain.fit.lift import lift
-from cuboidtrain.fit.outline import fit_mask
+from cuboidtrain.fit.lift import lift, lift_many
+from cuboidtrain.fit.mask_fit import fit_mask
 from shared.raster import rasterize
 from shared.shapes import get_shape
 
@@ -81,6 +81,22 @@ def test_lift_recovers_exact_corners_and_ratios(shape, scene):
         ratios = np.abs(camera.ratios() / geometry.ratio_vector(view.ratios) - 1).max()
         recovered += corners < 0.01 and ratios < 1e-3
     assert recovered / len(cases) >= LIFT_FLOOR
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_lifting_many_corner_sets_at_once_lifts_each_as_alone(shape):
+    """eval lifts a batch at once (`lift_many`): exact sets stop at the first group of starts,
+    noisy ones go on to the second, and each comes out as its own `lift`."""
+    geometry, rng = get_shape(shape), np.random.default_rng(3)
+    corners = [view.keypoints for view in views(shape, "paper", 3)]
+    corners += [c + rng.normal(0, 2.0, c.shape) for c in corners]  # never reproduced: every group is tried
+    together = lift_many(np.array(corners), geometry)
+    for points, many in zip(corners, together):
+        alone = lift(points, geometry)
+        np.testing.assert_allclose(many.camera.vector, alone.camera.vector, atol=1e-9)
+        assert many.camera.mirror == alone.camera.mirror and many.rms == pytest.approx(alone.rms, abs=1e-12)
+        assert len(many.hypotheses) == len(alone.hypotheses)
+    assert len(together[0].hypotheses) < len(together[-1].hypotheses)  # exact: one group; noisy: two
 
 
 @pytest.mark.parametrize("scene", ["paper", "street"])

@@ -2,7 +2,7 @@
 
 Occluders only remove building pixels, so the input says nothing where one stands. The Refiner
 (R, the paper's first network) has learnt to fill those parts in; its output, mapped back to the
-input's pixels, speaks for them in `outline.fit_mask`'s target (`completed_target`):
+input's pixels, speaks for them in `mask_fit.fit_mask`'s target (`completed_target`):
 
 * model outline over the input's background but inside the completion is not overhang: it
   costs nothing there, and beyond it the overhang is measured to the completed building;

@@ -2,7 +2,7 @@
 
 With `FitOptions(cuboid=True)` (`cuboidtrain infer --cuboid`) the Fitter hands every shape
 class's Candidate here with the input component: the networks' corners, mapped back to the
-input's pixels, start `cuboidtrain.fit.outline.fit_mask` at the input's own resolution and
+input's pixels, start `cuboidtrain.fit.mask_fit.fit_masks` at the input's own resolution and
 pull the corners the outline leaves free, each weighted by its heat map's peak; the
 Tabulator's ratios anchor the extents; the Refiner's completion speaks for the parts an
 occluder hides (`cuboidtrain.fit.completion`). The record's keypoints are then the fitted box's
@@ -15,6 +15,7 @@ ones little; depth/height gets worse. Hence opt-in.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,7 +23,8 @@ import numpy as np
 from cuboidtrain.fit.chain import Candidate, choose
 from cuboidtrain.fit.completion import completed_target
 from cuboidtrain.fit.geometry import CuboidFit
-from cuboidtrain.fit.outline import MaskTarget, bilinear, fit_mask
+from cuboidtrain.fit.mask_fit import fit_masks
+from cuboidtrain.fit.outline import MaskTarget, bilinear
 from shared.shapes import get_shape
 
 # Shape selection from the fitted cuboids (Must have 4): each explains the input by its IoU,
@@ -67,20 +69,44 @@ class FittedCuboid:
 
 def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget) -> FittedCuboid:
     """The cuboid of `candidate`'s class fitted to `mask` (H, W) bool, the input component (or its
-    MaskTarget, shared by the shape classes tried)."""
-    if candidate.framing is None:
+    MaskTarget, shared by the shape classes tried); NonFiniteCuboid if it is not finite."""
+    [fitted] = fit_candidates([candidate], [mask])
+    if isinstance(fitted, NonFiniteCuboid):
+        raise fitted
+    return fitted
+
+
+def fit_candidates(candidates: Sequence[Candidate],
+                   masks: Sequence[np.ndarray | MaskTarget]) -> list[FittedCuboid | NonFiniteCuboid]:
+    """`fit_candidate` for many (candidate, mask) pairs, each shape class's fits solved as one
+    batch (`mask_fit.fit_masks`); a fit that is not finite is its NonFiniteCuboid, in its place."""
+    if any(c.framing is None for c in candidates):
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
-    shape = get_shape(candidate.shape)
-    corners = candidate.framing.to_input(candidate.keypoints)
-    peaks = heatmap_peaks(candidate.heatmaps)
-    prior = shape.ratio_vector(candidate.ratios)
-    # The Tabulator's head is unbounded: a ratio <= 0 anchors nothing (its log is -inf or NaN), so no anchor then.
-    prior = prior if (prior > 0).all() and np.isfinite(prior).all() else None
-    target = mask if isinstance(mask, MaskTarget) else MaskTarget.of(mask)
-    fit = fit_mask(completed_target(candidate, target), shape, corners, peaks, prior_ratios=prior)
-    check_finite(fit)
-    named_peaks = peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
-    return FittedCuboid(fit, corner_scores(fit, target.sdf, named_peaks))
+    targets = [m if isinstance(m, MaskTarget) else MaskTarget.of(m) for m in masks]
+    fitted: list = [None] * len(candidates)
+    for name in dict.fromkeys(c.shape for c in candidates):
+        batch = [i for i, c in enumerate(candidates) if c.shape == name]
+        corners = np.array([candidates[i].framing.to_input(candidates[i].keypoints) for i in batch])
+        peaks = np.array([heatmap_peaks(candidates[i].heatmaps) for i in batch])
+        priors = [ratio_prior(candidates[i]) for i in batch]
+        fits = fit_masks([completed_target(candidates[i], targets[i]) for i in batch], get_shape(name),
+                         corners, peaks, priors)
+        for i, fit, peak in zip(batch, fits, peaks):
+            try:
+                check_finite(fit)
+            except NonFiniteCuboid as exc:
+                fitted[i] = exc
+                continue
+            named_peaks = peak[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
+            fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks))
+    return fitted
+
+
+def ratio_prior(candidate: Candidate) -> np.ndarray | None:
+    """The Tabulator's ratios (`ratio_names` order) that anchor the fit's extents; None when one
+    is <= 0 or not finite: the head is unbounded, and such a ratio's log anchors nothing."""
+    prior = get_shape(candidate.shape).ratio_vector(candidate.ratios)
+    return prior if (prior > 0).all() and np.isfinite(prior).all() else None
 
 
 def implausible(fit: CuboidFit) -> str | None:

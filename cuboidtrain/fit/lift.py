@@ -41,14 +41,16 @@ class Solved:
 
 
 def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: float = 1e-7,
-                        tolerance: float = 1e-12, jacobian=None, enough: float = 0.0) -> Solved:
+                        tolerance: float = 1e-12, jacobian=None, enough: float = 0.0,
+                        groups: np.ndarray | None = None) -> Solved:
     """Minimise 0.5 |residual(x, rows)|^2 for every row of x0 at once.
 
     `residual(x, rows)` maps (B', P) params and (B',) hypothesis indices to (B', M) residuals.
     `jacobian(x, rows)`, when given, returns the residuals and their Jacobian (B', M, P);
     without it, one call evaluates every hypothesis and every forward-difference column
     (B * (P + 1) rows): numpy's per-call cost is paid once per iteration, not per column.
-    Every hypothesis stops once one reaches a cost of `enough` (the lift's exact match).
+    Every hypothesis stops once one reaches a cost of `enough` (the lift's exact match); with
+    `groups` (B,) (the rows of several problems solved at once), every hypothesis of its group.
     """
     # An analytic Jacobian costs less than a second evaluation of the residuals at the same
     # point, so every trial step computes it, and a taken step (most are) needs no other;
@@ -57,7 +59,7 @@ def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: fl
     if jacobian is None:
         jacobian = partial(_forward_differences, residual, step)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # a diverged trial step: costed inf, rejected
-        return _solve(residual, jacobian, x0, iterations, tolerance, enough, trial_jacobian)
+        return _solve(residual, jacobian, x0, iterations, tolerance, enough, trial_jacobian, groups)
 
 
 def _forward_differences(residual, step: float, x: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +72,7 @@ def _forward_differences(residual, step: float, x: np.ndarray, rows: np.ndarray)
 
 
 def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float, enough: float,
-           trial_jacobian: bool) -> Solved:
+           trial_jacobian: bool, groups: np.ndarray | None) -> Solved:
     x = x0.copy()
     b, p = x.shape
     rows = np.arange(b)
@@ -122,9 +124,22 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         growth[live] = np.where(better, 2.0, growth[live] * 2)
         done = (better & (gain <= tolerance * (cost[live] + 1e-12))) | (damping[live] > 1e10) | (cost[live] < 1e-20)
         active[live[done]] = False
-        if not active.any() or cost.min() < enough:
+        if enough > 0:
+            _stop_groups_that_reached(active, cost, enough, groups)
+        if not active.any():
             break
     return Solved(x, cost)
+
+
+def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: float, groups: np.ndarray | None) -> None:
+    """Every row of a group (all rows without `groups`) stops once one of its rows costs < `enough`."""
+    reached = cost < enough
+    if groups is None:
+        active &= ~reached.any()
+        return
+    hit = np.zeros(groups.max() + 1, dtype=bool)
+    hit[groups[reached]] = True
+    active &= ~hit[groups]
 
 
 def _edge_means(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -195,17 +210,57 @@ def affine_starts(points: np.ndarray, shape: Shape, k_starts=(0.0,)) -> tuple[np
 
 
 def corner_residuals(points: np.ndarray, sqrt_w: np.ndarray, shape: Shape, mirrors: np.ndarray):
-    """The weighted reprojection residuals of hypotheses with flags `mirrors`, and their analytic Jacobian."""
+    """The weighted reprojection residuals of hypotheses with flags `mirrors` (H,), each against
+    its own corners `points` (H, N, 2) with weights `sqrt_w` (H, N, 1), and their analytic Jacobian."""
 
     def residual(x, rows):
-        return ((project(x, shape, mirrors[rows]) - points) * sqrt_w).reshape(len(x), -1)
+        return ((project(x, shape, mirrors[rows]) - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
 
     def jacobian(x, rows):
         image, jac = project_with_jacobian(x, shape, mirrors[rows])
-        r = ((image - points) * sqrt_w).reshape(len(x), -1)
-        return r, (jac * sqrt_w[..., None]).reshape(len(x), r.shape[1], -1)
+        r = ((image - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
+        return r, (jac * sqrt_w[rows][..., None]).reshape(len(x), r.shape[1], -1)
 
     return residual, jacobian
+
+
+@dataclass(frozen=True)
+class Hypotheses:
+    """Lift hypotheses of several corner sets solved at once: params (H, P), mirror flags (H,),
+    final costs (H,) and the corner set each belongs to (H,), in order of the sets."""
+
+    params: np.ndarray
+    mirrors: np.ndarray
+    costs: np.ndarray
+    owner: np.ndarray
+
+    def best(self, owner: int, count: int) -> np.ndarray:
+        """The indices of corner set `owner`'s `count` cheapest hypotheses, cheapest first."""
+        mine = np.flatnonzero(self.owner == owner)
+        return mine[np.argsort(self.costs[mine])[:count]]
+
+
+def hypotheses(points: np.ndarray, weights: np.ndarray, shape: Shape, k_starts=(0.0,), vanishing: bool = True,
+               iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS) -> Hypotheses:
+    """Every start of K named corner sets (K, N, 2) (weights (K, N)), the vanishing-point ones
+    (with `vanishing`) then the affine ones for each perspective strength in `k_starts`, solved
+    by one batched LM on the weighted reprojection error: numpy's per-call cost paid once for
+    all K. A set's hypotheses stop once one of them reproduces its corners to `accept_rms` px."""
+    starts, flags, owner = [], [], []
+    for k, corners in enumerate(points):
+        affine, affine_flags = affine_starts(corners, shape, k_starts)
+        if vanishing:
+            algebraic, algebraic_flags = vanishing_starts(corners, shape)
+            affine, affine_flags = np.concatenate([algebraic, affine]), np.concatenate([algebraic_flags, affine_flags])
+        starts.append(affine)
+        flags.append(affine_flags)
+        owner.append(np.full(len(affine), k))
+    starts, flags, owner = np.concatenate(starts), np.concatenate(flags), np.concatenate(owner)
+    sqrt_w = np.sqrt(weights)[owner][..., None]
+    residual, jacobian = corner_residuals(points[owner], sqrt_w, shape, flags)
+    solved = levenberg_marquardt(residual, starts, iterations, tolerance=tolerance, jacobian=jacobian,
+                                 enough=0.5 * points.shape[1] * accept_rms**2, groups=owner if len(points) > 1 else None)
+    return Hypotheses(solved.params, flags, solved.cost, owner)
 
 
 @dataclass(frozen=True)
@@ -230,30 +285,40 @@ def lift(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_
     `accept_rms` px (a flat tuple is one group); the best is then polished for `polish`
     more iterations and given k >= 0 (`geometry.canonical`)."""
     points = np.asarray(points, dtype=np.float64)
-    weights = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
+    return lift_many(points[None], shape, None if weights is None else np.asarray(weights)[None], k_starts,
+                     iterations, tolerance, accept_rms, polish, vanishing)[0]
+
+
+def lift_many(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_starts=K_STARTS,
+              iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS,
+              polish: int = POLISH_ITERATIONS, vanishing: bool = True) -> list[Lifted]:
+    """`lift` of K corner sets (K, N, 2) at once (weights (K, N)): each group of starts solved for
+    every set not yet reproduced, then every set's best polished, all in one solver each time."""
+    points = np.asarray(points, dtype=np.float64)
+    weights = np.ones(points.shape[:2]) if weights is None else np.asarray(weights, dtype=np.float64)
     groups = k_starts if isinstance(k_starts[0], (tuple, list)) else (k_starts,)
-    sqrt_w = np.sqrt(weights)[None, :, None]
-    params, mirrors, costs = [], [], []
+    tried: list[list[tuple]] = [[] for _ in points]  # per set: (params, mirrors, costs) of each group tried
+    pending = np.arange(len(points))
     for number, group in enumerate(groups):
-        starts, flags = affine_starts(points, shape, group)
-        if number == 0 and vanishing:
-            algebraic, algebraic_flags = vanishing_starts(points, shape)
-            starts, flags = np.concatenate([algebraic, starts]), np.concatenate([algebraic_flags, flags])
-
-        residual, jacobian = corner_residuals(points, sqrt_w, shape, flags)
-        solved = levenberg_marquardt(residual, starts, iterations, tolerance=tolerance, jacobian=jacobian,
-                                     enough=0.5 * len(points) * accept_rms**2)
-        params.append(solved.params)
-        mirrors.append(flags)
-        costs.append(solved.cost)
-        if np.sqrt(2 * solved.cost.min() / len(points)) < accept_rms:
+        solved = hypotheses(points[pending], weights[pending], shape, group, vanishing and number == 0, iterations,
+                            tolerance, accept_rms)
+        reproduced = []
+        for row, k in enumerate(pending):
+            mine = solved.owner == row
+            tried[k].append((solved.params[mine], solved.mirrors[mine], solved.costs[mine]))
+            reproduced.append(np.sqrt(2 * solved.costs[mine].min() / points.shape[1]) < accept_rms)
+        pending = pending[~np.array(reproduced)]
+        if not len(pending):
             break
-    params, mirrors, costs = np.concatenate(params), np.concatenate(mirrors), np.concatenate(costs)
-    best = int(np.argmin(costs))
-    mirror = bool(mirrors[best])
-
-    residual, jacobian = corner_residuals(points, sqrt_w, shape, np.array([mirror]))
-    polished = levenberg_marquardt(residual, params[best : best + 1], polish, tolerance=0.0, jacobian=jacobian)
-    vector, mirror = canonical(polished.params[0], mirror)
-    rms = float(np.sqrt(2 * polished.cost[0] / len(points)))
-    return Lifted(CameraParams(shape, vector, mirror), rms, params, mirrors, costs)
+    params, mirrors, costs = ([np.concatenate([t[i] for t in per_set]) for per_set in tried] for i in range(3))
+    best = [int(np.argmin(c)) for c in costs]
+    flags = np.array([bool(m[b]) for m, b in zip(mirrors, best)])
+    residual, jacobian = corner_residuals(points, np.sqrt(weights)[..., None], shape, flags)
+    polished = levenberg_marquardt(residual, np.array([p[b] for p, b in zip(params, best)]), polish, tolerance=0.0,
+                                   jacobian=jacobian)
+    lifted = []
+    for k, mirror in enumerate(flags):
+        vector, mirror = canonical(polished.params[k], bool(mirror))
+        rms = float(np.sqrt(2 * polished.cost[k] / points.shape[1]))
+        lifted.append(Lifted(CameraParams(shape, vector, mirror), rms, params[k], mirrors[k], costs[k]))
+    return lifted

@@ -1,24 +1,18 @@
-"""Fit a cuboid to a binary mask at the input's own resolution: the outline's residuals
-(how far the mask's outline lies from the model's silhouette and back), a pull toward the
-networks' corners by confidence, and `cuboidtrain.fit.lift`'s solver.
-
-Measured (docs/research/geometric-fit/RESULTS.md, 3a/3b): from true corners + 3 px
-noise on clean masks, hull corners to a median 0.4-0.5 px; from the shipped networks'
-corners, clean-mask medians improve strongly (box 2.8 -> 0.7 px) while noisy means barely
-move; about 55 ms a shape with forward-difference Jacobians.
+"""How well a cuboid's silhouette explains a binary mask, at the input's own resolution: the
+outline's residuals (how far the mask's outline lies from the model's silhouette and back)
+and their derivatives, and what they read of a mask (`MaskTarget`: its outline points and
+signed distance field; several masks' at once for a batch of fits). `cuboidtrain.fit.mask_fit`
+minimises them.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from cuboidtrain.fit.geometry import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
-                                      project_with_jacobian, ratios)
-from cuboidtrain.fit.lift import levenberg_marquardt, lift
-from shared.raster import rasterize
 from shared.shapes import Shape
 
 @dataclass(frozen=True)
@@ -65,34 +59,68 @@ def signed_distance_field(mask: np.ndarray) -> np.ndarray:
     return np.where(m > 0, 0.5 - inside, outside - 0.5).astype(np.float64)
 
 
-def bilinear(field: np.ndarray, points: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class Fields:
+    """Distance fields, one or several masks' (a batch of fits), sampled as one: their values
+    one after another (`flat`), and where each point's field starts and its size, as scalars
+    (one field) or arrays that broadcast against the points' leading axes (one per row)."""
+
+    flat: np.ndarray
+    offset: np.ndarray | int
+    height: np.ndarray | int
+    width: np.ndarray | int
+
+    @classmethod
+    def of(cls, field: np.ndarray | Fields) -> Fields:
+        if isinstance(field, Fields):
+            return field
+        return cls(field.ravel(), 0, *field.shape)
+
+    @classmethod
+    def stacked(cls, fields: Sequence[np.ndarray]) -> Fields:
+        """Several (H_k, W_k) fields; `rows` picks each row's."""
+        sizes = np.array([f.size for f in fields])
+        return cls(np.concatenate([f.ravel() for f in fields]), np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+                   np.array([f.shape[0] for f in fields]), np.array([f.shape[1] for f in fields]))
+
+    def rows(self, owner: np.ndarray) -> Fields:
+        """The fields of rows whose masks are `owner` (B,), indices into `stacked`'s list."""
+        return Fields(self.flat, self.offset[owner], self.height[owner], self.width[owner])
+
+    def broadcast(self, points: np.ndarray) -> tuple:
+        """offset, height, width shaped to broadcast against (B, ..., 2) points' (B, ...)."""
+        shape = (-1,) + (1,) * (points.ndim - 2)
+        return tuple(np.reshape(v, shape) if np.ndim(v) else v for v in (self.offset, self.height, self.width))
+
+
+def bilinear(field: np.ndarray | Fields, points: np.ndarray) -> np.ndarray:
     """`field` sampled at (..., 2) x, y points, clamped at the border."""
-    _, _, fx, fy, (tl, tr, bl, br) = _cell(field, np.fmax(points, -1.0))
+    _, _, fx, fy, (tl, tr, bl, br) = _cell(Fields.of(field), np.fmax(points, -1.0))
     return (tl * (1 - fx) + tr * fx) * (1 - fy) + (bl * (1 - fx) + br * fx) * fy
 
 
-def bilinear_with_gradient(field: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def bilinear_with_gradient(field: np.ndarray | Fields, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`field` sampled at (..., 2) x, y points, clamped at the border, and its gradient (..., 2)
     (zero across a clamped coordinate)."""
     points = np.fmax(points, -1.0)
-    x, y, fx, fy, (tl, tr, bl, br) = _cell(field, points)
+    x, y, fx, fy, (tl, tr, bl, br) = _cell(Fields.of(field), points)
     top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
     gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
     gy = np.where(y == points[..., 1], bottom - top, 0.0)
     return top * (1 - fy) + bottom * fy, np.stack([gx, gy], axis=-1)
 
 
-def _cell(field: np.ndarray, points: np.ndarray):
+def _cell(fields: Fields, points: np.ndarray):
     """The clamped x, y of (..., 2) points, their fractions in their pixel cell, and the
     field at the cell's four corners (top-left, top-right, bottom-left, bottom-right).
     Callers pass np.fmax(points, -1): a NaN of a diverged trial step becomes -1, clamped to
     the border like any point off the field (costed, then rejected by LM)."""
-    h, w = field.shape
+    offset, h, w = fields.broadcast(points)
     x = np.minimum(np.maximum(points[..., 0], 0), w - 1.001)  # np.clip's wrapper costs more than the two
     y = np.minimum(np.maximum(points[..., 1], 0), h - 1.001)
     x0, y0 = x.astype(np.intp), y.astype(np.intp)
-    flat = field.ravel()
-    at = y0 * w + x0  # one flat index for the four corners: cheaper than four 2D lookups
+    flat = fields.flat
+    at = y0 * w + x0 + offset  # one flat index for the four corners: cheaper than four 2D lookups
     return x, y, x - x0, y - y0, (flat[at], flat[at + 1], flat[at + w], flat[at + w + 1])
 
 
@@ -190,18 +218,15 @@ def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitW
     return value, slope
 
 
-def silhouette_residuals(params: np.ndarray, mirrors: np.ndarray, shape: Shape, outline: np.ndarray,
-                         sdf: np.ndarray, weights: MaskFitWeights) -> np.ndarray:
-    """(B, M) residuals of how well each hypothesis' silhouette explains the mask."""
-    return silhouette_terms(project(params, shape, mirrors), shape, outline, sdf, weights)[0]
-
-
-def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: np.ndarray,
-                     weights: MaskFitWeights, derivatives: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: np.ndarray | Fields,
+                     weights: MaskFitWeights, derivatives: bool = False,
+                     valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """(B, R) residuals of how well silhouettes with corners `image` (B, N, 2) explain the mask,
     and, if asked, their derivatives with respect to the corners (B, R, N, 2): each row
     touches the two corners of one edge (which edge is active is held fixed: the objective
-    is piecewise smooth).
+    is piecewise smooth). One mask's `outline` (M, 2) and `sdf` (H, W), or each row's
+    (a batch of masks): outline points (B, M, 2), padded where `valid` (B, M) is False (their
+    rows are 0), and `Fields` sampled per row.
 
     Two kinds of rows: the mask's outline points' distance to the model's silhouette
     (positive outside: a missed building pixel, linear; inside: robust), and points along the
@@ -213,8 +238,8 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     parts = _part_corners(shape)  # (P, 8) the shape's corner indices of each part
     hull = hull_edges(image[:, parts])  # fields (B, P, E, ...)
     ends = parts[np.arange(len(parts))[:, None, None], hull.pairs]  # (B, P, E, 2) shape corner indices
-    outline_value, outline_gradient = _outline_rows(outline, hull, ends, n, weights, derivatives)
-    edge_value, edge_gradient = _edge_rows(hull, ends, sdf, n, weights, derivatives)
+    outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, n, weights, derivatives)
+    edge_value, edge_gradient = _edge_rows(hull, ends, Fields.of(sdf), n, weights, derivatives)
     residuals = np.concatenate([outline_value, edge_value], axis=1)
     return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
 
@@ -227,14 +252,16 @@ def _part_corners(shape: Shape) -> np.ndarray:
     return parts
 
 
-def _outline_rows(outline: np.ndarray, hull: HullEdges, ends: np.ndarray, n: int, weights: MaskFitWeights,
-                  derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray, n: int,
+                  weights: MaskFitWeights, derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
     their derivatives (B, M, N, 2)."""
-    offsets = polygon_offsets(outline, hull)  # (B, P, M, E)
+    offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
     per_part = offsets.max(-1)  # (B, P, M)
     dist = per_part.min(1)  # the nearest part
     value, slope = _weighted(dist, weights.outside, weights.inside, weights, tolerant_when_positive=False)
+    if valid is not None:  # padding of a batch's shorter outlines
+        value, slope = np.where(valid, value, 0.0), np.where(valid, slope, 0.0)
     if not derivatives:
         return value, None
     b, m = dist.shape
@@ -250,7 +277,7 @@ def _outline_rows(outline: np.ndarray, hull: HullEdges, ends: np.ndarray, n: int
     return value, d
 
 
-def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: np.ndarray, n: int, weights: MaskFitWeights,
+def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
                derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """Points along the model's outline edges sampled on the mask's distance field: (B, P E T)
     residuals, and their derivatives (B, P E T, N, 2)."""
@@ -296,55 +323,20 @@ class MaskTarget:
         return cls(mask, boundary_points(mask, weights.max_boundary_points), signed_distance_field(mask))
 
 
-def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
-             prior_ratios: np.ndarray | None = None, weights: MaskFitWeights = MaskFitWeights(),
-             starts: int = 2, iterations: int = 12) -> CuboidFit:
-    """Cuboid params that explain a binary mask (input resolution), started from the lift of the
-    network corners (the `starts` best lift hypotheses) and pulled toward them by confidence.
-    `prior_ratios` (the network's ratio head, `shape.ratio_names` order) anchors the extents the
-    outline leaves free: near-frontal views trade depth against yaw and focal length (RESULTS.md)."""
-    lifted = lift(corners, shape, confidence, k_starts=(0.0, 0.3), iterations=15, tolerance=1e-9, polish=0)
-    order = np.argsort(lifted.costs)[:starts]
-    x0, mirrors = lifted.hypotheses[order], lifted.mirrors[order]
-    target = mask if isinstance(mask, MaskTarget) else MaskTarget.of(mask, weights)
-    mask, outline, sdf = target.mask, target.outline, target.sdf
-    # Boundary terms are normalised so the corner pull means the same whatever the outline length.
-    norm = 1 / np.sqrt(len(outline))
-    pull = weights.corners * np.sqrt(np.clip(confidence, 0.05, 1.0))[None, :, None]
+@dataclass(frozen=True)
+class StackedTargets:
+    """Several masks' targets as one batch: outline points padded to the longest (K, M, 2), which
+    are real (`valid` (K, M)), each one's count, and the distance fields as one `Fields`."""
 
-    # ratio_names order: depth/height, width/height (per part): each pulled by its own weight.
-    anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None]
+    outline: np.ndarray
+    valid: np.ndarray
+    count: np.ndarray  # (K,)
+    fields: Fields
 
-    def terms(x, image, derivatives):
-        fit, d_fit = silhouette_terms(image, shape, outline, sdf, weights, derivatives)
-        prior = ((image - corners) * pull).reshape(len(x), -1) * norm
-        extents = [anchor * np.log(ratios(x, shape) / prior_ratios)] if prior_ratios is not None else []
-        return np.concatenate([fit * norm, prior, *extents], axis=1), d_fit
-
-    def residual(x, rows):  # a trial step needs no derivatives: the plain projection
-        return terms(x, project(x, shape, mirrors[rows]), derivatives=False)[0]
-
-    def jacobian(x, rows):
-        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
-        values, d_fit = terms(x, image, derivatives=True)
-        rows_jac = [np.einsum("brnd,bndp->brp", d_fit, d_image) * norm,
-                    (d_image * (pull * norm)[..., None]).reshape(len(x), -1, x.shape[1])]
-        if prior_ratios is not None:
-            rows_jac.append(anchor[:, :, None] * log_ratio_jacobian(x, shape))
-        return values, np.concatenate(rows_jac, axis=1)
-
-    solved = levenberg_marquardt(residual, x0, iterations, tolerance=1e-7, jacobian=jacobian)
-    best = int(np.argmin(solved.cost))
-    camera = CameraParams(shape, solved.params[best], bool(mirrors[best]))
-    outline_rms = float(np.sqrt(np.mean(silhouette_residuals(solved.params[best : best + 1], mirrors[best : best + 1],
-                                                                shape, outline, sdf, weights)[0] ** 2)))
-    return describe(camera, outline_rms, iou=agreement(mask, shape, camera)[0])
-
-
-def agreement(mask: np.ndarray, shape: Shape, camera: CameraParams) -> tuple[float, float]:
-    """IoU of the camera's silhouette with the mask, and the share of mask pixels it misses."""
-    height, width = mask.shape
-    model = rasterize(shape, camera.keypoints(), max(height, width))[:height, :width]  # rasterize draws squares
-    m = mask.astype(bool)
-    inter = np.logical_and(model, m).sum()
-    return float(inter / max(np.logical_or(model, m).sum(), 1)), float(1 - inter / max(m.sum(), 1))
+    @classmethod
+    def of(cls, targets: Sequence[MaskTarget]) -> StackedTargets:
+        count = np.array([len(t.outline) for t in targets])
+        outline = np.zeros((len(targets), count.max(), 2))
+        valid = np.arange(count.max())[None] < count[:, None]
+        outline[valid] = np.concatenate([t.outline for t in targets])
+        return cls(outline, valid, count, Fields.stacked([t.sdf for t in targets]))

@@ -1,0 +1,118 @@
+"""Fit cuboids to binary masks at the inputs' own resolution, one mask or a batch of them at once:
+the silhouette's residuals (`cuboidtrain.fit.outline`), a pull toward the networks' corners by
+their confidence, an anchor of the extents to the Tabulator's ratios, minimised by
+`cuboidtrain.fit.lift`'s Levenberg-Marquardt from the best lift hypotheses of each mask.
+
+A batch (`fit_masks`) solves every mask's hypotheses as rows of one LM: each row reads its own
+mask's outline points and distance field, corners and anchor, so numpy's per-call cost, which
+dominates at a few hypotheses a mask, is paid once for all (`eval --cuboid` fits its batches so).
+One mask (`fit_mask`) is a batch of one, and gives the same numbers as before batching.
+
+Measured (docs/research/geometric-fit/RESULTS.md, 3a/3b): from true corners + 3 px noise on
+clean masks, hull corners to a median 0.4-0.5 px; from the shipped networks' corners,
+clean-mask medians improve strongly (box 2.8 -> 0.7 px) while noisy means barely move.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from cuboidtrain.fit.geometry import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
+                                      project_with_jacobian, ratios)
+from cuboidtrain.fit.lift import hypotheses, levenberg_marquardt
+from cuboidtrain.fit.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
+from shared.raster import rasterize
+from shared.shapes import Shape
+
+LIFT_K_STARTS = (0.0, 0.3)  # the affine starts' perspective strengths, beside the vanishing-point ones
+LIFT_ITERATIONS = 15  # enough to rank the starts; the mask fit goes on from the best
+STARTS = 2  # lift hypotheses a mask fit starts from (one sticks now and then)
+ITERATIONS = 12
+
+
+def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
+             prior_ratios: np.ndarray | None = None, weights: MaskFitWeights = MaskFitWeights(),
+             starts: int = STARTS, iterations: int = ITERATIONS) -> CuboidFit:
+    """Cuboid params that explain a binary mask (input resolution), started from the lift of the
+    network corners (N, 2) (the `starts` best lift hypotheses) and pulled toward them by
+    `confidence` (N,). `prior_ratios` (the network's ratio head, `shape.ratio_names` order)
+    anchors the extents the outline leaves free: near-frontal views trade depth against yaw and
+    focal length (RESULTS.md)."""
+    target = mask if isinstance(mask, MaskTarget) else MaskTarget.of(mask, weights)
+    return fit_masks([target], shape, corners[None], confidence[None], [prior_ratios], weights, starts, iterations)[0]
+
+
+def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, confidence: np.ndarray,
+              prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights = MaskFitWeights(),
+              starts: int = STARTS, iterations: int = ITERATIONS) -> list[CuboidFit]:
+    """`fit_mask` for K masks of one shape class at once: `targets` (K), corners (K, N, 2),
+    confidence (K, N), prior_ratios (K) each (R,) or None; one CuboidFit a mask, in order."""
+    lifted = hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=LIFT_ITERATIONS,
+                        tolerance=1e-9)
+    chosen = [lifted.best(k, starts) for k in range(len(targets))]
+    rows = np.concatenate(chosen)
+    owner, mirrors = lifted.owner[rows], lifted.mirrors[rows]
+    residual, jacobian = _objective(StackedTargets.of(targets), shape, corners, confidence, prior_ratios,
+                                    weights, owner, mirrors)
+    solved = levenberg_marquardt(residual, lifted.params[rows], iterations, tolerance=1e-7, jacobian=jacobian)
+    fits, first = [], 0
+    for target, mine in zip(targets, chosen):
+        best = first + int(np.argmin(solved.cost[first : first + len(mine)]))
+        first += len(mine)
+        fits.append(_described(target, shape, CameraParams(shape, solved.params[best], bool(mirrors[best])), weights))
+    return fits
+
+
+def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
+               prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights, owner: np.ndarray,
+               mirrors: np.ndarray):
+    """The residuals and Jacobian functions of the hypotheses (rows) of every mask, each row
+    reading its own mask's (`owner`) outline, field, corners and anchor."""
+    # Boundary terms are normalised so the corner pull means the same whatever the outline length.
+    norm = (1 / np.sqrt(stacked.count))[:, None]  # (K, 1)
+    pull = weights.corners * np.sqrt(np.clip(confidence, 0.05, 1.0))[..., None]  # (K, N, 1)
+    # ratio_names order: depth/height, width/height (per part): each pulled by its own weight.
+    # A mask without a prior (the Tabulator's head gave a ratio <= 0) is not anchored: its rows are 0.
+    anchored = np.array([p is not None for p in prior_ratios])
+    anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None] * anchored[:, None]
+    prior = np.array([p if p is not None else np.ones(2 * len(shape.parts)) for p in prior_ratios])
+
+    def terms(x, rows, image, derivatives):
+        own = owner[rows]
+        fit, d_fit = silhouette_terms(image, shape, stacked.outline[own], stacked.fields.rows(own), weights,
+                                      derivatives, valid=stacked.valid[own])
+        pulled = ((image - corners[own]) * pull[own]).reshape(len(x), -1) * norm[own]
+        extents = [anchor[own] * np.log(ratios(x, shape) / prior[own])] if anchored.any() else []
+        return np.concatenate([fit * norm[own], pulled, *extents], axis=1), d_fit
+
+    def residual(x, rows):  # a trial step needs no derivatives: the plain projection
+        return terms(x, rows, project(x, shape, mirrors[rows]), derivatives=False)[0]
+
+    def jacobian(x, rows):
+        own = owner[rows]
+        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
+        values, d_fit = terms(x, rows, image, derivatives=True)
+        rows_jac = [np.einsum("brnd,bndp->brp", d_fit, d_image) * norm[own][..., None],
+                    (d_image * (pull[own] * norm[own][..., None])[..., None]).reshape(len(x), -1, x.shape[1])]
+        if anchored.any():
+            rows_jac.append(anchor[own][:, :, None] * log_ratio_jacobian(x, shape))
+        return values, np.concatenate(rows_jac, axis=1)
+
+    return residual, jacobian
+
+
+def _described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
+    """The record's view of one mask's best camera, with its outline residual and IoU."""
+    image = project(camera.vector[None], shape, np.array([camera.mirror]))
+    outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
+    return describe(camera, outline_rms, iou=agreement(target.mask, shape, camera)[0])
+
+
+def agreement(mask: np.ndarray, shape: Shape, camera: CameraParams) -> tuple[float, float]:
+    """IoU of the camera's silhouette with the mask, and the share of mask pixels it misses."""
+    height, width = mask.shape
+    model = rasterize(shape, camera.keypoints(), max(height, width))[:height, :width]  # rasterize draws squares
+    m = mask.astype(bool)
+    inter = np.logical_and(model, m).sum()
+    return float(inter / max(np.logical_or(model, m).sum(), 1)), float(1 - inter / max(m.sum(), 1))
