@@ -76,10 +76,11 @@ def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget) -> Fitted
     return fitted
 
 
-def fit_candidates(candidates: Sequence[Candidate],
-                   masks: Sequence[np.ndarray | MaskTarget]) -> list[FittedCuboid | NonFiniteCuboid]:
+def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
+                   completion: bool = True) -> list[FittedCuboid | NonFiniteCuboid]:
     """`fit_candidate` for many (candidate, mask) pairs, each shape class's fits solved as one
-    batch (`mask_fit.fit_masks`); a fit that is not finite is its NonFiniteCuboid, in its place."""
+    batch (`mask_fit.fit_masks`); a fit that is not finite is its NonFiniteCuboid, in its place.
+    `completion=False` leaves the Refiner's completion out (benchmarks/bench_cuboid_fit.py)."""
     if any(c.framing is None for c in candidates):
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
     targets = [m if isinstance(m, MaskTarget) else MaskTarget.of(m) for m in masks]
@@ -89,8 +90,8 @@ def fit_candidates(candidates: Sequence[Candidate],
         corners = np.array([candidates[i].framing.to_input(candidates[i].keypoints) for i in batch])
         peaks = np.array([heatmap_peaks(candidates[i].heatmaps) for i in batch])
         priors = [ratio_prior(candidates[i]) for i in batch]
-        fits = fit_masks([completed_target(candidates[i], targets[i]) for i in batch], get_shape(name),
-                         corners, peaks, priors)
+        fit_targets = [completed_target(candidates[i], targets[i]) if completion else targets[i] for i in batch]
+        fits = fit_masks(fit_targets, get_shape(name), corners, peaks, priors)
         for i, fit, peak in zip(batch, fits, peaks):
             try:
                 check_finite(fit)
