@@ -125,7 +125,7 @@ def main() -> None:
         has_ray = False
     with tempfile.TemporaryDirectory() as tmp:
         folder = masks_folder(args.folder, Path(tmp), args.masks, args.size)
-        infer = [sys.executable, "-m", "cuboidtrain", "infer", str(folder), "--device", "cpu", "--jsonl"]
+        infer = [sys.executable, "-m", "cuboidtrain", "infer", str(folder), "--device", "cpu", "--networks-only", "--jsonl"]
         runs = {"1 process": lambda out: infer + [out],
                 "--workers 2 (pool)": lambda out: infer + [out, "--workers", "2"],
                 "--cluster local --workers 2 (Dask)": lambda out: infer + [out, "--cluster", "local", "--workers", "2"]}

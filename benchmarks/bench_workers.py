@@ -12,6 +12,8 @@ e.g. `git archive 7e15fd2 | tar -x -C /tmp/before` (the same venv; its own code 
 median and best; `--folder DIR` reuses masks written before (`--write-only DIR` writes them).
 
 Times the whole command (start, models, fits, writing the JSONL, exit) and reads its fitting rate.
+The fits are the networks' alone (`--networks-only`, as every figure in BENCHMARKS.md was measured
+before the cuboid fit became `infer`'s default); `--cuboid` times the cuboid fit instead.
 """
 from __future__ import annotations
 
@@ -62,17 +64,20 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="rounds of all the runs, interleaved")
     parser.add_argument("--folder", type=Path, help="masks written before (default: written to a temporary folder)")
     parser.add_argument("--write-only", type=Path, metavar="DIR", help="write --masks masks to DIR and stop")
+    parser.add_argument("--cuboid", action="store_true", help="time infer's cuboid fit, not the networks' alone")
     args = parser.parse_args()
+    fit = [] if args.cuboid else ["--networks-only"]
     if args.write_only:
         args.write_only.mkdir(parents=True, exist_ok=True)
         return write_masks(args.write_only, args.masks, args.size)
     with tempfile.TemporaryDirectory() as tmp:
         folder = masks_folder(args.folder, Path(tmp), args.masks, args.size)
-        runs = [(f"workers {w}", ["--workers", str(w)], ROOT) for w in args.workers]
+        runs = [(f"workers {w}", ["--workers", str(w), *fit], ROOT) for w in args.workers]
         if args.before:
             w = max(args.workers)
             runs.append((f"workers {w}, {args.before}", ["--workers", str(w)], args.before.resolve()))
-        runs += [(f"dask local cluster {w}", ["--cluster", "local", "--workers", str(w)], ROOT) for w in args.cluster]
+        runs += [(f"dask local cluster {w}", ["--cluster", "local", "--workers", str(w), *fit], ROOT)
+                 for w in args.cluster]
         times = {name: [] for name, _, _ in runs}
         for repeat in range(args.repeats):
             base = None

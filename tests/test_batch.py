@@ -49,7 +49,7 @@ def reference(paths, options, workers=1) -> list[dict]:
 
 def infer_command(folder: str, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "cuboidtrain", "infer", folder, "--jsonl", str(out), "--refine-steps", "6",
-            "--device", "cpu", *extra]
+            "--device", "cpu", "--networks-only", *extra]  # the references are the networks' records
 
 
 def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp_path, masks):
@@ -160,7 +160,8 @@ def limit_file_size(size: int):
 @pytest.mark.parametrize("workers", ["1", "2"])
 def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun_resumes(tmp_path, masks, workers):
     out, folder = tmp_path / "out.jsonl", str(Path(masks[0]).parent)
-    command = [sys.executable, "-m", "cuboidtrain", "infer", folder, "--jsonl", str(out), "--device", "cpu"]
+    command = [sys.executable, "-m", "cuboidtrain", "infer", folder, "--jsonl", str(out), "--device", "cpu",
+               "--networks-only"]
     env = os.environ | {"OMP_NUM_THREADS": "1"}
     full = subprocess.run(command + ["--workers", workers], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=120, preexec_fn=limit_file_size(8 * 1024))  # room for about ten records

@@ -67,12 +67,13 @@ def infer_json(paths, *options) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def records(tmp_path_factory):
-    """Real records: a fitted mask and a missing file, with and without --all-components."""
+    """Real records: a fitted mask and a missing file, networks only with and without --all-components,
+    and infer's default (the cuboid fit)."""
     folder = tmp_path_factory.mktemp("infer")
     mask = folder / "mask.png"
     assert cv2.imwrite(str(mask), build_sample(0, size=64).clean.astype("uint8") * 255)
     paths = [mask, folder / "missing.png"]
-    return infer_json(paths), infer_json(paths, "--all-components"), infer_json(paths, "--cuboid")
+    return infer_json(paths, "--networks-only"), infer_json(paths, "--networks-only", "--all-components"), infer_json(paths)
 
 
 def test_every_record_field_is_documented_and_every_documented_field_is_written(records):
@@ -86,13 +87,13 @@ def test_every_record_field_is_documented_and_every_documented_field_is_written(
     # the optional fields are the ones the table says are optional
     assert {k for k in documented if not all(k in r for r in plain)} == {"component", "cuboid"}
     assert "only with `--all-components`" in section("The infer record")
-    assert "only with `--cuboid`" in section("The infer record")
+    assert "not with `--networks-only`" in section("The infer record")
 
 
 def test_the_cuboid_object_is_documented(records):
     fitted, failed = records[2]
     assert failed["cuboid"] is None
-    assert list(fitted["cuboid"]) == documented_keys("The cuboid object (`infer --cuboid`)")
+    assert list(fitted["cuboid"]) == documented_keys("The cuboid object (`infer`, unless `--networks-only`)")
     assert set(fitted["cuboid"]["corners"][0]) == {"on_outline", "score"}
 
 

@@ -386,7 +386,8 @@ def test_a_building_cut_in_pieces_by_an_occluder_is_fitted_whole(tmp_path):
 def test_cli_writes_json_to_a_file_and_to_stdout(tmp_path, checkpoints):
     good, missing = write_png(tmp_path / "good.png", hexagon()), str(tmp_path / "missing.png")
     out = tmp_path / "out.json"
-    args = ["infer", good, missing, "--checkpoint", str(checkpoints["box"]), "--checkpoint", str(checkpoints["twobox"])]
+    args = ["infer", good, missing, "--checkpoint", str(checkpoints["box"]), "--checkpoint", str(checkpoints["twobox"]),
+            "--networks-only"]
     result = runner.invoke(app, args + ["--json", str(out), "--refine-steps", "auto"])
     assert result.exit_code == 1, result.output  # one input failed: the others are written, the status says so
     assert "1 of 2 inputs have an error" in result.output

@@ -177,7 +177,7 @@ def fresh_interpreter() -> dict:
     # One torch thread, as this process has (conftest): the same sums in the same order, the same floats.
     code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.fit.chain\n"
             "from cuboidtrain import FitOptions\n"
-            "fitter = Fitter.from_shipped(FitOptions(device='cpu'))\n"
+            "fitter = Fitter.from_shipped(FitOptions(device='cpu', cuboid=True))\n"
             "array = fitter.fit(cv2.imread('examples/building.png', cv2.IMREAD_UNCHANGED))\n"
             "print(json.dumps({'example': fit.record(), 'array': array.record(), 'generator': "
             "sorted(m for m in sys.modules if m.split('.')[0] == 'cuboidgen'), "
@@ -196,7 +196,7 @@ def test_fitting_a_mask_imports_nothing_slow_it_does_not_need(fresh_interpreter)
 
 
 def test_the_readme_python_example_runs_as_written(fresh_interpreter):
-    assert "Fitter.from_shipped()" in fresh_interpreter["code"] and ".fit(" in fresh_interpreter["code"]
+    assert "Fitter.from_shipped(FitOptions(cuboid=True))" in fresh_interpreter["code"] and ".fit(" in fresh_interpreter["code"]
     record = fresh_interpreter["example"]
     assert record["shape"] == "box" and len(record["keypoints"]) == 8 and record["error"] is None
     assert 0.5 < record["confidence"] <= 1

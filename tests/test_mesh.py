@@ -149,7 +149,7 @@ def test_a_file_where_the_folder_should_be_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize("extra, message", [
-    ([], "--mesh {out}: needs --cuboid"),
+    (["--networks-only"], "--mesh {out} with --networks-only: expected the cuboid fit"),
     (["--cuboid", "--cluster", "local"], "--mesh with --cluster local: expected no --cluster"),
 ])
 def test_bad_mesh_options_fail_in_one_line_before_any_fit(tmp_path, masks, extra, message):

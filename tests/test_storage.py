@@ -191,7 +191,7 @@ def masks(tmp_path_factory) -> list[str]:
 
 
 def infer(*args: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "cuboidtrain", "infer", *args, "--device", "cpu"]
+    command = [sys.executable, "-m", "cuboidtrain", "infer", *args, "--device", "cpu", "--networks-only"]
     return subprocess.run(command, cwd=ROOT, env=os.environ | {"OMP_NUM_THREADS": "1"}, capture_output=True,
                           text=True, timeout=180)
 

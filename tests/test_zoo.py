@@ -135,13 +135,14 @@ def test_infer_without_a_checkpoint_uses_the_shipped_models(zoo, tmp_path, monke
     monkeypatch.setenv("CUBOID_MODELS", str(folder))
     mask = tmp_path / "m.png"
     cv2.imwrite(str(mask), build_sample(5, size=96).noisy.astype(np.uint8) * 255)
-    result = runner.invoke(app, ["infer", str(mask), "--json", "-"])
+    result = runner.invoke(app, ["infer", str(mask), "--json", "-", "--networks-only"])
     assert result.exit_code == 0, result.output
     record = json.loads(result.output)[0]
     assert set(record["candidates"]) == {"box", "twobox"}  # both shipped models were tried
-    given = runner.invoke(app, ["infer", str(mask), "--checkpoint", str(folder / "box.pt"), "--json", "-"])
+    given = runner.invoke(app, ["infer", str(mask), "--checkpoint", str(folder / "box.pt"), "--json", "-",
+                                "--networks-only"])
     assert json.loads(given.output)[0]["keypoints"] == json.loads(
-        runner.invoke(app, ["infer", str(mask), "--shape", "box", "--json", "-"]).output)[0]["keypoints"]
+        runner.invoke(app, ["infer", str(mask), "--shape", "box", "--json", "-", "--networks-only"]).output)[0]["keypoints"]
 
 
 def test_a_missing_shipped_model_is_a_one_line_error(tmp_path, monkeypatch):

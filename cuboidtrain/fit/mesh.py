@@ -176,13 +176,13 @@ class MeshWriter:
 
 
 def check_mesh_options(mesh: Path | None, cuboid: bool, cluster: str | None) -> None:
-    """`--mesh DIR` needs `--cuboid` (a mesh is the fitted 3D box; the networks alone give 2D points)
+    """`--mesh DIR` needs the cuboid fit (a mesh is the fitted 3D box; the networks alone give 2D points)
     and runs in this process or `--workers`, not on a cluster; one-line UsageErrors."""
     if mesh is None:
         return
     if not cuboid:
-        raise UsageError(f"--mesh {mesh}: needs --cuboid (the mesh is the fitted 3D box; the networks alone "
-                         f"give only image points)")
+        raise UsageError(f"--mesh {mesh} with --networks-only: expected the cuboid fit (the mesh is the fitted 3D "
+                         f"box; the networks alone give only image points)")
     if cluster is not None:
         raise UsageError(f"--mesh with --cluster {cluster}: expected no --cluster (meshes are written by the "
                          f"process that fits; use --workers)")
