@@ -89,20 +89,37 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
     fitted: list = [None] * len(candidates)
     for name in dict.fromkeys(c.shape for c in candidates):
         batch = [i for i, c in enumerate(candidates) if c.shape == name]
-        corners = np.array([candidates[i].framing.to_input(candidates[i].keypoints) for i in batch])
-        peaks = np.array([heatmap_peaks(candidates[i].heatmaps) for i in batch])
-        priors = [ratio_prior(candidates[i]) for i in batch]
-        fit_targets = [completed_target(candidates[i], targets[i]) if completion else targets[i] for i in batch]
-        fits = fit_masks(fit_targets, get_shape(name), corners, peaks, priors)
-        for i, fit, peak in zip(batch, fits, peaks):
+        starts = [fit_start(candidates[i], targets[i], completion) for i in batch]
+        fits = fit_masks([s.target for s in starts], get_shape(name), np.array([s.corners for s in starts]),
+                         np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts])
+        for i, fit, start in zip(batch, fits, starts):
             try:
                 check_finite(fit)
             except NonFiniteCuboid as exc:
                 fitted[i] = exc
                 continue
-            named_peaks = peak[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
+            named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
             fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks))
     return fitted
+
+
+@dataclass(frozen=True)
+class FitStart:
+    """What a mask fit takes from a network candidate and the input, in the input's pixels:
+    any optimiser's inputs (`mask_fit.fit_masks`; `soft_raster.fit_soft`, measured against it)."""
+
+    target: MaskTarget  # the input's, with the Refiner's completion (`completion.completed_target`)
+    corners: np.ndarray  # (N, 2) input px, the network's corner order
+    peaks: np.ndarray  # (N,) heat-map peaks: each corner's pull
+    prior_ratios: np.ndarray | None  # `ratio_prior`
+
+
+def fit_start(candidate: Candidate, target: MaskTarget, completion: bool = True) -> FitStart:
+    """The candidate's corners mapped back to the input, their peaks, its ratio prior, and the
+    input's target completed by its Refiner (`completion=False`: the input's own)."""
+    return FitStart(completed_target(candidate, target) if completion else target,
+                    candidate.framing.to_input(candidate.keypoints), heatmap_peaks(candidate.heatmaps),
+                    ratio_prior(candidate))
 
 
 def ratio_prior(candidate: Candidate) -> np.ndarray | None:

@@ -20,7 +20,7 @@ import numpy as np
 
 from cuboidtrain.fit.geometry import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
                                       project_with_jacobian, ratios)
-from cuboidtrain.fit.lift import hypotheses, levenberg_marquardt
+from cuboidtrain.fit.lift import Hypotheses, hypotheses, levenberg_marquardt
 from cuboidtrain.fit.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
 from shared.raster import rasterize
 from shared.shapes import Shape
@@ -48,8 +48,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
               starts: int = STARTS, iterations: int = ITERATIONS) -> list[CuboidFit]:
     """`fit_mask` for K masks of one shape class at once: `targets` (K), corners (K, N, 2),
     confidence (K, N), prior_ratios (K) each (R,) or None; one CuboidFit a mask, in order."""
-    lifted = hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=LIFT_ITERATIONS,
-                        tolerance=1e-9)
+    lifted = lift_starts(corners, confidence, shape)
     chosen = [lifted.best(k, starts) for k in range(len(targets))]
     rows = np.concatenate(chosen)
     owner, mirrors = lifted.owner[rows], lifted.mirrors[rows]
@@ -60,8 +59,16 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
     for target, mine in zip(targets, chosen):
         best = first + int(np.argmin(solved.cost[first : first + len(mine)]))
         first += len(mine)
-        fits.append(_described(target, shape, CameraParams(shape, solved.params[best], bool(mirrors[best])), weights))
+        fits.append(described(target, shape, CameraParams(shape, solved.params[best], bool(mirrors[best])), weights))
     return fits
+
+
+def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape) -> Hypotheses:
+    """The lift hypotheses of K corner sets (K, N, 2) (confidence (K, N)) that mask fits start
+    from, each set's best first (`Hypotheses.best`): any optimiser's starts
+    (`cuboidtrain.fit.soft_raster` starts from the same)."""
+    return hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=LIFT_ITERATIONS,
+                      tolerance=1e-9)
 
 
 def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
@@ -102,8 +109,9 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
     return residual, jacobian
 
 
-def _described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
-    """The record's view of one mask's best camera, with its outline residual and IoU."""
+def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
+    """The record's view of one mask's best camera, with its outline residual and IoU (whatever
+    optimiser found it)."""
     image = project(camera.vector[None], shape, np.array([camera.mirror]))
     outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
     return describe(camera, outline_rms, iou=agreement(target.mask, shape, camera)[0])
