@@ -9,7 +9,7 @@ import typer
 
 from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
 from cuboidtrain.fit.inputs import DEFAULT_GLOB_HELP, gather_inputs
-from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, FitOptions
+from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, OPTIMIZERS, FitOptions
 from shared.console import Commands, choices, console, fail, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
@@ -23,6 +23,7 @@ PhaseChoice = choices("PhaseChoice", PHASES)
 ShapeChoice = choices("ShapeChoice", SHAPES)
 FitShape = choices("FitShape", FIT_SHAPES)
 ExtractorChoice = choices("ExtractorChoice", EXTRACTORS)
+OptimizerChoice = choices("OptimizerChoice", OPTIMIZERS)
 ScheduleChoice = choices("ScheduleChoice", LR_SCHEDULES)
 FIT = FitOptions()  # the fitting commands' defaults are the library's: stated once, in FitOptions
 # `infer` answers with the fitted cuboid unless told otherwise: on the same 300 masks a set it is
@@ -171,6 +172,7 @@ def infer(
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
     device: str = typer.Option(FIT.device, help=DEVICE_HELP),
     cuboid: bool = typer.Option(INFER_CUBOID, "--cuboid/--networks-only", help="--cuboid (the default): fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). --networks-only: the networks' corners alone (free points, the Tabulator's ratios), about 2.5x faster (BENCHMARKS.md)."),
+    optimizer: OptimizerChoice = typer.Option(OptimizerChoice[FIT.optimizer], help="The cuboid fit's solver: lm (Levenberg-Marquardt on the outline, ~45 ms a mask) or soft (a soft-rasterised silhouette by L-BFGS: more accurate on every measured set, ~35x slower; BENCHMARKS.md, \"Choosing the mask-fit optimiser\")."),
     mesh: Optional[Path] = typer.Option(None, metavar="DIR", help="Write each fitted box as a Wavefront OBJ mesh here, DIR/<input>.obj, in the camera's frame (x right, y down, z forward; units: box heights); its vertices are the keypoints, in order. Not with --networks-only."),
 ) -> None:
     """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
@@ -182,7 +184,7 @@ def infer(
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
                          pdm_components=pdm_components, all_components=all_components, label_id=label_id,
-                         device=device, cuboid=cuboid).validate()
+                         device=device, cuboid=cuboid, optimizer=optimizer.value).validate()
     json_out = "-" if json_out is None and jsonl is None else json_out
     check_outputs(("--json", json_out), ("--jsonl", jsonl))
     if explain is not None:

@@ -155,7 +155,7 @@ def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.n
     scored["networks"] = [None if k is None else score(k, c.ratios, t, cameras.get(row))
                           for row, (k, c, t) in enumerate(zip(keypoints, candidates, truths))]
     if fitter.options.cuboid:
-        scored["cuboid"] = _cuboid_scores(candidates, sources, truths)
+        scored["cuboid"] = _cuboid_scores(candidates, sources, truths, fitter.options.optimizer)
     return scored
 
 
@@ -169,14 +169,15 @@ def _lifted(keypoints: list[np.ndarray | None], truths: list[Truth], shape: str)
     return {row: one.camera for row, one in zip(rows, lifted)}
 
 
-def _cuboid_scores(candidates: list[Candidate | None], sources: list[Source],
-                   truths: list[Truth]) -> list[CornerErrors | None]:
+def _cuboid_scores(candidates: list[Candidate | None], sources: list[Source], truths: list[Truth],
+                   optimizer: str = "lm") -> list[CornerErrors | None]:
     """The cuboid of each candidate fitted to its sample's own noisy mask, the building's pieces
     together (what `Fitter` fits: `masks.silhouette`), the batch's fits solved at once
     (`cuboid.fit_candidates`), and scored; None where there is no fit."""
     masks = [None if c is None else silhouette(s.sample.noisy) for c, s in zip(candidates, sources)]
     fittable = [i for i, m in enumerate(masks) if m is not None]
-    fitted = dict(zip(fittable, fit_candidates([candidates[i] for i in fittable], [masks[i] for i in fittable])))
+    fitted = dict(zip(fittable, fit_candidates([candidates[i] for i in fittable], [masks[i] for i in fittable],
+                                               optimizer=optimizer)))
     scores: list[CornerErrors | None] = []
     for i, truth in enumerate(truths):
         fit = fitted.get(i)

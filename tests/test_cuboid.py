@@ -207,3 +207,26 @@ def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
         np.testing.assert_allclose(fitted.fit.keypoints, alone.fit.keypoints, atol=1e-6)
         assert fitted.fit.iou == pytest.approx(alone.fit.iou, abs=1e-9)
         np.testing.assert_allclose(fitted.corner_scores, alone.corner_scores, atol=1e-9)
+
+
+def test_the_soft_optimizer_fits_a_real_cuboid_through_the_command(masks, tmp_path):
+    """`infer --optimizer soft`: the soft-rasterised fit answers in the same record, a box's
+    projection, and differs from LM's; it is the cuboid fit's, so not with --networks-only."""
+    from typer.testing import CliRunner
+
+    from cuboidtrain.cli import app
+
+    paths, _ = masks
+    records = {}
+    for optimizer in ("lm", "soft"):
+        out = tmp_path / f"{optimizer}.json"
+        result = CliRunner().invoke(app, ["infer", paths[0], "--shape", "box", "--optimizer", optimizer, "--device", "cpu",
+                                          "--json", str(out)])
+        assert result.exit_code == 0, result.output
+        [records[optimizer]] = __import__("json").loads(out.read_text())
+    soft = records["soft"]
+    assert soft["cuboid"]["iou"] > 0.9 and concurrency("box", soft["keypoints"]) < 1e-9
+    assert soft["keypoints"] != records["lm"]["keypoints"]
+    result = CliRunner().invoke(app, ["infer", paths[0], "--optimizer", "soft", "--networks-only"])
+    assert result.exit_code == 2 and "--optimizer soft with --networks-only" in result.output
+    assert len(result.output.strip().splitlines()) == 1

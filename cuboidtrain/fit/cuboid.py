@@ -27,7 +27,7 @@ from cuboidtrain.fit.completion import completed_target
 from cuboidtrain.fit.geometry import CuboidFit
 from cuboidtrain.fit.mask_fit import fit_masks
 from cuboidtrain.fit.outline import MaskTarget, bilinear
-from shared.shapes import get_shape
+from shared.shapes import Shape, get_shape
 
 # Shape selection from the fitted cuboids (Must have 4): each explains the input by its IoU,
 # and a richer class must explain it better by this margin and be plausible. Measured on
@@ -69,19 +69,20 @@ class FittedCuboid:
                             for on, s in zip(fit.on_outline, self.corner_scores)]}
 
 
-def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget) -> FittedCuboid:
+def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget, optimizer: str = "lm") -> FittedCuboid:
     """The cuboid of `candidate`'s class fitted to `mask` (H, W) bool, the input component (or its
     MaskTarget, shared by the shape classes tried); NonFiniteCuboid if it is not finite."""
-    [fitted] = fit_candidates([candidate], [mask])
+    [fitted] = fit_candidates([candidate], [mask], optimizer=optimizer)
     if isinstance(fitted, NonFiniteCuboid):
         raise fitted
     return fitted
 
 
 def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
-                   completion: bool = True) -> list[FittedCuboid | NonFiniteCuboid]:
+                   completion: bool = True, optimizer: str = "lm") -> list[FittedCuboid | NonFiniteCuboid]:
     """`fit_candidate` for many (candidate, mask) pairs, each shape class's fits solved as one
-    batch (`mask_fit.fit_masks`); a fit that is not finite is its NonFiniteCuboid, in its place.
+    batch (`mask_fit.fit_masks`), or one by one by the soft-rasterised fit (`optimizer="soft"`,
+    `soft_raster.fit_soft`); a fit that is not finite is its NonFiniteCuboid, in its place.
     `completion=False` leaves the Refiner's completion out (benchmarks/bench_cuboid_fit.py)."""
     if any(c.framing is None for c in candidates):
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
@@ -90,8 +91,7 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
     for name in dict.fromkeys(c.shape for c in candidates):
         batch = [i for i, c in enumerate(candidates) if c.shape == name]
         starts = [fit_start(candidates[i], targets[i], completion) for i in batch]
-        fits = fit_masks([s.target for s in starts], get_shape(name), np.array([s.corners for s in starts]),
-                         np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts])
+        fits = _solve(starts, get_shape(name), optimizer)
         for i, fit, start in zip(batch, fits, starts):
             try:
                 check_finite(fit)
@@ -101,6 +101,16 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
             named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
             fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks))
     return fitted
+
+
+def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str) -> list[CuboidFit]:
+    """The fits of one shape class's starts by `optimizer` (FitOptions.optimizer)."""
+    if optimizer == "soft":
+        from cuboidtrain.fit.soft_raster import fit_soft  # torch's autograd: only when asked for
+
+        return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
+    return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),
+                     np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts])
 
 
 @dataclass(frozen=True)

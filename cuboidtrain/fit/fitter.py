@@ -181,7 +181,8 @@ class Fitter:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
-        cuboids = {c.shape: fit_candidate(c, target) for c in candidates} if self.options.cuboid else {}
+        optimizer = self.options.optimizer
+        cuboids = {c.shape: fit_candidate(c, target, optimizer) for c in candidates} if self.options.cuboid else {}
         set_aside: list[str] = []
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
             best, set_aside = choose_cuboid(candidates, cuboids)

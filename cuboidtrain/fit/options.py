@@ -18,6 +18,7 @@ from shared.shapes import SHAPES
 
 FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
 EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")  # cuboidtrain.fit.codec.CODECS
+OPTIMIZERS = ("lm", "soft")  # the cuboid fit's: mask_fit (Levenberg-Marquardt), soft_raster (L-BFGS)
 MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
 DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the model size per side
 DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px
@@ -86,12 +87,17 @@ class FitOptions:
     label_id: int | None = number(None, lo=0, hi=65535, integer=True, optional=True)  # read a grey label map: pixels equal to this id are the object
     device: str = "auto"  # auto (CUDA when present), cpu, cuda or cuda:N
     cuboid: bool = False  # fit a perspective cuboid to the mask at the input's resolution (cuboidtrain.fit.cuboid)
+    optimizer: str = "lm"  # the cuboid fit's: lm (fast) or soft (more accurate, ~35x slower; BENCHMARKS.md)
 
     def validate(self) -> "FitOptions":
         """The checked options, strings parsed; a ValueError names the bad value and what was expected.
         Every option is checked, used or not: a typo is never silent."""
         check_choice("--shape", self.shape, FIT_SHAPES)
         check_choice("--extractor", self.extractor, EXTRACTORS)
+        check_choice("--optimizer", self.optimizer, OPTIMIZERS)
+        if self.optimizer != "lm" and not self.cuboid:
+            raise UsageError(f"--optimizer {self.optimizer} with --networks-only: expected the cuboid fit "
+                             f"(the optimizer is the cuboid fit's)")
         check_numbers(self)  # margin, label_id: finite and in their declared ranges
         return replace(self, refine_steps=parse_refine_steps(self.refine_steps),
                        pdm_components=parse_components(self.pdm_components), device=check_device(self.device))

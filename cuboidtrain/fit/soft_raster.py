@@ -23,7 +23,8 @@ Measured against `fit_mask` from the same candidates (BENCHMARKS.md, "Choosing t
 optimiser"; benchmarks/bench_optimizer.py, 100 masks a set): at 100 L-BFGS iterations a start,
 more accurate on all 6 sets (mean corner error 3.93 -> 2.78 px clean box, 7.76 -> 6.76 `paper`
 twobox; every median, hull median and depth/height median lower) but 35-40 times slower (413-522
-against 11-15 ms, one thread): LM stays the default, and nothing calls this module but the benchmark.
+against 11-15 ms, one thread): LM stays the default; `infer --optimizer soft` (FitOptions.optimizer)
+fits with this one, for whom accuracy is worth half a second a shape class.
 """
 from __future__ import annotations
 
