@@ -177,3 +177,27 @@ def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun
     records = read_records(out)
     assert [r["index"] for r in records] == list(range(40))
     assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(masks, FitOptions(device="cpu"))
+
+
+def test_a_pipe_from_two_workers_ends_when_infer_does(masks):
+    """`infer --workers 2 --json - | jq`: the workers' fork server outlives infer by a moment as it
+    shuts down, and must not hold the pipe's write end (its stdout is /dev/null): once infer has
+    exited, its stdout is at end of file at once."""
+    import select
+
+    folder = str(Path(masks[0]).parent)
+    command = [sys.executable, "-m", "cuboidtrain", "infer", folder, "--workers", "2", "--json", "-",
+               "--networks-only", "--device", "cpu"]
+    proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            env=os.environ | {"OMP_NUM_THREADS": "1"})
+    assert proc.wait(timeout=180) in (0, 1)  # its records fit the pipe's buffer: it need not wait for a reader
+    fd, text = proc.stdout.fileno(), b""
+    while True:
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        assert ready, "infer has exited, but its stdout is still held open"
+        chunk = os.read(fd, 1 << 16)
+        if not chunk:
+            break
+        text += chunk
+    proc.stdout.close()
+    assert len(json.loads(text)) == len(masks)

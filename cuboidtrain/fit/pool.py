@@ -17,10 +17,12 @@ threads, never forks.
 from __future__ import annotations
 
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import replace
 from multiprocessing import get_all_start_methods, get_context
 from pathlib import Path
@@ -79,7 +81,8 @@ def _context():
     saved = {name: os.environ.get(name) for name in ONE_THREAD}
     os.environ.update(ONE_THREAD)  # what the server inherits, only while it starts
     try:
-        forkserver.ensure_running()
+        with _stdout_to_devnull():
+            forkserver.ensure_running()
     finally:
         for name, value in saved.items():
             if value is None:
@@ -87,6 +90,23 @@ def _context():
             else:
                 os.environ[name] = value
     return context
+
+
+@contextmanager
+def _stdout_to_devnull():
+    """The fork server (and so every worker) gets /dev/null as its stdout, which only this process
+    writes (the JSON records): otherwise the server, which outlives `infer` by a moment as it
+    shuts down, holds a pipe's write end open, and `infer --json - | jq` waited about 0.5 s for
+    its end of file. stderr stays shared: a worker's fatal error still reaches the terminal."""
+    sys.stdout.flush()
+    kept, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(kept, 1)
+        os.close(kept)
+        os.close(devnull)
 
 
 def _pooled(jobs, checkpoints, options, workers, explain: Callable | None = None) -> Iterator[Group]:
