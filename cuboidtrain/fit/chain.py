@@ -69,16 +69,18 @@ class Explanation:
     mask: np.ndarray  # (H, W) bool: the fitted component in the input's own pixels
 
 
-def model_silhouette(shape: str | Shape, keypoints: np.ndarray, size: int) -> np.ndarray:
-    """The fitted cuboid's bool (S, S) silhouette: the union of its parts' convex hulls,
-    drawn by the generator's own rasteriser so a perfect fit reproduces a training mask.
-    (Not `masks.silhouette`, which picks the building out of an input mask.)"""
+def model_silhouette(shape: str | Shape, keypoints: np.ndarray, size: int | tuple[int, int]) -> np.ndarray:
+    """The fitted cuboid's bool (S, S) silhouette, or (H, W) for an input's pixels: the union of
+    its parts' convex hulls, drawn by the generator's own rasteriser so a perfect fit reproduces
+    a training mask. (Not `masks.silhouette`, which picks the building out of an input mask.)"""
     geometry = get_shape(shape) if isinstance(shape, str) else shape
-    return rasterize(geometry, np.asarray(keypoints, dtype=np.float64), size)
+    height, width = (size, size) if isinstance(size, int) else size
+    # The rasteriser draws squares: an (H, W) image is the top left of its longer side's square.
+    return rasterize(geometry, np.asarray(keypoints, dtype=np.float64), max(height, width))[:height, :width]
 
 
 def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
-    """IoU of the fitted silhouette with `mask` (> 0: the framed input), in [0, 1].
+    """IoU of the fitted silhouette with `mask` (> 0: the framed input, or any input's (H, W)), in [0, 1].
 
     The Tabulator outputs a geometrically valid cuboid (or two-box) whatever it is
     shown, so when that silhouette explains the input well, the model's shape class
@@ -89,8 +91,9 @@ def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
     so judging a model against its own refinement flatters it (on 240 mixed
     samples, choosing by the refined masks was right 80% of the time, by the input 86%).
     """
-    target = np.asarray(mask.detach().cpu() if torch.is_tensor(mask) else mask).squeeze() > 0
-    fitted = model_silhouette(shape, keypoints, target.shape[-1])
+    target = np.asarray(mask.detach().cpu() if torch.is_tensor(mask) else mask)
+    target = target.reshape(target.shape[-2:]) > 0  # a batch row (1, S, S) or an image (H, W)
+    fitted = model_silhouette(shape, keypoints, target.shape)
     union = np.logical_or(fitted, target).sum()
     return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
 

@@ -41,12 +41,11 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from cuboidtrain.fit.chain import no_explanation  # noqa: E402
+from cuboidtrain.fit.chain import model_silhouette, no_explanation  # noqa: E402
 from cuboidtrain.fit.inputs import OutputNames  # noqa: E402
 from cuboidtrain.fit.mesh import camera_box  # noqa: E402
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
-from shared.raster import rasterize  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
 
 if TYPE_CHECKING:
@@ -200,7 +199,7 @@ def _residual_tile(ax, fit: Fit) -> None:
     mask, geometry = fit.explanation.mask, get_shape(fit.shape)
     height, width = mask.shape
     fitted = input_keypoints(fit)
-    model = rasterize(geometry, fitted, max(height, width))[:height, :width]
+    model = model_silhouette(geometry, fitted, (height, width))
     residual = np.zeros((height, width, 3))
     residual[mask & model] = 0.55
     residual[mask & ~model] = MISSED_COLOUR

@@ -18,11 +18,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from cuboidtrain.fit.chain import confidence
 from cuboidtrain.fit.geometry import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
                                       project_with_jacobian, ratios)
 from cuboidtrain.fit.lift import Hypotheses, hypotheses, levenberg_marquardt
 from cuboidtrain.fit.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
-from shared.raster import rasterize
 from shared.shapes import Shape
 
 LIFT_K_STARTS = (0.0, 0.3)  # the affine starts' perspective strengths, beside the vanishing-point ones
@@ -114,13 +114,4 @@ def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: M
     optimiser found it)."""
     image = project(camera.vector[None], shape, np.array([camera.mirror]))
     outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
-    return describe(camera, outline_rms, iou=agreement(target.mask, shape, camera)[0])
-
-
-def agreement(mask: np.ndarray, shape: Shape, camera: CameraParams) -> tuple[float, float]:
-    """IoU of the camera's silhouette with the mask, and the share of mask pixels it misses."""
-    height, width = mask.shape
-    model = rasterize(shape, camera.keypoints(), max(height, width))[:height, :width]  # rasterize draws squares
-    m = mask.astype(bool)
-    inter = np.logical_and(model, m).sum()
-    return float(inter / max(np.logical_or(model, m).sum(), 1)), float(1 - inter / max(m.sum(), 1))
+    return describe(camera, outline_rms, iou=confidence(shape, camera.keypoints(), target.mask))
