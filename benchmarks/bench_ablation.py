@@ -27,7 +27,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.evaluate import evaluate
+from cuboidtrain.train.evaluate import evaluate
 from cuboidtrain.fit.options import FitOptions
 
 VARIANTS = {

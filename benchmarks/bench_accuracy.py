@@ -6,10 +6,10 @@ written as a PNG and fitted by `cuboidtrain.Fitter` (as `cuboidtrain infer` fits
 the building's pieces, framing, R, S, T, and the map back to the input's pixels. The
 mean corner error is then in 256 px units by construction. Beside it:
 
-* `eval`'s figures on the same spool (`cuboidtrain.evaluate`), px x 256 / size,
+* `eval`'s figures on the same spool (`cuboidtrain.train.evaluate`), px x 256 / size,
   and the error budget they carry: R's IoU, S's peak error (DARK on S's maps
   against the truth), T alone on true heat maps, and the whole chain;
-* where the error is (`cuboidtrain.fit.where`): corners on the true silhouette's hull
+* where the error is (`cuboidtrain.geometry.scoring`): corners on the true silhouette's hull
   against the hidden interior ones, NME as a share of the building's image span, the
   depth/height and width/height relative errors of the record's ratios, the yaw error
   (degrees, modulo a half turn) and the 3D IoU of the box up to scale (Objectron's
@@ -17,7 +17,7 @@ mean corner error is then in 256 px units by construction. Beside it:
   against the camera each sample was drawn with (its `params`), and the focal length's
   relative error, which explains most of a low 3D IoU. The networks-only
   record has no box: its yaw and 3D IoU are those of its keypoints lifted
-  (`cuboidtrain.fit.lift.lift`); `--cuboid`'s are its fitted box's;
+  (`cuboidtrain.geometry.lift.lift`); `--cuboid`'s are its fitted box's;
 * shape selection (box against twobox, `--shape auto`) on the noisy sets;
 * the whole `infer` path's latency per mask (median of --latency-repeats single-mask
   calls, both models, the shape chosen), with the `paper` arch at the same size as the
@@ -70,12 +70,12 @@ from rich.console import Console
 from rich.table import Table
 
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.evaluate import evaluate
+from cuboidtrain.train.evaluate import evaluate
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import build_model
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.models.zoo import default_checkpoints
-from cuboidtrain.fit.where import Truth, score, summarise
+from cuboidtrain.geometry.scoring import Truth, score, summarise
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 

@@ -27,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cuboidtrain.fit.pool import CHUNK  # noqa: E402  (no torch: the chunk the pool and Dask send)
+from cuboidtrain.infer.pool import CHUNK  # noqa: E402  (no torch: the chunk the pool and Dask send)
 
 
 class FitActor:
@@ -44,7 +44,7 @@ class FitActor:
     def __call__(self, batch: dict) -> dict:
         import numpy as np
 
-        from cuboidtrain.fit.pool import fit_one
+        from cuboidtrain.infer.pool import fit_one
 
         groups = [fit_one(self.fitter, int(i), str(p)) for i, p in zip(batch["index"], batch["path"])]
         # one JSON text a input: Arrow would turn the records' dicts into structs (and `{}` into nothing)
@@ -58,9 +58,9 @@ def ray_run(folder: str, out: str, actors: int, batch_size: int) -> None:
 
     import ray
 
-    from cuboidtrain.fit.inputs import gather_inputs
+    from cuboidtrain.infer.inputs import gather_inputs
     from cuboidtrain.fit.options import FitOptions
-    from cuboidtrain.fit.store import RecordStore
+    from cuboidtrain.infer.records import RecordStore
     from cuboidtrain.models.zoo import default_checkpoints
 
     started = time.perf_counter()
@@ -116,7 +116,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.ray_run:
         return ray_run(*args.ray_run, actors=2, batch_size=args.ray_batch)
-    from cuboidtrain.fit.store import read_records
+    from cuboidtrain.infer.records import read_records
 
     try:
         import ray  # noqa: F401

@@ -29,13 +29,13 @@ from rich.console import Console
 from rich.table import Table
 
 from bench_accuracy import spool_for
-from cuboidtrain.fit.chain import RICHER_SHAPE_MARGIN, choose
+from cuboidtrain.fit.candidates import RICHER_SHAPE_MARGIN, choose
 from cuboidtrain.fit.cuboid import CUBOID_MARGIN, choose_cuboid, fit_candidates
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.masks import frame, silhouette
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.outline import MaskTarget
-from cuboidtrain.fit.where import Truth, hull_corners
+from cuboidtrain.geometry.outline import MaskTarget
+from cuboidtrain.geometry.scoring import Truth, hull_corners
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 

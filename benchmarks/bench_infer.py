@@ -41,8 +41,8 @@ from cuboidgen.config import PAPER, SCENES
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.fit.codec import default_sigma
-from cuboidtrain.fit.export import OnnxPipeline, Pipeline, export_model
+from cuboidtrain.models.codec import default_sigma
+from cuboidtrain.infer.export import OnnxPipeline, Pipeline, export_model
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import build_model
 from cuboidtrain.fit.options import FitOptions

@@ -1,4 +1,4 @@
-"""The lift of exact corners (`cuboidtrain.fit.lift`): how often the generator's own
+"""The lift of exact corners (`cuboidtrain.geometry.lift`): how often the generator's own
 keypoints give back its corners (< 0.01 px) and ratios (< 0.1%), per scene and shape.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_lift.py --views 300
@@ -13,7 +13,7 @@ import numpy as np
 
 from cuboidgen.config import SCENES
 from cuboidgen.scene import draw_view
-from cuboidtrain.fit.lift import lift
+from cuboidtrain.geometry.lift import lift
 from shared.shapes import get_shape
 
 

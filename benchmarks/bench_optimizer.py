@@ -1,7 +1,7 @@
 """Choosing the mask-fit optimiser by measurement (issue 20, Must have 3): Levenberg-Marquardt on
-contour distances (`cuboidtrain.fit.mask_fit.fit_mask`, the `--cuboid` default) against a
+contour distances (`cuboidtrain.geometry.mask_fit.fit_mask`, the `--cuboid` default) against a
 soft-rasterised silhouette fitted by gradient descent through a blur schedule
-(`cuboidtrain.fit.soft_raster.fit_soft`), from the same network candidate.
+(`cuboidtrain.geometry.soft_raster.fit_soft`), from the same network candidate.
 
 For each validation set (the seeded 256 px spools of `bench_accuracy.py`: `paper-clean`, noisy
 and occluded `paper`, `street`; box and twobox), each sample's noisy mask is read as `infer` reads
@@ -9,7 +9,7 @@ it (its building's pieces, `masks.silhouette`), framed, and run once through the
 of its true shape class (`Fitter.fit_framed`); the candidate's corners, peaks and ratio prior and
 the mask's target completed by its Refiner (`cuboid.fit_start`, as `infer --cuboid` makes them)
 then go to every optimiser in turn, mask by mask, so the machine's load falls on all of them
-alike. Each fit is scored against the sample's truth (`cuboidtrain.fit.where`): mean corner
+alike. Each fit is scored against the sample's truth (`cuboidtrain.geometry.scoring`): mean corner
 error per mask (mean / median over masks), hull against interior corners, the depth/height
 relative error, the fitted silhouette's IoU with the mask, `wins` (the share of masks whose mean
 corner error is below LM's by more than 0.05 px; `losses` the other way), and the median time of
@@ -44,13 +44,13 @@ from rich.table import Table
 from benchmarks.bench_accuracy import SETS, spool_for
 from cuboidtrain.fit.cuboid import FitStart, NonFiniteCuboid, check_finite, fit_start
 from cuboidtrain.fit.fitter import Fitter
-from cuboidtrain.fit.geometry import CuboidFit
+from cuboidtrain.geometry.camera import CuboidFit
 from cuboidtrain.fit.masks import frame, silhouette, to_mask
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.mask_fit import ITERATIONS, fit_mask
-from cuboidtrain.fit.outline import MaskTarget
-from cuboidtrain.fit.soft_raster import SoftSchedule, fit_soft
-from cuboidtrain.fit.where import Truth, score, summarise
+from cuboidtrain.geometry.mask_fit import ITERATIONS, fit_mask
+from cuboidtrain.geometry.outline import MaskTarget
+from cuboidtrain.geometry.soft_raster import SoftSchedule, fit_soft
+from cuboidtrain.geometry.scoring import Truth, score, summarise
 from shared.sample import decode
 from shared.shapes import Shape, get_shape
 from shared.spool import enumerate_spool, read_sample_bytes

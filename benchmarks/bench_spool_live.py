@@ -107,7 +107,7 @@ def watchdog_census(spool):
 
 
 def child(args) -> None:
-    import cuboidtrain.train.progress as progress
+    import cuboidtrain.train.monitor.progress as progress
     import cuboidtrain.train.loop as train
     from cuboidtrain.train.config import TrainConfig
 

@@ -24,7 +24,7 @@ from cuboidgen.synth import make_sample
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import make_loader, prepare_batch
 from cuboidtrain.models.networks import build_model
-from cuboidtrain.device import resolve_device
+from cuboidtrain.models.device import resolve_device
 from cuboidtrain.train.loop import train_step
 from shared.sample import encode
 from shared.spool import SpoolWriter

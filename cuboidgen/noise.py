@@ -37,7 +37,7 @@ def roughen(mask: np.ndarray, amount: float, wavelength: float, rng: np.random.G
     # (N, 2) int32 points, x then y; viewed as one int64 per point (x + y * 2**32 on a
     # little-endian machine, x >= 0) so differences of points are one flat subtraction.
     points = contours[0].reshape(-1, 2) if len(contours) == 1 else np.concatenate(contours).reshape(-1, 2)
-    normals = _normals(points.view(np.int64).ravel(), lengths)
+    normals = contour_normals(points.view(np.int64).ravel(), lengths)
     normals *= _signals(lengths, amount * (1 << SHIFT), wavelength, rng)  # displacement, fixed point
     offsets = normals.view(np.float64)  # x, y interleaved, in 1/16 px
     np.rint(offsets, out=offsets)
@@ -82,7 +82,7 @@ def _normal_table() -> np.ndarray:
 _NORMALS = _normal_table()
 
 
-def _normals(packed: np.ndarray, lengths: list[int]) -> np.ndarray:
+def contour_normals(packed: np.ndarray, lengths: list[int]) -> np.ndarray:
     """Unit normals (x + i y, complex) of concatenated closed contours of `packed`
     points (x + y * 2**32), each from its two neighbours on its own contour."""
     step = np.empty(len(packed), np.int64)

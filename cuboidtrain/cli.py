@@ -8,8 +8,9 @@ from typing import Optional
 import typer
 
 from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
-from cuboidtrain.fit.inputs import DEFAULT_GLOB_HELP, gather_inputs
-from cuboidtrain.fit.options import EXTRACTORS, FIT_SHAPES, MAX_REFINE_STEPS, OPTIMIZERS, FitOptions
+from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP, gather_inputs
+from cuboidtrain.fit.options import FIT_SHAPES, OPTIMIZERS, FitOptions
+from cuboidtrain.models.settings import EXTRACTORS, MAX_REFINE_STEPS
 from shared.console import Commands, choices, console, fail, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
@@ -73,10 +74,10 @@ def run(
     val_samples: int = typer.Option(TRAIN.val_samples, envvar="CUBOIDTRAIN_VAL_SAMPLES", help="Validation samples per evaluation."),
 ) -> None:
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
-    from cuboidtrain.train.dashboard import Dashboard
+    from cuboidtrain.train.monitor.dashboard import Dashboard
     from cuboidtrain.train.loop import run as run_training
     from cuboidtrain.train.preflight import check_paths
-    from cuboidtrain.train.status import TrainingFailed
+    from cuboidtrain.train.monitor.status import TrainingFailed
 
     setup_logging()
     config = TrainConfig(
@@ -124,7 +125,7 @@ def evaluate(
 ) -> None:
     """Keypoint error (px), PCK, ratio error and Refiner IoU, beside a randomly initialised model's; then
     where the error is, per path, in the samples' own px: hull and interior corners, NME, ratio, yaw and 3D IoU."""
-    from cuboidtrain.evaluate import evaluate_checkpoint, format_report
+    from cuboidtrain.train.evaluate import evaluate_checkpoint, format_report
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
@@ -142,7 +143,7 @@ def watch(
     once: bool = typer.Option(False, help="Print the dashboard once and exit."),
 ) -> None:
     """Show a running (or finished) training run's dashboard from another terminal."""
-    from cuboidtrain.train.dashboard import watch as watch_run
+    from cuboidtrain.train.monitor.dashboard import watch as watch_run
 
     try:
         code = watch_run(out, interval=interval, once=once)
@@ -179,7 +180,7 @@ def infer(
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.fit.mesh import MeshWriter, check_mesh_options  # no torch: before the workers' warm-up
+    from cuboidtrain.infer.mesh import MeshWriter, check_mesh_options  # no torch: before the workers' warm-up
 
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
@@ -196,16 +197,16 @@ def infer(
     if mesh is not None:
         check_writable("--mesh", mesh, folder=True)
     if cluster is not None:
-        from cuboidtrain.fit.cluster import require_distributed
+        from cuboidtrain.infer.cluster import require_distributed
 
         require_distributed(cluster)  # before the models load: a missing extra is a one-line error
     inputs = gather_inputs(paths or [], from_list, glob)  # nothing to fit is one line before the models load
     if cluster is None:
-        from cuboidtrain.fit.pool import warm_up
+        from cuboidtrain.infer.pool import warm_up
 
         warm_up(workers)  # the workers' torch import, beside this process's below (no torch imported yet)
-    from cuboidtrain.fit.batch import Batch, run_batch
-    from cuboidtrain.fit.chain import write_records
+    from cuboidtrain.infer.batch import Batch, run_batch
+    from cuboidtrain.infer.records import write_records
     from cuboidtrain.fit.fitter import Fitter, Writers
     from cuboidtrain.models.zoo import default_checkpoints
 
@@ -243,7 +244,7 @@ def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int, name
     if folder is None:
         return None
     check_writable("--explain", folder, folder=True)
-    from cuboidtrain.fit.explain import Explainer  # matplotlib: only when pictures are wanted
+    from cuboidtrain.infer.explain import Explainer  # matplotlib: only when pictures are wanted
 
     return Explainer(folder, photos, names)
 
@@ -257,7 +258,7 @@ def export(
     opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
 ) -> None:
     """Export R (K passes), S and T as one ONNX graph: +-1 mask in; refined, heatmaps, keypoints, ratios out."""
-    from cuboidtrain.fit.export import export_checkpoint
+    from cuboidtrain.infer.export import export_checkpoint
     from cuboidtrain.models.zoo import default_checkpoints
 
     setup_logging()
@@ -290,7 +291,7 @@ def localize(
     """Localization (paper section 5): where in a known street the MASKs were taken, start positions ranked."""
     from cuboidtrain import localize as loc
     from cuboidtrain.experiments import localize_figures as figures
-    from cuboidtrain.fit.chain import load_models
+    from cuboidtrain.models.checkpoint import load_models
 
     out = localize_setup(json_out, threads)
     options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device).validate()
@@ -334,7 +335,7 @@ def localize_experiment(
     """The localization experiment (paper section 5.1, eq. 2): acc(m, l) on random streets drawn by the generator."""
     from cuboidtrain.experiments import localize_experiment as experiment
     from cuboidtrain.experiments import localize_figures as figures
-    from cuboidtrain.fit.chain import load_models
+    from cuboidtrain.models.checkpoint import load_models
 
     out = localize_setup(json_out, threads)
     options = FitOptions(shape="box", refine_steps=refine_steps, margin=margin, device=device, cuboid=cuboid).validate()

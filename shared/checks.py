@@ -135,3 +135,10 @@ def _shown(value) -> str:
 
 def _num(bound) -> str:
     return str(bound) if isinstance(bound, int) else f"{bound:g}"
+
+
+def check_choice(option: str, value: str, choices) -> str:
+    """`value` if it is one of `choices`, else a UsageError naming the option and the choices."""
+    if not isinstance(value, str) or value not in choices:
+        raise UsageError(f"{option} {value!r}: expected one of {', '.join(choices)}")
+    return value

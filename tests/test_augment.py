@@ -74,7 +74,7 @@ def test_contour_normals_match_the_neighbour_differences():
     its own (wrapped) contour; one- and two-point contours get none."""
     import cv2
 
-    from cuboidgen.noise import _normals
+    from cuboidgen.noise import contour_normals
 
     mask = disc(96, 36) & ~disc(96, 12)
     mask[5, 5] = mask[5, 8] = mask[6, 8] = True  # a one-point and a two-point contour
@@ -83,7 +83,7 @@ def test_contour_normals_match_the_neighbour_differences():
     lengths = [len(c) for c in contours]
     assert {1, 2} <= set(lengths) and len(contours) > 10
     points = np.concatenate(contours).reshape(-1, 2)
-    got = _normals(points.view(np.int64).ravel(), lengths)
+    got = contour_normals(points.view(np.int64).ravel(), lengths)
     expected, start = [], 0
     for n in lengths:
         p = points[start : start + n].astype(float)

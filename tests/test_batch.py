@@ -1,4 +1,4 @@
-"""`infer` over many masks (cuboidtrain/fit/batch.py, pool.py, progress.py): a run killed with SIGKILL
+"""`infer` over many masks (cuboidtrain/infer/batch.py, pool.py, progress.py): a run killed with SIGKILL
 and resumed ends with the records of an uninterrupted run, none twice; a pool of workers gives
 the records of one process; without a terminal, progress is plain log lines and a summary."""
 from __future__ import annotations
@@ -15,10 +15,10 @@ import pytest
 import torch
 from rich.console import Console
 
-from cuboidtrain.fit.batch import Batch, run_batch
+from cuboidtrain.infer.batch import Batch, run_batch
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.store import read_records
+from cuboidtrain.infer.records import read_records
 from cuboidtrain.models.zoo import default_checkpoints
 from tests.conftest import write_mask_pngs
 
@@ -133,12 +133,12 @@ def test_two_workers_give_the_records_of_one_process(masks):
 
 
 def test_without_a_terminal_progress_is_log_lines_and_a_summary(tmp_path, masks, monkeypatch, caplog):
-    monkeypatch.setattr("cuboidtrain.fit.batch_progress.LOG_SECONDS", 0.0)
+    monkeypatch.setattr("cuboidtrain.infer.progress.LOG_SECONDS", 0.0)
     console = Console(file=(tmp_path / "console.txt").open("w"), width=300)
     checkpoints = default_checkpoints(None)
     batch = Batch(tuple(masks[15:25]), tuple(checkpoints), FitOptions(device="cpu"), jsonl=tmp_path / "o.jsonl",
                   keep=False)
-    with caplog.at_level("INFO", logger="cuboidtrain.fit.batch_progress"):
+    with caplog.at_level("INFO", logger="cuboidtrain.infer.progress"):
         records, tally = run_batch(batch, Fitter.from_files(checkpoints, FitOptions(device="cpu")), console)
     console.file.close()
     assert records == [] and tally.done == 10 and tally.failed == 1

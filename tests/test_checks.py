@@ -19,7 +19,8 @@ from typer.testing import CliRunner
 
 from cuboidgen.config import SCENES, GenConfig, SceneConfig, load_scene, scene_from_dict
 from cuboidgen.synth import make_sample
-from cuboidtrain.fit.options import MAX_REFINE_STEPS, FitOptions, parse_refine_steps
+from cuboidtrain.fit.options import FitOptions, parse_refine_steps
+from cuboidtrain.models.settings import MAX_REFINE_STEPS
 from cuboidtrain.train.config import TrainConfig
 from shared.checks import bounds_of, is_pair, max_processes, option_name
 from shared.errors import UsageError

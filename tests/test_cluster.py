@@ -1,4 +1,4 @@
-"""`infer --cluster` (cuboidtrain/fit/cluster.py): a local Dask cluster of two workers stores the
+"""`infer --cluster` (cuboidtrain/infer/cluster.py): a local Dask cluster of two workers stores the
 records of the single-process run, and resumes its store as the local pool does; without the
 extra, `--cluster` is a one-line error naming it. The cluster tests skip when Dask is not
 installed (CI installs only `.[test]`)."""
@@ -11,10 +11,10 @@ import pytest
 import torch
 from rich.console import Console
 
-from cuboidtrain.fit.batch import Batch, run_batch
+from cuboidtrain.infer.batch import Batch, run_batch
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.store import read_records
+from cuboidtrain.infer.records import read_records
 from cuboidtrain.models.zoo import default_checkpoints
 from shared.errors import UsageError
 from tests.conftest import write_mask_pngs

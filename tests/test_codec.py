@@ -11,10 +11,10 @@ import torch
 from cuboidgen.config import PAPER
 from cuboidgen.scene import draw_view
 from cuboidtrain.experiments.generated_pdm import generated_pdm
-from cuboidtrain.fit.codec import (CODECS, Decoded, argmax, centre_of_mass, dark, default_sigma, make_codec,
+from cuboidtrain.models.codec import (CODECS, Decoded, argmax, centre_of_mass, dark, default_sigma, make_codec,
                                    render_heatmaps)
-from cuboidtrain.fit.options import EXTRACTORS, parse_components
-from cuboidtrain.fit.pdm import MIN_SAMPLES, PointDistributionModel
+from cuboidtrain.models.settings import EXTRACTORS, parse_components
+from cuboidtrain.models.pdm import MIN_SAMPLES, PointDistributionModel
 from shared.shapes import get_shape
 from tests.conftest import tiny_model, with_generated_pdm
 
@@ -162,7 +162,7 @@ def test_tabulator_extractor_passes_t_through_and_names_are_checked():
 
 
 def test_the_registry_holds_every_extractor_the_options_offer():
-    assert tuple(CODECS) == EXTRACTORS  # options.EXTRACTORS is the command line's list, without torch
+    assert tuple(CODECS) == EXTRACTORS  # settings.EXTRACTORS is the command line's list, without torch
     assert all(CODECS[name].name == name for name in CODECS)
 
 
@@ -270,10 +270,11 @@ def test_twobox_pdm_and_extractor_on_true_maps():
 def test_the_cli_offers_every_extractor_and_the_library_default():
     from cuboidtrain import cli
     from cuboidtrain.fit import options
+    from cuboidtrain.models import settings
 
-    assert [choice.value for choice in cli.ExtractorChoice] == list(options.EXTRACTORS)
+    assert [choice.value for choice in cli.ExtractorChoice] == list(settings.EXTRACTORS)
     assert [choice.value for choice in cli.FitShape] == list(options.FIT_SHAPES)
-    assert float(typer_default(cli.infer, "pdm_components")) == options.DEFAULT_PDM_COMPONENTS
+    assert float(typer_default(cli.infer, "pdm_components")) == settings.DEFAULT_PDM_COMPONENTS
     assert typer_default(cli.infer, "margin") == options.DEFAULT_MARGIN
 
 

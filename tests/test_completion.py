@@ -7,7 +7,7 @@ import numpy as np
 
 from cuboidtrain.fit import completion as stage
 from cuboidtrain.fit.masks import frame
-from cuboidtrain.fit.outline import MaskTarget, bilinear
+from cuboidtrain.geometry.outline import MaskTarget, bilinear
 from tests.test_infer import candidate
 
 SIZE = 64  # the Refiner's resolution; the input is 4x that

@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 import cuboidgen.cli
 import cuboidtrain.cli
-from cuboidtrain.train.status import TrainerStatus, write_status
+from cuboidtrain.train.monitor.status import TrainerStatus, write_status
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import build_sample

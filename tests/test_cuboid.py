@@ -120,7 +120,7 @@ def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
 def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(tmp_path):
     """With --cuboid the explanation has a tile of the networks' corners against the fitted box and
     one of where box and input disagree, both ways (a legend entry, with a pixel count, for each)."""
-    from cuboidtrain.fit.explain import explanation_figure
+    from cuboidtrain.infer.explain import explanation_figure
     import matplotlib.pyplot as plt
 
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape="box"))
@@ -139,7 +139,7 @@ def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(t
 
 def fitted_cuboid(shape: str, iou: float, left_height: float = 0.6) -> stage.FittedCuboid:
     """A fitted cuboid of `shape` with the given IoU; a twobox's LEFT part `left_height` times the RIGHT's."""
-    from cuboidtrain.fit.geometry import CameraParams, describe
+    from cuboidtrain.geometry.camera import CameraParams, describe
 
     vector = np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0, 0.0, np.log(100.0), 0.2, 64.0, 64.0]
                       + ([0.5, np.log(left_height)] if shape == "twobox" else []))
@@ -188,7 +188,7 @@ def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
     (padded to the longest), field, corners and anchor, so every fit equals the mask fitted alone;
     a small mask's shorter outline pads the batch."""
     from cuboidtrain.fit.masks import frame
-    from cuboidtrain.fit.outline import MaskTarget
+    from cuboidtrain.geometry.outline import MaskTarget
 
     paths, samples = masks
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))

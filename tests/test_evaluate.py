@@ -11,8 +11,8 @@ import torch
 from torch import nn
 
 from cuboidtrain.models.checkpoint import save_checkpoint
-from cuboidtrain.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
-from cuboidtrain.fit.codec import render_heatmaps
+from cuboidtrain.train.evaluate import evaluate, evaluate_checkpoint, format_report, keypoint_errors, mask_iou
+from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.models.networks import ChainOutput
 from shared.sample import encode, signed
@@ -212,7 +212,7 @@ def spool_of_another_size(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("margin", [0.0, 0.1, 0.25])
 def test_eval_frames_samples_of_another_size_with_its_margin(spool_of_another_size, margin):
-    from cuboidtrain.evaluate import load_batches
+    from cuboidtrain.train.evaluate import load_batches
     from shared.sample import unpack_mask
 
     batches, skipped = load_batches(spool_of_another_size, "box", SIZE, 4, None, margin)

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cuboidtrain.cli import app
-from cuboidtrain.fit.explain import Explainer, _input_tile, front_arrow, overlay_zoom, to_photo
+from cuboidtrain.infer.explain import Explainer, input_tile, front_arrow, overlay_zoom, to_photo
 from shared.shapes import get_shape
 from tests.conftest import infer_paths
 from tests.test_infer import (Recording, checkpoints, hexagon, random_models, rect_keypoints,  # noqa: F401 (fixtures)
@@ -82,7 +82,7 @@ def test_the_area_outside_the_input_is_hatched_grey_not_the_foregrounds_white():
     geometry = get_shape("box")
     keypoints = np.array([[-30.0, 12.0], [50, 10], [10, 30], [50, 30], [12, 12], [48, 12], [12, 28], [48, 28]])
     fig, ax = plt.subplots(figsize=(4, 3), dpi=100)
-    _input_tile(ax, mask, geometry, keypoints)  # a corner 30 px left of the input: the view reaches past it
+    input_tile(ax, mask, geometry, keypoints)  # a corner 30 px left of the input: the view reaches past it
     outside, building, background = (tile_pixels(fig, ax, *p) for p in ((-20, 35), (30, 20), (4, 36)))
     assert 70 < outside.mean() < 190 and outside.min() < outside.max()  # grey, hatched
     assert building.mean() > 240 and background.mean() < 20  # white building, black background
@@ -90,7 +90,7 @@ def test_the_area_outside_the_input_is_hatched_grey_not_the_foregrounds_white():
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(4, 3), dpi=100)
     inside = np.vstack([[10.0, 10.0], keypoints[1:]])
-    _input_tile(ax, mask, geometry, inside)  # the view within the input: nothing to mark
+    input_tile(ax, mask, geometry, inside)  # the view within the input: nothing to mark
     assert ax.get_legend() is None
     plt.close(fig)
 

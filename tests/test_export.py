@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from cuboidtrain.models.checkpoint import load_model, save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.fit.export import FORMAT, OUTPUTS, OnnxPipeline, read_metadata
+from cuboidtrain.infer.export import FORMAT, OUTPUTS, OnnxPipeline, read_metadata
 from cuboidtrain.models.refine import refine
 from shared.sample import signed
 from shared.shapes import get_shape

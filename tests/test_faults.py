@@ -28,9 +28,9 @@ from cuboidgen.cli import app as gen_app
 from cuboidtrain.models.checkpoint import load_checkpoint
 from cuboidtrain.cli import app as train_app
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.dashboard import render, watch
-from cuboidtrain.files import sweep_orphans as sweep_run_folder
-from cuboidtrain.train.status import TrainerStatus, read_status, trainer_died, write_status
+from cuboidtrain.train.monitor.dashboard import render, watch
+from cuboidtrain.train.files import sweep_orphans as sweep_run_folder
+from cuboidtrain.train.monitor.status import TrainerStatus, read_status, trainer_died, write_status
 from cuboidtrain.train.loop import NoUsableSamples, StopRequest, run
 from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool

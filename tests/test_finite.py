@@ -164,7 +164,7 @@ def test_no_json_is_written_but_through_the_one_writer():
 
 
 def test_eval_never_reports_a_non_finite_metric(spool):
-    from cuboidtrain.evaluate import evaluate
+    from cuboidtrain.train.evaluate import evaluate
     from cuboidtrain.fit.options import FitOptions
     from shared.errors import UsageError
 

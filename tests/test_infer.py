@@ -18,7 +18,8 @@ from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.chain import RICHER_SHAPE_MARGIN, Candidate, choose, confidence, model_silhouette
+from cuboidtrain.fit.candidates import RICHER_SHAPE_MARGIN, Candidate, choose
+from cuboidtrain.geometry.silhouette import confidence, model_silhouette
 from cuboidtrain.models.refine import refine
 from cuboidtrain.fit.masks import components, frame, load_mask
 from shared.sample import signed
@@ -482,6 +483,6 @@ class TrueHeatmaps(nn.Module):
         self.points = points
 
     def forward(self, mask):
-        from cuboidtrain.fit.codec import render_heatmaps
+        from cuboidtrain.models.codec import render_heatmaps
 
         return render_heatmaps(torch.as_tensor(self.points(), dtype=torch.float32)[None], mask.shape[-1], 1.0)

@@ -1,4 +1,4 @@
-"""What `infer` is asked to fit (cuboidtrain/fit/inputs.py): files, folders, --glob, --from-list, and
+"""What `infer` is asked to fit (cuboidtrain/infer/inputs.py): files, folders, --glob, --from-list, and
 nothing to fit as one line naming what was expected."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cuboidtrain.cli import app
-from cuboidtrain.fit.inputs import gather_inputs
+from cuboidtrain.infer.inputs import gather_inputs
 from shared.errors import UsageError
 
 runner = CliRunner()

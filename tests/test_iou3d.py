@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cuboidtrain.fit.geometry import rotation_matrices
-from cuboidtrain.fit.iou3d import OrientedBox, intersection_volume, iou, union_iou
+from cuboidtrain.geometry.camera import rotation_matrices
+from cuboidtrain.geometry.iou3d import OrientedBox, intersection_volume, iou, union_iou
 
 coordinate = st.floats(-2.0, 2.0, allow_nan=False)
 extent = st.floats(0.2, 3.0, allow_nan=False)

@@ -154,6 +154,89 @@ def test_no_import_cycles():
     assert [" -> ".join(cycle) for cycle in import_cycles(graph)] == []
 
 
+# ---- the floors: each layer imports only the ones beneath it --------------------------
+
+# cuboidtrain's layers, lowest first: the solver knows no network, the networks know no fit, the
+# fit path knows neither the runners nor the trainer. Each may import any lower floor (and shared).
+FLOORS = {"cuboidtrain.geometry": 1, "cuboidtrain.models": 2, "cuboidtrain.fit": 3, "cuboidtrain.infer": 4,
+          "cuboidtrain.train": 4}
+
+
+def floor(module: str) -> tuple[str, int] | None:
+    """The layer a module belongs to and its height, None for one above every floor (cli, experiments)."""
+    for package, height in FLOORS.items():
+        if module == package or module.startswith(package + "."):
+            return package, height
+    return None
+
+
+def climbs(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of a module from a floor as high as its own or higher, but its own floor."""
+    found = []
+    for name, targets in graph.items():
+        here = floor(name)
+        for target in targets:
+            there = floor(target)
+            if here and there and there[0] != here[0] and there[1] >= here[1]:
+                found.append(f"{name} -> {target}")
+    return sorted(found)
+
+
+def test_climbs_sees_an_import_up_a_floor_and_allows_one_down():
+    assert climbs({"cuboidtrain.models.zoo": {"cuboidtrain.fit.options"}}) == [
+        "cuboidtrain.models.zoo -> cuboidtrain.fit.options"]
+    assert climbs({"cuboidtrain.infer.pool": {"cuboidtrain.train.data"}}) == [
+        "cuboidtrain.infer.pool -> cuboidtrain.train.data"]  # side by side is no way down either
+    assert climbs({"cuboidtrain.fit.fitter": {"cuboidtrain.models.zoo", "cuboidtrain.geometry.lift",
+                                              "cuboidtrain.fit.options"}}) == []
+    assert climbs({"cuboidtrain.cli": {"cuboidtrain.train.loop"}}) == []  # the command line stands on all
+
+
+def test_no_import_climbs_back_up_a_floor():
+    """The solver below the networks below the fit below the runners and the trainer: an arrow up
+    ties a lower room to everything above it (the models once imported the trainer's DataLoader)."""
+    modules = module_files()
+    graph = {name: import_edges(name, path, modules) for name, path in modules.items()}
+    assert climbs(graph) == []
+
+
+def test_importing_the_fitter_loads_neither_the_trainer_nor_the_runners():
+    code = ("import sys, cuboidtrain.fit.fitter\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('cuboidtrain.train', 'cuboidtrain.infer'))))")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[]"
+
+
+def private_imports(path: Path) -> list[str]:
+    """`from X import _name`: a name its module keeps to itself, reached from outside."""
+    return [f"{node.module}.{alias.name}" for node in ast.walk(ast.parse(path.read_text(), str(path)))
+            if isinstance(node, ast.ImportFrom) and node.module != "__future__"
+            for alias in node.names if alias.name.startswith("_") and not alias.name.startswith("__")]
+
+
+def test_no_module_imports_a_private_name_of_another(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from a.b import _hidden, shown\nfrom __future__ import annotations\n")
+    assert private_imports(probe) == ["a.b._hidden"]
+    files = [p for folder in (*PACKAGES, "tests", "benchmarks") for p in (ROOT / folder).rglob("*.py")]
+    found = {str(p.relative_to(ROOT)): private_imports(p) for p in files}
+    assert {p: names for p, names in found.items() if names} == {}
+
+
+def test_every_room_holds_at_most_twelve_modules_each_saying_its_role():
+    rooms: dict[str, list[Path]] = {}
+    for package in PACKAGES:
+        for path in (ROOT / package).rglob("*.py"):
+            rooms.setdefault(str(path.parent.relative_to(ROOT)), []).append(path)
+    assert {"cuboidtrain/geometry", "cuboidtrain/fit", "cuboidtrain/infer", "cuboidtrain/models"} <= set(rooms)
+    assert {room: len(paths) for room, paths in rooms.items()
+            if len([p for p in paths if p.name != "__init__.py"]) > 12} == {}
+    silent = [str(p.relative_to(ROOT)) for paths in rooms.values() for p in paths
+              if not (ast.get_docstring(ast.parse(p.read_text())) or "").strip()]
+    assert silent == []
+
+
 def readme_python_example() -> str:
     """The README's first ```python block in its "Python API" section."""
     text = (ROOT / "README.md").read_text()
@@ -175,7 +258,7 @@ def fresh_interpreter() -> dict:
     cuboidgen modules and SLOW_IMPORTS all of that loaded."""
     example = readme_python_example()
     # One torch thread, as this process has (conftest): the same sums in the same order, the same floats.
-    code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.fit.chain\n"
+    code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.fit.candidates\n"
             "from cuboidtrain import FitOptions\n"
             "fitter = Fitter.from_shipped(FitOptions(device='cpu', cuboid=True))\n"
             "array = fitter.fit(cv2.imread('examples/building.png', cv2.IMREAD_UNCHANGED))\n"

@@ -1,4 +1,4 @@
-"""`infer --cuboid --mesh DIR` (cuboidtrain/fit/mesh.py): each fitted box as an OBJ file in the camera's
+"""`infer --cuboid --mesh DIR` (cuboidtrain/infer/mesh.py): each fitted box as an OBJ file in the camera's
 frame whose vertices reproject onto the record's keypoints, closed boxes with outward faces; the
 options it needs and the folders it refuses; and the explanation panel's 3D tile that draws the same box."""
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 from cuboidgen.config import PAPER_CLEAN
 from cuboidtrain.cli import app
 from cuboidtrain.fit.fitter import Fitter, Writers
-from cuboidtrain.fit.geometry import describe
-from cuboidtrain.fit.mesh import NOMINAL_DISTANCE, MeshWriter, camera_box, obj_text, read_obj
+from cuboidtrain.geometry.camera import describe
+from cuboidtrain.infer.mesh import NOMINAL_DISTANCE, MeshWriter, camera_box, obj_text, read_obj
 from cuboidtrain.fit.options import FitOptions
 from shared.camera import project
 from shared.errors import UsageError
@@ -130,7 +130,7 @@ def test_a_fit_without_a_cuboid_or_a_failed_write_is_a_warning(tmp_path, masks, 
     def full_disk(path):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("cuboidtrain.fit.mesh.atomic_path", full_disk)
+    monkeypatch.setattr("cuboidtrain.infer.mesh.atomic_path", full_disk)
     assert writer(0, "m.png", fits["box"]) == ("no mesh: [Errno 28] No space left on device",)
     assert writer.written == []
 
@@ -189,7 +189,7 @@ def test_the_panel_draws_the_box_in_3d_with_its_camera_upright_and_at_equal_scal
     silhouette residual both ways, and the box in 3D beside its camera."""
     import matplotlib.pyplot as plt
 
-    from cuboidtrain.fit.explain import DISPLAY, explanation_figure
+    from cuboidtrain.infer.explain import DISPLAY, explanation_figure
 
     for fit in fits.values():
         figure = explanation_figure(fit)

@@ -13,11 +13,12 @@ import pytest
 import torch
 from torch import nn
 
-from cuboidtrain.models.checkpoint import FORMAT, VERSION, load_checkpoint, load_model, loader_state, save_checkpoint
+from cuboidtrain.models.checkpoint import FORMAT, VERSION, load_checkpoint, load_model, save_checkpoint
+from cuboidtrain.train.data import loader_state
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import LoaderState
-from cuboidtrain.fit.export import OnnxPipeline, export_model
-from cuboidtrain.fit.codec import render_heatmaps
+from cuboidtrain.infer.export import OnnxPipeline, export_model
+from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.models.networks import ARCHS, ChainOutput, Estimator, Refiner, Tabulator, build_model, check_arch
 from shared.shapes import get_shape
 

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from cuboidgen.config import PAPER
 from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.cli import app
-from cuboidtrain.evaluate import evaluate, load_batches
+from cuboidtrain.train.evaluate import evaluate, load_batches
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.experiments.report import NOISE_LEVELS, OCCLUSION_BINS, ReportConfig, generated_batches, run_report, table3
 from cuboidtrain.experiments.report_figures import PAPER_TABLE3

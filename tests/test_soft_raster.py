@@ -1,4 +1,4 @@
-"""The soft-rasterised silhouette fit (`cuboidtrain.fit.soft_raster`), the optimiser measured
+"""The soft-rasterised silhouette fit (`cuboidtrain.geometry.soft_raster`), the optimiser measured
 against LM: its torch projection is `geometry.project`, and on an exact mask it brings perturbed
 corners back onto the outline, as a drop-in CuboidFit."""
 from __future__ import annotations
@@ -12,8 +12,8 @@ import torch
 from cuboidgen.config import SCENES
 from cuboidgen.scene import draw_view
 from cuboidtrain.fit.cuboid import check_finite
-from cuboidtrain.fit.geometry import from_sample_params, outline_corners, project, ratios
-from cuboidtrain.fit.soft_raster import SoftSchedule, fit_soft, torch_project, torch_ratios, unbiased_shift
+from cuboidtrain.geometry.camera import from_sample_params, outline_corners, project, ratios
+from cuboidtrain.geometry.soft_raster import SoftSchedule, fit_soft, torch_project, torch_ratios, unbiased_shift
 from shared.raster import rasterize
 from shared.shapes import get_shape
 

@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from cuboidtrain.train.status import (
+from cuboidtrain.train.monitor.status import (
     FINISHED, BatchFreshness, Checkpoint, TrainerStatus, Validation, read_status, trainer_died, write_status,
 )
 from tests.test_files import dead_pid

@@ -20,7 +20,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cuboidtrain.cli import app
-from cuboidtrain.fit.inputs import gather_inputs
+from cuboidtrain.infer.inputs import gather_inputs
 from cuboidtrain.fit.masks import load_mask
 from shared.errors import UsageError
 from tests.conftest import infer_paths, tiny_model, write_mask_pngs
@@ -175,7 +175,7 @@ def test_records_of_urls_are_the_records_of_the_same_files_but_for_input(tmp_pat
 
 def test_a_local_path_never_imports_fsspec(tmp_path):
     write_mask_pngs(tmp_path, 1)
-    code = ("import sys; from cuboidtrain.fit.inputs import gather_inputs; from cuboidtrain.fit.masks import load_mask; "
+    code = ("import sys; from cuboidtrain.infer.inputs import gather_inputs; from cuboidtrain.fit.masks import load_mask; "
             f"[load_mask(p) for p in gather_inputs([{str(tmp_path)!r}])]; print('fsspec' in sys.modules)")
     found = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert found.stdout.strip() == "False", found.stderr

@@ -1,4 +1,4 @@
-"""The JSONL record store (cuboidtrain/fit/store.py): round trip, a torn last line cut off on resume,
+"""The JSONL record store (cuboidtrain/infer/records.py): round trip, a torn last line cut off on resume,
 a file that is not a record store refused, a full disk keeping every whole record."""
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from cuboidtrain.fit import store as store_module
-from cuboidtrain.fit.store import RecordStore, read_records
+from cuboidtrain.infer import records as store_module
+from cuboidtrain.infer.records import RecordStore, read_records
 from shared.errors import UsageError
 
 

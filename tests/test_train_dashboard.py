@@ -13,8 +13,8 @@ import threading
 import pytest
 from rich.console import Console
 
-from cuboidtrain.train.dashboard import Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
-from cuboidtrain.train.status import TrainerStatus, read_status, write_status
+from cuboidtrain.train.monitor.dashboard import Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
+from cuboidtrain.train.monitor.status import TrainerStatus, read_status, write_status
 
 NOW = 1_700_000_000.0
 
@@ -165,7 +165,7 @@ def test_watch_follows_the_file_until_done(tmp_path):
 
 
 def test_log_mode_logs_on_interval_and_on_state_change(caplog):
-    caplog.set_level(logging.INFO, logger="cuboidtrain.train.dashboard")
+    caplog.set_level(logging.INFO, logger="cuboidtrain.train.monitor.dashboard")
     with Dashboard(live=False, log_interval=3600.0) as board:
         board.update(status(step=1))  # the first update always logs
         board.update(status(step=2))  # within the interval, same state: held back
@@ -263,8 +263,8 @@ def test_status_follows_steps_slower_than_the_publish_interval(tmp_path, monkeyp
 
     import torch
 
-    from cuboidtrain.train import progress as progress_module
-    from cuboidtrain.train import publisher
+    from cuboidtrain.train.monitor import progress as progress_module
+    from cuboidtrain.train.monitor import publisher
     from cuboidtrain.train.config import TrainConfig
     from cuboidtrain.train.data import EpochPosition
 

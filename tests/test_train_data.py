@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from cuboidgen.config import PAPER_CLEAN
-from cuboidtrain.fit.codec import render_heatmaps
+from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.train.data import (
     SKIP_REASONS, EpochPosition, EpochSampler, FreshnessMeter, LoaderState, SpoolBatches, make_loader,
     prepare_batch, unpack_masks,

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import pytest
 
-from cuboidtrain.train import metrics_log, publisher, stats
-from cuboidtrain.train.metrics_log import MetricsLog
-from cuboidtrain.train.publisher import STOPPING, StatusPublisher
-from cuboidtrain.train.stats import Rates, RunningStats
-from cuboidtrain.train.status import BatchFreshness, TrainerStatus, Validation, read_status
+from cuboidtrain.train.monitor import metrics_log, publisher, stats
+from cuboidtrain.train.monitor.metrics_log import MetricsLog
+from cuboidtrain.train.monitor.publisher import STOPPING, StatusPublisher
+from cuboidtrain.train.monitor.stats import Rates, RunningStats
+from cuboidtrain.train.monitor.status import BatchFreshness, TrainerStatus, Validation, read_status
 
 LOSSES = {"D_R": 1.0, "D_S": 2.0, "D_T": 3.0, "total": 6.0}
 ROOT = Path(__file__).resolve().parents[1]

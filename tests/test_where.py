@@ -6,8 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cuboidtrain.fit.geometry import describe, from_sample_params, rotation_matrices, rotation_vector
-from cuboidtrain.fit.where import (Truth, camera_boxes, corner_errors, focal_error, hull_corners, iou_up_to_scale,
+from cuboidtrain.geometry.camera import describe, from_sample_params, rotation_matrices, rotation_vector
+from cuboidtrain.geometry.scoring import (Truth, camera_boxes, corner_errors, focal_error, hull_corners, iou_up_to_scale,
                                    score, solid_yaw_deg, summarise, yaw_error_deg)
 from shared.shapes import get_shape
 

@@ -11,9 +11,9 @@ from typer.testing import CliRunner
 from cuboidtrain.models.checkpoint import MODEL_FORMAT, load_checkpoint, load_model, save_checkpoint
 from cuboidtrain.cli import app
 from cuboidtrain.models.zoo import SHIPPED_SHAPES, cards, pack, shipped_path
-from cuboidtrain.fit.codec import make_codec
+from cuboidtrain.models.codec import make_codec
 from tests.conftest import write_mask_pngs
-from cuboidtrain.fit.pdm import MIN_SAMPLES
+from cuboidtrain.models.pdm import MIN_SAMPLES
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import SIZE, build_sample, fill_spool, tiny_model, train_config

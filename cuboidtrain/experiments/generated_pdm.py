@@ -14,7 +14,7 @@ import numpy as np
 from cuboidgen.config import PAPER
 from cuboidgen.scene import draw_view
 from cuboidtrain.models.networks import CuboidNet
-from cuboidtrain.fit.pdm import PointDistributionModel
+from cuboidtrain.models.pdm import PointDistributionModel
 from shared.shapes import get_shape
 
 

@@ -30,13 +30,14 @@ from cuboidgen.config import PAPER
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.device import resolve_device
-from cuboidtrain.evaluate import load_batches, measure, report
+from cuboidtrain.models.device import resolve_device
+from cuboidtrain.train.evaluate import load_batches, measure, report
 from cuboidtrain.experiments.generated_pdm import with_pdm
-from cuboidtrain.fit.codec import make_codec
+from cuboidtrain.models.codec import make_codec
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.models.networks import CuboidNet, build_model
-from cuboidtrain.fit.options import EXTRACTORS, FitOptions
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.models.settings import EXTRACTORS
 from shared.errors import UsageError
 from shared.sample import encode
 from shared.spool import SpoolWriter, check_spool

@@ -1,1 +1,1 @@
-"""Fitting masks: options, the Fitter, the chain R^K -> S -> T, scoring, masks, keypoints, explanations, export."""
+"""The one pipeline a mask goes through: options, reading and framing, the networks' candidates, the cuboid fit, the choice (the Fitter)."""

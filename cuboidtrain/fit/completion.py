@@ -19,8 +19,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from cuboidtrain.fit.chain import Candidate
-from cuboidtrain.fit.outline import MaskTarget, bilinear, signed_distance_field
+from cuboidtrain.fit.candidates import Candidate
+from cuboidtrain.geometry.outline import MaskTarget, bilinear, signed_distance_field
 
 OPENING_MODEL_PX = 1.5  # radius, in the Refiner's px, of the opening that keeps the completion's thick parts
 OCCLUSION_EDGE_PX = 2.0  # an input outline point this deep inside the completion (input px) is an occluder's edge

@@ -2,7 +2,7 @@
 
 With `FitOptions(cuboid=True)` (`cuboidtrain infer --cuboid`) the Fitter hands every shape
 class's Candidate here with the input component: the networks' corners, mapped back to the
-input's pixels, start `cuboidtrain.fit.mask_fit.fit_masks` at the input's own resolution and
+input's pixels, start `cuboidtrain.geometry.mask_fit.fit_masks` at the input's own resolution and
 pull the corners the outline leaves free, each weighted by its heat map's peak; the
 Tabulator's ratios anchor the extents; the Refiner's completion speaks for the parts an
 occluder hides (`cuboidtrain.fit.completion`). The record's keypoints are then the fitted box's
@@ -22,11 +22,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cuboidtrain.fit.chain import Candidate, choose
+from cuboidtrain.fit.candidates import Candidate, choose
 from cuboidtrain.fit.completion import completed_target
-from cuboidtrain.fit.geometry import CuboidFit
-from cuboidtrain.fit.mask_fit import fit_masks
-from cuboidtrain.fit.outline import MaskTarget, bilinear
+from cuboidtrain.geometry.camera import CuboidFit
+from cuboidtrain.geometry.mask_fit import fit_masks
+from cuboidtrain.geometry.outline import MaskTarget, bilinear
 from shared.shapes import Shape, get_shape
 
 # Shape selection from the fitted cuboids (Must have 4): each explains the input by its IoU,
@@ -106,7 +106,7 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
 def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str) -> list[CuboidFit]:
     """The fits of one shape class's starts by `optimizer` (FitOptions.optimizer)."""
     if optimizer == "soft":
-        from cuboidtrain.fit.soft_raster import fit_soft  # torch's autograd: only when asked for
+        from cuboidtrain.geometry.soft_raster import fit_soft  # torch's autograd: only when asked for
 
         return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
     return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),

@@ -24,13 +24,14 @@ import cv2
 import numpy as np
 import torch
 
-from cuboidtrain.device import resolve_device
-from cuboidtrain.fit.chain import (Candidate, Explanation, choose, confidence, error_record, load_models,
-                                   no_explanation, score)
-from cuboidtrain.fit.codec import make_codec
+from cuboidtrain.models.device import resolve_device
+from cuboidtrain.fit.candidates import Candidate, Explanation, choose, score
+from cuboidtrain.models.codec import make_codec
 from cuboidtrain.fit.cuboid import FittedCuboid, choose_cuboid, fit_candidate
-from cuboidtrain.fit.outline import MaskTarget
+from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
+from cuboidtrain.geometry.silhouette import confidence
+from cuboidtrain.models.checkpoint import load_models
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.fit.options import FitOptions
 from shared.errors import UsageError
@@ -121,7 +122,7 @@ class Fitter:
         """`cuboidtrain infer`: the JSON records of the inputs, in input order (one per component
         with `all_components`). An input that cannot be fitted gets a record with `error` and no
         keypoints, and the others still run. `explain(index, path, fit)` draws each fitted
-        component (cuboidtrain.fit.explain.Explainer) and returns the warnings it adds to its record."""
+        component (cuboidtrain.infer.explain.Explainer) and returns the warnings it adds to its record."""
         records = []
         with_component, cuboid = self.options.all_components, self.options.cuboid
         for index, path in enumerate(paths):
@@ -252,6 +253,17 @@ def draw(explain, index: int, path: str, fit: Fit) -> tuple[str, ...]:
         warning = no_explanation(exc)
         log.warning("%s: %s", path, warning)
         return (warning,)
+
+
+def error_record(path: str, reason: str, all_components: bool, cuboid: bool = False) -> dict:
+    record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
+              "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
+    return record | ({"cuboid": None} if cuboid else {}) | ({"component": None} if all_components else {})
+
+
+def no_explanation(exc: Exception) -> str:
+    """The record's warning for an explanation picture that could not be made, on one line."""
+    return "no explanation: " + " ".join(str(exc).split())
 
 
 class Writers:

@@ -7,37 +7,18 @@ builds its choices from these lists, and `--help` must not wait for torch.
 """
 from __future__ import annotations
 
-import math
 import numbers
-import re
 from dataclasses import dataclass, replace
 
-from shared.checks import check_numbers, number
+from cuboidtrain.models.settings import (DEFAULT_PDM_COMPONENTS, EXTRACTORS, MAX_REFINE_STEPS, check_device,
+                                         parse_components)
+from shared.checks import check_choice, check_numbers, number
 from shared.errors import UsageError
 from shared.shapes import SHAPES
 
 FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
-EXTRACTORS = ("tabulator", "argmax", "centre-of-mass", "dark", "pdm")  # cuboidtrain.fit.codec.CODECS
 OPTIMIZERS = ("lm", "soft")  # the cuboid fit's: mask_fit (Levenberg-Marquardt), soft_raster (L-BFGS)
-MAX_REFINE_STEPS = 16  # "auto" stops here even if the Refiner never settles
 DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the model size per side
-DEFAULT_PDM_COMPONENTS = 0.999  # of shape variance: 9 of the box's 16 components, 0.2 px from exact at 64 px
-
-
-def check_choice(option: str, value: str, choices) -> str:
-    """`value` if it is one of `choices`, else a ValueError naming the option and the choices."""
-    if not isinstance(value, str) or value not in choices:
-        raise UsageError(f"{option} {value!r}: expected one of {', '.join(choices)}")
-    return value
-
-
-def check_device(device) -> str:
-    """A device name torch may take: auto (CUDA when present), cpu, cuda or cuda:N (whether CUDA
-    is there is `cuboidtrain.device.resolve_device`'s to say, when a model moves)."""
-    name = str(device)
-    if name not in ("auto", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", name):
-        raise UsageError(f"--device {device!r}: expected auto, cpu, cuda or cuda:N")
-    return name
 
 
 def parse_refine_steps(value: int | str | None, allow_auto: bool = True) -> int | None:
@@ -57,23 +38,6 @@ def parse_refine_steps(value: int | str | None, allow_auto: bool = True) -> int 
         raise UsageError(f"--refine-steps {value!r}: expected a whole number of passes from 0 to {MAX_REFINE_STEPS}"
                          + (" or auto" if allow_auto else ""))
     return steps
-
-
-def parse_components(value: str | int | float) -> int | float:
-    """`--pdm-components`: an integer count (>= 1) or a variance fraction in (0, 1)."""
-    text = str(value).strip()
-    try:
-        parsed = float(text)
-    except ValueError:
-        parsed = math.nan
-    if not math.isfinite(parsed):
-        parsed = math.nan
-    if parsed >= 1 and parsed == int(parsed) and "." not in text:
-        return int(parsed)
-    if 0 < parsed < 1:
-        return parsed
-    raise UsageError(f"--pdm-components {value!r}: expected a count of components (1, 2, ...) "
-                     f"or a fraction of the shape variance to keep, between 0 and 1")
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,1 @@
-"""The three networks, the registry of architectures, and the files that hold them."""
+"""The three networks, the registry of architectures, the keypoint codec and PDM, and the files that hold them."""

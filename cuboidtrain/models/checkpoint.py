@@ -14,20 +14,30 @@ import errno
 import os
 import random
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
 
-from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import LoaderState
 from cuboidtrain.models.networks import CuboidNet
-from cuboidtrain.fit.pdm import PointDistributionModel
+from cuboidtrain.models.pdm import PointDistributionModel
 from shared.errors import UsageError
 from shared.files import atomic_path
 
 FORMAT = "cuboid-fit/checkpoint"  # a training run's state: weights, optimizer, loader, RNG (cuboidtrain run)
 MODEL_FORMAT = "cuboid-fit/model"  # weights, config and model card only (cuboidtrain.models.zoo.pack)
 VERSION = 1
+
+
+class RunConfig(Protocol):
+    """What a checkpoint keeps of a training run's config (`cuboidtrain.train.config.TrainConfig`):
+    the models' layer knows this much of the trainer, and imports nothing of it."""
+
+    heatmap_sigma: float
+
+    def resolved(self) -> "RunConfig": ...
+
+    def to_dict(self) -> dict: ...
 
 
 def rng_state() -> dict:
@@ -55,10 +65,11 @@ def non_finite_weights(state: dict) -> tuple[int, int]:
     return bad, total
 
 
-def save_checkpoint(path: str | Path, model: CuboidNet, config: TrainConfig, step: int,
-                    optimizer: torch.optim.Optimizer | None = None, loader: LoaderState | None = None,
+def save_checkpoint(path: str | Path, model: CuboidNet, config: RunConfig, step: int,
+                    optimizer: torch.optim.Optimizer | None = None, loader: object | None = None,
                     metrics: dict | None = None) -> Path:
-    """Raises ValueError, writing nothing, for weights that are NaN or Infinity: a diverged
+    """`loader`: the data loader's position (`cuboidtrain.train.data.LoaderState`, kept as its fields).
+    Raises ValueError, writing nothing, for weights that are NaN or Infinity: a diverged
     model never replaces the last good checkpoint."""
     path = Path(path)
     bad, total = non_finite_weights(model.state_dict())
@@ -186,5 +197,14 @@ def checkpoint_arch(ckpt: dict) -> str:
     return ckpt.get("arch", "paper")
 
 
-def loader_state(ckpt: dict) -> LoaderState | None:
-    return LoaderState(**ckpt["loader"]) if ckpt.get("loader") else None
+def load_models(paths: list[Path]) -> list[CuboidNet]:
+    """One model per checkpoint, at most one per shape class (the error names both files)."""
+    models, seen = [], {}
+    for path in paths:
+        model, _ = load_model(path)
+        if model.shape in seen:
+            raise UsageError(f"--checkpoint {path}: a second {model.shape!r} model ({seen[model.shape]} is one "
+                             f"already); give at most one checkpoint per shape class")
+        seen[model.shape] = path
+        models.append(model)
+    return models

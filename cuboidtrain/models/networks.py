@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cuboidtrain.fit.codec import default_sigma
+from cuboidtrain.models.codec import default_sigma
 from cuboidtrain.models import compact
 from cuboidtrain.models.refine import refine
 from shared.errors import UsageError
@@ -210,7 +210,7 @@ class CuboidNet(nn.Module):
         self.shape, self.size, self.arch = shape, size, check_arch(arch)
         # The heat maps' Gaussian std in px that S was trained to draw: sub-pixel decoders need it.
         self.sigma = sigma if sigma is not None else default_sigma(size)
-        # The shape model of --extractor pdm (cuboidtrain.fit.pdm), saved in a model file; None until one is set.
+        # The shape model of --extractor pdm (cuboidtrain.models.pdm), saved in a model file; None until one is set.
         self.pdm = None
         self.refiner, self.estimator, self.tabulator = ARCHS[arch](
             geometry.num_keypoints, len(geometry.ratio_names), size)

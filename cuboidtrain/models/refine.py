@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cuboidtrain.fit.options import MAX_REFINE_STEPS
+from cuboidtrain.models.settings import MAX_REFINE_STEPS
 
 # "auto" distrusts a settled mask this far from the Refiner's first pass. On 300 noisy `paper`
 # masks the shipped models' later passes only hurt (box: 10.16 px at one pass, 11.09 at two;

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.models.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
-from cuboidtrain.fit.pdm import PointDistributionModel, spool_keypoints
+from cuboidtrain.models.pdm import PointDistributionModel, spool_keypoints
 from shared.errors import UsageError
 from shared.files import atomic_path
 

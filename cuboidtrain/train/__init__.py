@@ -1,1 +1,1 @@
-"""Training: the config, the spool-backed data, the losses, the loop and what it reports."""
+"""Training: the config, the spool-backed data, the losses, the loop, checkpoints' housekeeping and evaluation."""

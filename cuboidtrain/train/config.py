@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
-from cuboidtrain.fit.options import check_choice, check_device
-from shared.checks import MAX_SEED, PER_CORE, check_numbers, max_processes, number
+from cuboidtrain.models.settings import check_device
+from shared.checks import MAX_SEED, check_choice, PER_CORE, check_numbers, max_processes, number
 from shared.errors import UsageError
 from shared.shapes import get_shape
 
@@ -90,7 +90,7 @@ class TrainConfig:
     @property
     def heatmap_sigma(self) -> float:
         # Imported here: the codec is torch's, and the command line reads this module for --help.
-        from cuboidtrain.fit.codec import default_sigma
+        from cuboidtrain.models.codec import default_sigma
 
         return self.sigma if self.sigma is not None else default_sigma(self.size)
 

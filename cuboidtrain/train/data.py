@@ -15,7 +15,7 @@ another shape class or size are skipped and counted too: a `mix` spool feeds a
 
 A batch leaves the loader with its masks still bit-packed (8x less to copy) and
 `prepare_batch` unpacks them on the training device, beside the heat maps it renders
-there (`cuboidtrain.fit.codec`): the paper's x1, x2, x3, x4.
+there (`cuboidtrain.models.codec`): the paper's x1, x2, x3, x4.
 
 Under torchrun each rank takes its strided share of every global batch (see
 `cuboidtrain.train.distributed`); the state (epoch, order, position) is the same on
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from cuboidtrain.fit.codec import render_heatmaps
+from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.fit.masks import Framing, frame, silhouette, warp
 from cuboidtrain.fit.options import DEFAULT_MARGIN
 from shared.sample import BIT_SHIFTS, Sample, collate, decode_record, from_record, to_record
@@ -159,6 +159,11 @@ class LoaderState:
     order: list[str] = field(default_factory=list)
     position: int = 0  # batches of `order` already trained on (global batches: batch size x world)
     world: int = 1  # ranks that shared each batch (torchrun); a resume with another world rescales position
+
+
+def loader_state(ckpt: dict) -> LoaderState | None:
+    """The loader's position a checkpoint kept (`save_checkpoint(..., loader=)`), if it kept one."""
+    return LoaderState(**ckpt["loader"]) if ckpt.get("loader") else None
 
 
 @dataclass(frozen=True, slots=True)

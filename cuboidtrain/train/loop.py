@@ -22,21 +22,20 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.models.checkpoint import (load_checkpoint, loader_state, non_finite_weights, save_checkpoint,
-                                           set_rng_state)
+from cuboidtrain.models.checkpoint import load_checkpoint, non_finite_weights, save_checkpoint, set_rng_state
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import (FreshnessMeter, WaitInterrupted, make_loader, prepare_batch, spool_names,
+from cuboidtrain.train.data import (FreshnessMeter, WaitInterrupted, loader_state, make_loader, prepare_batch, spool_names,
                                     workers_stopped)
-from cuboidtrain.device import resolve_device
+from cuboidtrain.models.device import resolve_device
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest, wrap
-from cuboidtrain.files import drop_records_after, repair_jsonl, sweep_orphans
+from cuboidtrain.train.files import drop_records_after, repair_jsonl, sweep_orphans
 from shared.files import write_json
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.preflight import LAST, check_paths, least_batch
 from cuboidtrain.models.networks import CuboidNet, build_model
-from cuboidtrain.train.progress import Progress
+from cuboidtrain.train.monitor.progress import Progress
 from cuboidtrain.train.spoolwatch import SpoolCensus
-from cuboidtrain.train.status import TrainingFailed
+from cuboidtrain.train.monitor.status import TrainingFailed
 from shared.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -437,7 +436,7 @@ def _validate(progress: Progress, model: CuboidNet, config: TrainConfig, device:
 
 
 def validate(model: CuboidNet, config: TrainConfig, device: torch.device) -> dict:
-    from cuboidtrain.evaluate import evaluate  # evaluation pulls in nothing the loop needs otherwise
+    from cuboidtrain.train.evaluate import evaluate  # evaluation pulls in nothing the loop needs otherwise
     from cuboidtrain.fit.options import FitOptions
 
     return evaluate(model, Path(config.val_spool), config.heatmap_sigma, FitOptions(device=device),

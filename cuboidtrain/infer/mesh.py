@@ -1,7 +1,7 @@
 """`cuboidtrain infer --cuboid --mesh DIR`: each fitted box as a Wavefront OBJ file, in the camera's frame.
 
 A `--cuboid` fit is a perspective box (or two) before a pinhole camera (cuboidtrain.fit.cuboid,
-cuboidtrain.fit.geometry); `camera_box` gives its corners in that camera's frame and this module
+cuboidtrain.geometry.camera); `camera_box` gives its corners in that camera's frame and this module
 writes them as a mesh that common viewers open (Blender, MeshLab, any OBJ reader):
 
 * **Frame**: OpenCV's camera at the origin: x right, y down, z forward (the way it looks), so the
@@ -19,7 +19,7 @@ writes them as a mesh that common viewers open (Blender, MeshLab, any OBJ reader
   that distance implies, its projection is the fit's to within about (the box's depth in the
   view / NOMINAL_DISTANCE) of its image size: 0.1% for a box as deep as it is high.
 
-The files are named like `--explain`'s panels (`cuboidtrain.fit.inputs.OutputNames`): `<stem>.obj`,
+The files are named like `--explain`'s panels (`cuboidtrain.infer.inputs.OutputNames`): `<stem>.obj`,
 `<stem>-<component>.obj` with `--all-components`, written atomically. No matplotlib, no torch:
 it also runs in `--workers` processes.
 """
@@ -34,8 +34,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cuboidtrain.fit.geometry import CuboidFit
-from cuboidtrain.fit.inputs import OutputNames
+from cuboidtrain.geometry.camera import CuboidFit
+from cuboidtrain.infer.inputs import OutputNames
 from shared.errors import UsageError
 from shared.files import atomic_path
 from shared.shapes import Shape

@@ -35,9 +35,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from cuboidtrain.fit.geometry import CameraParams, canonical, euler_angles, from_sample_params, rotation_matrices
-from cuboidtrain.fit.iou3d import OrientedBox, union_iou
-from cuboidtrain.fit.lift import lift
+from cuboidtrain.geometry.camera import CameraParams, canonical, euler_angles, from_sample_params, rotation_matrices
+from cuboidtrain.geometry.iou3d import OrientedBox, union_iou
+from cuboidtrain.geometry.lift import lift
 from shared.shapes import Shape, get_shape
 
 HULL_TOLERANCE_PX = 0.25  # a corner this close to a hull vertex is one (collinear hull edges)

@@ -1,6 +1,6 @@
 """The trainer's dashboard: a rich panel when stdout is a terminal, log lines otherwise.
 
-The trainer builds a `TrainerStatus` (cuboidtrain.train.status) about once a second,
+The trainer builds a `TrainerStatus` (cuboidtrain.train.monitor.status) about once a second,
 hands it to `Dashboard.update` and writes it to OUT/status.json. Rendering is a
 pure function of that status, so it can be tested as text and `watch` can show a
 run from another terminal by re-reading the file. Any value may be None while it
@@ -21,7 +21,7 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from cuboidtrain.train.status import FINISHED, BatchFreshness, Checkpoint, TrainerStatus, Validation, read_status, trainer_died
+from cuboidtrain.train.monitor.status import FINISHED, BatchFreshness, Checkpoint, TrainerStatus, Validation, read_status, trainer_died
 from shared.console import ECHO_ROOM
 
 log = logging.getLogger(__name__)

@@ -8,8 +8,8 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from cuboidtrain.train.stats import Rates
-from cuboidtrain.train.status import BatchFreshness, Validation
+from cuboidtrain.train.monitor.stats import Rates
+from cuboidtrain.train.monitor.status import BatchFreshness, Validation
 from shared.files import json_text
 
 METRICS_FILE = "metrics.jsonl"

@@ -38,8 +38,8 @@ from shared.shapes import Shape, get_shape
 
 NUM_PARAMS = {1: 11, 2: 13}  # by number of parts
 WEAK_K = 1e-9  # k at or below this is weak perspective: no finite focal length
-_SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)  # left, bottom, front
-_MIRROR_X = np.diag([-1.0, 1.0, 1.0])
+CORNER_SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)  # left, bottom, front
+MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
 
 @lru_cache(maxsize=None)
@@ -52,7 +52,7 @@ def object_basis(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     coef, const = np.zeros((n, 3, q)), np.zeros((n, 3))
     for index, part in enumerate(shape.parts):
         for c, corner in enumerate(part):
-            left, bottom, front = _SIDES[c]
+            left, bottom, front = CORNER_SIDES[c]
             coef[corner, 2, 1] = 0.5 - front  # z = -d/2 front, +d/2 back
             if index == 0:  # the only part, or the RIGHT one: x from m (or -w/2) to w/2
                 coef[corner, 0, 0] = 0.5 if not left else (0.0 if q == 4 else -0.5)
@@ -155,10 +155,10 @@ def _split_corners(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     computed once, not on every solver iteration."""
     middle, top_left = np.zeros(shape.num_keypoints, dtype=bool), np.zeros(shape.num_keypoints, dtype=bool)
     for c, corner in enumerate(shape.parts[0]):
-        middle[corner] |= bool(_SIDES[c, 0])  # the RIGHT part's LEFT corners: x = middle
+        middle[corner] |= bool(CORNER_SIDES[c, 0])  # the RIGHT part's LEFT corners: x = middle
     for c, corner in enumerate(shape.parts[1]):
-        middle[corner] |= not _SIDES[c, 0]
-        top_left[corner] |= not _SIDES[c, 1]  # the LEFT part's top: y = 1/2 - hL
+        middle[corner] |= not CORNER_SIDES[c, 0]
+        top_left[corner] |= not CORNER_SIDES[c, 1]  # the LEFT part's top: y = 1/2 - hL
     middle.flags.writeable = top_left.flags.writeable = False  # shared by every caller
     return middle, top_left
 
@@ -180,12 +180,12 @@ def _rotation_derivative(rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarra
 def _skew(v: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3, 3) cross-product matrices [v]x: one product with a fixed sign table
     (exact: every entry is +-1 or 0), a quarter of the cost of stacking nine arrays."""
-    return (v @ _SKEW).reshape(*v.shape[:-1], 3, 3)
+    return (v @ SKEW_TABLE).reshape(*v.shape[:-1], 3, 3)
 
 
-_SKEW = np.zeros((3, 9))  # row k: where v_k goes in [v]x, flattened
+SKEW_TABLE = np.zeros((3, 9))  # row k: where v_k goes in [v]x, flattened
 for _k, _at, _sign in ((2, 1, -1.0), (1, 2, 1.0), (2, 3, 1.0), (0, 5, -1.0), (1, 6, -1.0), (0, 7, 1.0)):
-    _SKEW[_k, _at] = _sign
+    SKEW_TABLE[_k, _at] = _sign
 
 
 def ratios(params: np.ndarray, shape: Shape) -> np.ndarray:
@@ -218,7 +218,7 @@ def canonical(vector: np.ndarray, mirror: bool) -> tuple[np.ndarray, bool]:
     sign (D = diag(1, 1, -1)), and k -> -k undoes it, for every point, not just the corners."""
     if vector[8] >= 0:
         return vector, mirror
-    rot = np.diag([1.0, 1.0, -1.0]) @ rotation_matrices(vector[None, 2:5])[0] @ _MIRROR_X
+    rot = np.diag([1.0, 1.0, -1.0]) @ rotation_matrices(vector[None, 2:5])[0] @ MIRROR_X
     twin = vector.copy()
     twin[2:5], twin[8] = rotation_vector(rot), -vector[8]
     return twin, not mirror
@@ -285,7 +285,7 @@ class CameraParams:
             # shared.camera stands both parts on y = height / 2; this model on y = 1 / 2.
             offset = offset - rot @ np.array([0.0, height / 2 - 0.5, 0.0])
         if self.mirror:  # here camera = R F X + T; shared's flip is camera = F (L X + o): L = F R F, o = F T
-            rot, offset = _MIRROR_X @ rot @ _MIRROR_X, _MIRROR_X @ offset
+            rot, offset = MIRROR_X @ rot @ MIRROR_X, MIRROR_X @ offset
         pitch, yaw, roll = euler_angles(rot)
         scale = height  # shared.camera's units: the taller part is 1 high
         extents = Extents(w / scale, 1.0, d / scale, **extras)
@@ -315,7 +315,7 @@ def from_sample_params(shape: Shape, params: dict) -> CameraParams:
     sx, sz = (-1.0 if params["swap_left_right"] else 1.0), (-1.0 if params["swap_front_back"] else 1.0)
     m = linear @ np.diag([sx, 1.0, sz])
     mirror = bool(np.linalg.det(m) < 0)
-    rot = m @ _MIRROR_X if mirror else m
+    rot = m @ MIRROR_X if mirror else m
     e = cuboid.extents
     if len(shape.parts) == 1:
         scale, shift, extra = e.height, np.zeros(3), []

@@ -10,7 +10,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 
 from cuboidtrain.train.data import SKIP_REASONS
-from cuboidtrain.train.status import BatchFreshness
+from cuboidtrain.train.monitor.status import BatchFreshness
 
 WINDOW = 20  # steps over which rates and the data-wait fraction are measured
 HISTORY = 120  # loss values kept for the dashboard's trend

@@ -11,13 +11,13 @@ row: the same networks with random weights, on the very same samples.
 
 With `paths` (`cuboidtrain eval` always) it also scores the answer a user gets, per path,
 in each sample's own px (a 256 px spool's, whatever the model's size), against the
-sample's truth (`cuboidtrain.fit.where`: corners on the true hull against the hidden
+sample's truth (`cuboidtrain.geometry.scoring`: corners on the true hull against the hidden
 interior ones, NME as a share of the building's span, ratio, yaw, 3D IoU and focal length
 errors):
 
 * `networks`: the chain's keypoints mapped back by the sample's framing, the Tabulator's
   ratios; it has no box, so its yaw and 3D IoU are those of its corners lifted
-  (`cuboidtrain.fit.lift.lift`);
+  (`cuboidtrain.geometry.lift.lift`);
 * `cuboid`, with FitOptions(cuboid=True) (`eval --cuboid`): the cuboid fitted to the
   sample's own noisy mask from the same batch row (`Fitter.candidate`, then
   `cuboid.fit_candidates`, as `infer --cuboid` fits a mask, a batch at once).
@@ -39,13 +39,13 @@ import torch
 
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.train.data import SKIP_REASONS, Source, SpoolBatches, prepare_batch
-from cuboidtrain.fit.chain import Candidate
+from cuboidtrain.fit.candidates import Candidate
 from cuboidtrain.fit.cuboid import NonFiniteCuboid, fit_candidates
 from cuboidtrain.fit.fitter import Fitter, NonFiniteFit
 from cuboidtrain.fit.masks import silhouette
-from cuboidtrain.fit.geometry import CameraParams
-from cuboidtrain.fit.lift import lift_many
-from cuboidtrain.fit.where import CornerErrors, Truth, score, summarise
+from cuboidtrain.geometry.camera import CameraParams
+from cuboidtrain.geometry.lift import lift_many
+from cuboidtrain.geometry.scoring import CornerErrors, Truth, score, summarise
 from cuboidtrain.models.refine import mask_iou
 from cuboidtrain.models.networks import ChainOutput, CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions

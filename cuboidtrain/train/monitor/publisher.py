@@ -13,7 +13,7 @@ import threading
 import time
 from pathlib import Path
 
-from cuboidtrain.train.status import TrainerStatus, write_status
+from cuboidtrain.train.monitor.status import TrainerStatus, write_status
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Fit cuboids to binary masks at the inputs' own resolution, one mask or a batch of them at once:
-the silhouette's residuals (`cuboidtrain.fit.outline`), a pull toward the networks' corners by
+the silhouette's residuals (`cuboidtrain.geometry.outline`), a pull toward the networks' corners by
 their confidence, an anchor of the extents to the Tabulator's ratios, minimised by
-`cuboidtrain.fit.lift`'s Levenberg-Marquardt from the best lift hypotheses of each mask.
+`cuboidtrain.geometry.lift`'s Levenberg-Marquardt from the best lift hypotheses of each mask.
 
 A batch (`fit_masks`) solves every mask's hypotheses as rows of one LM: each row reads its own
 mask's outline points and distance field, corners and anchor, so numpy's per-call cost, which
@@ -18,11 +18,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cuboidtrain.fit.chain import confidence
-from cuboidtrain.fit.geometry import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
+from cuboidtrain.geometry.camera import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
                                       project_with_jacobian, ratios)
-from cuboidtrain.fit.lift import Hypotheses, hypotheses, levenberg_marquardt
-from cuboidtrain.fit.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
+from cuboidtrain.geometry.lift import Hypotheses, hypotheses, levenberg_marquardt
+from cuboidtrain.geometry.silhouette import confidence
+from cuboidtrain.geometry.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
 from shared.shapes import Shape
 
 LIFT_K_STARTS = (0.0, 0.3)  # the affine starts' perspective strengths, beside the vanishing-point ones
@@ -66,7 +66,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
 def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape) -> Hypotheses:
     """The lift hypotheses of K corner sets (K, N, 2) (confidence (K, N)) that mask fits start
     from, each set's best first (`Hypotheses.best`): any optimiser's starts
-    (`cuboidtrain.fit.soft_raster` starts from the same)."""
+    (`cuboidtrain.geometry.soft_raster` starts from the same)."""
     return hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=LIFT_ITERATIONS,
                       tolerance=1e-9)
 

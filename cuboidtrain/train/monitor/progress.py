@@ -2,9 +2,9 @@
 
 The loop tells `Progress` what happened (a batch fetched, a step taken, a
 checkpoint written); Progress hands each event to the part whose role it is —
-`RunningStats` (cuboidtrain.train.stats) keeps the figures, `MetricsLog`
-(cuboidtrain.train.metrics_log) appends metrics.jsonl and TensorBoard records,
-`StatusPublisher` (cuboidtrain.train.publisher) writes status.json and the
+`RunningStats` (cuboidtrain.train.monitor.stats) keeps the figures, `MetricsLog`
+(cuboidtrain.train.monitor.metrics_log) appends metrics.jsonl and TensorBoard records,
+`StatusPublisher` (cuboidtrain.train.monitor.publisher) writes status.json and the
 dashboard and runs the heartbeat — and composes the status they publish.
 """
 from __future__ import annotations
@@ -20,10 +20,10 @@ import torch
 
 from cuboidtrain.train.config import PHASES, TrainConfig
 from cuboidtrain.train.data import EpochPosition
-from cuboidtrain.train.metrics_log import MetricsLog
-from cuboidtrain.train.publisher import StatusPublisher
-from cuboidtrain.train.stats import Rates, RunningStats
-from cuboidtrain.train.status import FINISHED, Checkpoint, TrainerStatus, TrainingFailed, Validation
+from cuboidtrain.train.monitor.metrics_log import MetricsLog
+from cuboidtrain.train.monitor.publisher import StatusPublisher
+from cuboidtrain.train.monitor.stats import Rates, RunningStats
+from cuboidtrain.train.monitor.status import FINISHED, Checkpoint, TrainerStatus, TrainingFailed, Validation
 from shared.errors import UsageError
 from shared.spool import foreign_names
 

@@ -1,6 +1,6 @@
 """The trainer's status: what a run reports about itself in OUT/status.json.
 
-The trainer (cuboidtrain.train.publisher) writes it about once a second; the dashboard renders
+The trainer (cuboidtrain.train.monitor.publisher) writes it about once a second; the dashboard renders
 it; `watch` and the compose healthcheck read it back from another process. Every field
 may be None (or empty) while it is not known yet, and a file written by an older
 version may lack fields or hold ones no longer written: reading keeps what it knows.

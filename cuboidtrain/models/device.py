@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from cuboidtrain.fit.options import check_device
+from cuboidtrain.models.settings import check_device
 from shared.errors import UsageError
 
 

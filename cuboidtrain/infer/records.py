@@ -22,7 +22,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from shared.errors import UsageError
-from shared.files import json_text
+from shared.files import json_text, write_json
 
 FSYNC_SECONDS = 2.0  # at most this much work is only in the page cache
 _TORN_INDEX = re.compile(rb'^\{"index": (\d+)')  # a torn line still names its input, if it got that far
@@ -140,3 +140,8 @@ class RecordStore:
             finally:
                 os.close(self.fd)
                 self.fd = -1
+
+
+def write_records(path: Path, records: list[dict]) -> None:
+    """The JSON list, replaced atomically: a reader never sees half of it."""
+    write_json(path, records, indent=2)

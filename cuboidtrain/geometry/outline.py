@@ -1,7 +1,7 @@
 """How well a cuboid's silhouette explains a binary mask, at the input's own resolution: the
 outline's residuals (how far the mask's outline lies from the model's silhouette and back)
 and their derivatives, and what they read of a mask (`MaskTarget`: its outline points and
-signed distance field; several masks' at once for a batch of fits). `cuboidtrain.fit.mask_fit`
+signed distance field; several masks' at once for a batch of fits). `cuboidtrain.geometry.mask_fit`
 minimises them.
 """
 from __future__ import annotations
@@ -125,7 +125,7 @@ def _cell(fields: Fields, points: np.ndarray):
 
 
 _PAIRS = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])  # 28 candidate hull edges
-_QUARTER_TURN = np.array([[0.0, 1.0], [-1.0, 0.0]])  # (x, y) -> (y, -x)
+QUARTER_TURN = np.array([[0.0, 1.0], [-1.0, 0.0]])  # (x, y) -> (y, -x)
 
 
 # A convex part's silhouette has at most 6 edges; a degenerate view (coincident corners)
@@ -155,7 +155,7 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     corners = corners.reshape(-1, 8, 2)
     a, b = corners[:, _PAIRS[:, 0]], corners[:, _PAIRS[:, 1]]
     direction = b - a
-    normal = direction @ _QUARTER_TURN.T
+    normal = direction @ QUARTER_TURN.T
     normal /= np.sqrt((normal * normal).sum(-1, keepdims=True)) + 1e-12
     side = np.einsum("bkd,bnd->bkn", normal, corners) - np.einsum("bkd,bkd->bk", normal, a)[..., None]
     flip = np.where(side.sum(-1) > 0, -1.0, 1.0)  # outward: away from the rest
@@ -235,7 +235,7 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     square root of its share of the edge's length, so every outline px counts once.
     A twobox's two parts are one batch axis (B, P, ...): numpy's per-call cost, paid once."""
     b, n = image.shape[:2]
-    parts = _part_corners(shape)  # (P, 8) the shape's corner indices of each part
+    parts = part_corners(shape)  # (P, 8) the shape's corner indices of each part
     hull = hull_edges(image[:, parts])  # fields (B, P, E, ...)
     ends = parts[np.arange(len(parts))[:, None, None], hull.pairs]  # (B, P, E, 2) shape corner indices
     outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, n, weights, derivatives)
@@ -245,7 +245,7 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
 
 
 @lru_cache(maxsize=None)
-def _part_corners(shape: Shape) -> np.ndarray:
+def part_corners(shape: Shape) -> np.ndarray:
     """(P, 8): the shape's corner indices of each convex part."""
     parts = np.array(shape.parts)
     parts.flags.writeable = False  # shared by every caller

@@ -1,7 +1,7 @@
 """The algebraic start of the lift: vanishing points of the box's parallel edges -> focal
 length, principal point and rotation, then extents and translation by linear least squares.
 
-The affine start (`cuboidtrain.fit.lift.affine_starts`) is exact for a distant camera and
+The affine start (`cuboidtrain.geometry.lift.affine_starts`) is exact for a distant camera and
 far off for a close one; this start is exact for a close one (three finite vanishing points)
 and degrades as a vanishing point runs off to infinity. The lift tries both.
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cuboidtrain.fit.geometry import _MIRROR_X, object_basis, rotation_vector
+from cuboidtrain.geometry.camera import MIRROR_X, object_basis, rotation_vector
 from shared.shapes import Shape
 
 # A vanishing point whose homogeneous w is below this share of its norm (in corner-span
@@ -48,7 +48,7 @@ def _normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 def edges_by_axis(shape: Shape) -> list[list[tuple[int, int]]]:
     """The shape's edges grouped by the object axis they run along (x width, y height, z depth)."""
     groups: list[list[tuple[int, int]]] = [[], [], []]
-    # A corner's index bits (`_SIDES`): 2 = LEFT, 1 = BOTTOM, 4 = FRONT; an edge flips one.
+    # A corner's index bits (`CORNER_SIDES`): 2 = LEFT, 1 = BOTTOM, 4 = FRONT; an edge flips one.
     for part in shape.parts:
         for axis, flip in ((0, 2), (1, 1), (2, 4)):
             groups[axis] += [(part[a], part[a ^ flip]) for a in range(8) if a < a ^ flip]
@@ -147,7 +147,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     starts, mirrors = [], []
     for i in best:
         mirror = bool(np.linalg.det(m[i]) < 0)
-        rot = m[i] @ _MIRROR_X if mirror else m[i]
+        rot = m[i] @ MIRROR_X if mirror else m[i]
         starts.append(_to_params(theta[i], rot, t[i], focal[i] * scale, principal[i] * scale + centre, len(shape.parts)))
         mirrors.append(mirror)
     return np.array(starts).reshape(-1, p), np.array(mirrors, dtype=bool)

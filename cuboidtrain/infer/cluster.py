@@ -17,7 +17,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.pool import CHUNK, Group, fit_one
+from cuboidtrain.infer.pool import CHUNK, Group, fit_one
 from shared.errors import UsageError
 
 LOCAL = "local"

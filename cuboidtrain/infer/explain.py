@@ -41,9 +41,10 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from cuboidtrain.fit.chain import model_silhouette, no_explanation  # noqa: E402
-from cuboidtrain.fit.inputs import OutputNames  # noqa: E402
-from cuboidtrain.fit.mesh import camera_box  # noqa: E402
+from cuboidtrain.fit.fitter import no_explanation  # noqa: E402
+from cuboidtrain.geometry.silhouette import model_silhouette  # noqa: E402
+from cuboidtrain.infer.inputs import OutputNames  # noqa: E402
+from cuboidtrain.infer.mesh import camera_box  # noqa: E402
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
@@ -134,7 +135,7 @@ def _zoom(ax, mask: np.ndarray, *points: np.ndarray) -> bool:
     return mark_outside(ax, *mask.shape)
 
 
-def _input_tile(ax, mask: np.ndarray, geometry: Shape, keypoints: np.ndarray) -> None:
+def input_tile(ax, mask: np.ndarray, geometry: Shape, keypoints: np.ndarray) -> None:
     """The whole input mask with the fit in input pixels, zoomed to the object and the fit."""
     _show(ax, mask, f"input mask, {mask.shape[1]} x {mask.shape[0]} px (zoomed), with the fit", cmap="gray",
           vmin=0, vmax=1)
@@ -365,7 +366,7 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
     top_grid = fig.add_gridspec(1, tops, top=top_edge, bottom=top_edge - big / height, left=0.01, right=0.99,
                                 wspace=0.06)
     tiles = [fig.add_subplot(top_grid[0, k]) for k in range(tops)]
-    _input_tile(tiles[0], fit.explanation.mask, geometry, input_keypoints(fit))
+    input_tile(tiles[0], fit.explanation.mask, geometry, input_keypoints(fit))
     if fit.cuboid is not None:
         row_top = top_edge - (big + 0.25 + 0.5) / height  # under the top row, room for the titles
         grid = fig.add_gridspec(1, 4, top=row_top, bottom=row_top - (cuboid - 1.2) / height, left=0.01, right=0.99,
@@ -449,7 +450,7 @@ class Explainer:
 
     `photos[i]` is the photo behind input i (or None); a mask made at another
     resolution than its photo is scaled onto it. A picture is named after its input's file
-    stem (`cuboidtrain.fit.inputs.OutputNames`; `inputs`, the run's, fix the names up front).
+    stem (`cuboidtrain.infer.inputs.OutputNames`; `inputs`, the run's, fix the names up front).
     """
 
     def __init__(self, folder: Path, photos: list[Path] | None = None, inputs: Sequence[str] | None = None):

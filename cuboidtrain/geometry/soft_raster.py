@@ -1,5 +1,5 @@
 """The soft-rasterised silhouette fit: the alternative optimiser, measured against
-`cuboidtrain.fit.mask_fit.fit_mask` (issue 20, Must have 3: choose the optimiser by measurement).
+`cuboidtrain.geometry.mask_fit.fit_mask` (issue 20, Must have 3: choose the optimiser by measurement).
 
 The same inputs, starts and parameter vector as `fit_mask` (`geometry`'s layout; the best
 `starts` hypotheses of the same short lift of the networks' corners, `mask_fit.lift_starts`),
@@ -35,10 +35,10 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from cuboidtrain.fit.geometry import (_SKEW, CameraParams, CuboidFit, log_ratio_jacobian, object_basis, project,
+from cuboidtrain.geometry.camera import (SKEW_TABLE, CameraParams, CuboidFit, log_ratio_jacobian, object_basis, project,
                                       project_with_jacobian)
-from cuboidtrain.fit.mask_fit import STARTS, described, lift_starts
-from cuboidtrain.fit.outline import _QUARTER_TURN, HullEdges, MaskFitWeights, MaskTarget, _part_corners, hull_edges
+from cuboidtrain.geometry.mask_fit import STARTS, described, lift_starts
+from cuboidtrain.geometry.outline import QUARTER_TURN, HullEdges, MaskFitWeights, MaskTarget, part_corners, hull_edges
 from shared.shapes import Shape
 
 DTYPE = torch.float64  # the projection's: it must equal numpy's to 1e-9 px
@@ -105,7 +105,7 @@ def torch_rotation_matrices(rotvec: torch.Tensor) -> torch.Tensor:
     theta = torch.where(small, 1.0, theta2).sqrt()  # sqrt's gradient at 0 is infinite: never taken there
     a = torch.where(small, 1.0 - theta2 / 6, theta.sin() / theta)
     b = torch.where(small, 0.5 - theta2 / 24, (1 - theta.cos()) / theta**2)
-    k = (rotvec @ torch.as_tensor(_SKEW, dtype=DTYPE)).reshape(-1, 3, 3)
+    k = (rotvec @ torch.as_tensor(SKEW_TABLE, dtype=DTYPE)).reshape(-1, 3, 3)
     return torch.eye(3, dtype=DTYPE) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
@@ -241,7 +241,7 @@ def part_distances(image: torch.Tensor, shape: Shape, points: torch.Tensor) -> t
     the part's hull edges (exact inside and across each edge; outside a vertex, a lower bound).
     Which corner pairs are hull edges is read off the detached corners (`outline.hull_edges`):
     a discrete choice, fixed within a step, as in `fit_mask`."""
-    parts = _part_corners(shape)
+    parts = part_corners(shape)
     hull = hull_edges(image.detach().numpy()[:, parts])  # fields (B, P, E, ...)
     used = max(1, int(hull.valid.sum(-1).max()))  # valid slots come first: the rest are never taken
     hull = HullEdges(*(v[..., :used, :] if v.ndim > 3 else v[..., :used] for v in
@@ -253,7 +253,7 @@ def part_distances(image: torch.Tensor, shape: Shape, points: torch.Tensor) -> t
     direction = end - start
     turned = torch.stack([direction[..., 1], -direction[..., 0]], dim=-1)  # outline.py's quarter turn
     # Outward, as hull_edges found it: the quarter turn's sign there.
-    flip = np.sign(np.einsum("...d,...d->...", hull.normal, hull.direction @ _QUARTER_TURN.T))
+    flip = np.sign(np.einsum("...d,...d->...", hull.normal, hull.direction @ QUARTER_TURN.T))
     normal = turned * torch.as_tensor(flip, dtype=RASTER_DTYPE)[..., None] / (turned.norm(dim=-1, keepdim=True) + 1e-12)
     valid = torch.as_tensor(hull.valid)[..., None]
     offsets = torch.where(valid, torch.einsum("rd,bped->bper", points, normal) - (start * normal).sum(-1)[..., None],

@@ -13,21 +13,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 
-from shared.errors import UsageError
-from shared.raster import rasterize
-from cuboidtrain.models.checkpoint import load_model
-from shared.files import write_json
-from cuboidtrain.models.networks import CuboidNet
-from cuboidtrain.models.refine import DRIFT_IOU
 from cuboidtrain.fit.masks import Framing
-from cuboidtrain.fit.options import MAX_REFINE_STEPS
-from shared.shapes import Shape, get_shape
+from cuboidtrain.models.refine import DRIFT_IOU
+from cuboidtrain.models.settings import MAX_REFINE_STEPS
+from shared.shapes import get_shape
 
 log = logging.getLogger(__name__)
 
@@ -63,52 +56,10 @@ class Scores:
 
 @dataclass(frozen=True)
 class Explanation:
-    """What an explanation panel draws (`cuboidtrain.fit.explain`): the winning candidate and the input."""
+    """What an explanation panel draws (`cuboidtrain.infer.explain`): the winning candidate and the input."""
 
     candidate: Candidate
     mask: np.ndarray  # (H, W) bool: the fitted component in the input's own pixels
-
-
-def model_silhouette(shape: str | Shape, keypoints: np.ndarray, size: int | tuple[int, int]) -> np.ndarray:
-    """The fitted cuboid's bool (S, S) silhouette, or (H, W) for an input's pixels: the union of
-    its parts' convex hulls, drawn by the generator's own rasteriser so a perfect fit reproduces
-    a training mask. (Not `masks.silhouette`, which picks the building out of an input mask.)"""
-    geometry = get_shape(shape) if isinstance(shape, str) else shape
-    height, width = (size, size) if isinstance(size, int) else size
-    # The rasteriser draws squares: an (H, W) image is the top left of its longer side's square.
-    return rasterize(geometry, np.asarray(keypoints, dtype=np.float64), max(height, width))[:height, :width]
-
-
-def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
-    """IoU of the fitted silhouette with `mask` (> 0: the framed input, or any input's (H, W)), in [0, 1].
-
-    The Tabulator outputs a geometrically valid cuboid (or two-box) whatever it is
-    shown, so when that silhouette explains the input well, the model's shape class
-    fits the building. A box forced onto a two-box building must leave one wing
-    uncovered or overhang the notch between them, and the IoU drops; a heavily
-    occluded or non-cuboid mask lowers it as well. The target is the input, not
-    each model's refined mask: each Refiner pulls the mask towards its own class,
-    so judging a model against its own refinement flatters it (on 240 mixed
-    samples, choosing by the refined masks was right 80% of the time, by the input 86%).
-    """
-    target = np.asarray(mask.detach().cpu() if torch.is_tensor(mask) else mask)
-    target = target.reshape(target.shape[-2:]) > 0  # a batch row (1, S, S) or an image (H, W)
-    fitted = model_silhouette(shape, keypoints, target.shape)
-    union = np.logical_or(fitted, target).sum()
-    return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
-
-
-def load_models(paths: list[Path]) -> list[CuboidNet]:
-    """One model per checkpoint, at most one per shape class (the error names both files)."""
-    models, seen = [], {}
-    for path in paths:
-        model, _ = load_model(path)
-        if model.shape in seen:
-            raise UsageError(f"--checkpoint {path}: a second {model.shape!r} model ({seen[model.shape]} is one "
-                             f"already); give at most one checkpoint per shape class")
-        seen[model.shape] = path
-        models.append(model)
-    return models
 
 
 def border_warnings(mask: np.ndarray) -> list[str]:
@@ -168,19 +119,3 @@ def choose(candidates: list[Candidate], margin: float = RICHER_SHAPE_MARGIN) -> 
         if candidate.confidence > best.confidence + margin:
             best = candidate
     return best
-
-
-def error_record(path: str, reason: str, all_components: bool, cuboid: bool = False) -> dict:
-    record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
-              "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
-    return record | ({"cuboid": None} if cuboid else {}) | ({"component": None} if all_components else {})
-
-
-def no_explanation(exc: Exception) -> str:
-    """The record's warning for an explanation picture that could not be made, on one line."""
-    return "no explanation: " + " ".join(str(exc).split())
-
-
-def write_records(path: Path, records: list[dict]) -> None:
-    """The JSON list, replaced atomically: a reader never sees half of it."""
-    write_json(path, records, indent=2)

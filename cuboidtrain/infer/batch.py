@@ -16,9 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.pool import fit_groups
-from cuboidtrain.fit.batch_progress import Reporter, Tally
-from cuboidtrain.fit.store import RecordStore
+from cuboidtrain.infer.pool import fit_groups
+from cuboidtrain.infer.progress import Reporter, Tally
+from cuboidtrain.infer.records import RecordStore
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,7 @@ def fitted(batch: Batch, jobs: list[tuple[int, str]], fitter, explain: Callable 
     """The jobs' (index, records) from wherever `batch` says fits run."""
     if batch.cluster is None:
         return fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain)
-    from cuboidtrain.fit.cluster import cluster_groups  # Dask only when asked: an optional extra
+    from cuboidtrain.infer.cluster import cluster_groups  # Dask only when asked: an optional extra
 
     return cluster_groups(jobs, batch.checkpoints, batch.options, batch.cluster, batch.workers)
 

@@ -15,7 +15,7 @@ and `decode` reads keypoints (B, N, 2) px and one score per keypoint back off he
   Human Pose Estimation", CVPR 2020): a Newton step on the log of the smoothed map
   at its argmax, exact for a Gaussian blob;
 - `pdm`: the paper's section 4.1 alternative: argmax locations projected onto a
-  Point Distribution Model (a PCA shape model, `cuboidtrain.fit.pdm`), which makes
+  Point Distribution Model (a PCA shape model, `cuboidtrain.models.pdm`), which makes
   the octet globally valid.
 
 Every decoder takes `(heatmaps, tabulated)`, where `tabulated` is T's keypoints
@@ -31,8 +31,9 @@ from typing import ClassVar
 import torch
 import torch.nn.functional as F
 
-from cuboidtrain.fit.options import DEFAULT_PDM_COMPONENTS, EXTRACTORS, check_choice, parse_components
-from cuboidtrain.fit.pdm import PointDistributionModel
+from cuboidtrain.models.pdm import PointDistributionModel
+from cuboidtrain.models.settings import DEFAULT_PDM_COMPONENTS, EXTRACTORS, parse_components
+from shared.checks import check_choice
 from shared.errors import UsageError
 
 
@@ -232,7 +233,7 @@ class PdmCodec(HeatmapCodec):
         return torch.from_numpy(projected).to(device=heatmaps.device, dtype=torch.float32)
 
 
-# Name -> codec class; the names are options.EXTRACTORS (which the command line offers without torch).
+# Name -> codec class; the names are settings.EXTRACTORS (which the command line offers without torch).
 CODECS: dict[str, type[HeatmapCodec]] = {
     codec.name: codec for codec in (TabulatorCodec, ArgmaxCodec, CentreOfMassCodec, DarkCodec, PdmCodec)}
 

@@ -1,8 +1,8 @@
 """Lift: named image corners -> the camera and cuboid that project onto them
-(`cuboidtrain.fit.geometry`'s parameters), and the batched Levenberg-Marquardt solver
-that the lift and the mask fit (`cuboidtrain.fit.outline`) share.
+(`cuboidtrain.geometry.camera`'s parameters), and the batched Levenberg-Marquardt solver
+that the lift and the mask fit (`cuboidtrain.geometry.outline`) share.
 
-Starts: the algebraic one from the box's vanishing points (`cuboidtrain.fit.vanishing`:
+Starts: the algebraic one from the box's vanishing points (`cuboidtrain.geometry.vanishing`:
 exact for perspective views), and the weak-perspective (affine) lift, both depth orders
 (Necker), times a few perspective strengths k (exact for distant ones); then LM on the
 reprojection error with the projection's analytic Jacobian. Measured on exact generated
@@ -17,8 +17,8 @@ from functools import partial
 
 import numpy as np
 
-from cuboidtrain.fit.geometry import _SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
-from cuboidtrain.fit.vanishing import vanishing_starts
+from cuboidtrain.geometry.camera import CORNER_SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
+from cuboidtrain.geometry.vanishing import vanishing_starts
 from shared.shapes import Shape
 
 # Perspective-strength starts (k = height / distance), tried group by group until one
@@ -144,7 +144,7 @@ def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: floa
 
 def _edge_means(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean 2D edge vectors of one labelled box (8, 2): toward RIGHT, BOTTOM and BACK."""
-    left, bottom, front = (_SIDES[:, k].astype(bool) for k in range(3))
+    left, bottom, front = (CORNER_SIDES[:, k].astype(bool) for k in range(3))
     right_minus_left = points[~left].mean(0) - points[left].mean(0)
     down = points[bottom].mean(0) - points[~bottom].mean(0)
     back = points[~front].mean(0) - points[front].mean(0)

@@ -1,0 +1,1 @@
+"""What a training run says about itself: its status file, running statistics, metrics log and dashboard."""
