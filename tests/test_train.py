@@ -80,13 +80,13 @@ def test_the_chained_phases_run_the_one_chain_with_the_same_numbers_and_gradient
     # wired by hand: the sign it takes of the +-1 mask x1 changes no value and no gradient.
     x, model = batch_of(spool), tiny_model("box", SIZE).train()
     by_hand = tiny_model("box", SIZE).train()
-    refined = by_hand.refiner(x["x1"])
+    refined = by_hand.refiner(x.x1)
     heatmaps = by_hand.estimator(refined)
     keypoints, ratios = by_hand.tabulator(heatmaps)
-    squared_px = ((keypoints - x["x4"]) ** 2).sum(dim=-1).mean()
-    expected = {"D_R": torch.nn.functional.l1_loss(refined, x["x2"]),
-                "D_S": ((heatmaps - x["x3"]) ** 2).sum(dim=(-2, -1)).mean(),
-                "D_T": squared_px + torch.nn.functional.mse_loss(ratios, x["ratios"])}
+    squared_px = ((keypoints - x.x4) ** 2).sum(dim=-1).mean()
+    expected = {"D_R": torch.nn.functional.l1_loss(refined, x.x2),
+                "D_S": ((heatmaps - x.x3) ** 2).sum(dim=(-2, -1)).mean(),
+                "D_T": squared_px + torch.nn.functional.mse_loss(ratios, x.ratios)}
     losses = phase_losses(model, x, "2", ratio_weight=1.0)
     for name in ("D_R", "D_S", "D_T"):
         assert torch.equal(losses[name], expected[name]), name

@@ -493,18 +493,18 @@ def test_prepare_batch_gives_the_samples_own_masks_heatmaps_and_keypoints(tmp_pa
     sigma = 1.0
     x = prepare_batch(batch, CPU, sigma, SIZE)
     n = get_shape("box").num_keypoints
-    assert x["x1"].shape == x["x2"].shape == (4, 1, SIZE, SIZE)
-    assert x["x3"].shape == (4, n, SIZE, SIZE)
-    assert x["x4"].shape == (4, n, 2) and x["ratios"].shape == (4, 2)
+    assert x.x1.shape == x.x2.shape == (4, 1, SIZE, SIZE)
+    assert x.x3.shape == (4, n, SIZE, SIZE)
+    assert x.x4.shape == (4, n, 2) and x.ratios.shape == (4, 2)
     for b, name in enumerate(batch["names"]):
         sample = build_sample(seed_of[name])
-        assert torch.equal(x["x1"][b, 0], torch.from_numpy(signed(sample.noisy)))
-        assert torch.equal(x["x2"][b, 0], torch.from_numpy(signed(sample.clean)))
+        assert torch.equal(x.x1[b, 0], torch.from_numpy(signed(sample.noisy)))
+        assert torch.equal(x.x2[b, 0], torch.from_numpy(signed(sample.clean)))
         keypoints = torch.from_numpy(sample.keypoints).float()
-        assert torch.equal(x["x4"][b], keypoints)
+        assert torch.equal(x.x4[b], keypoints)
         ratios = get_shape("box").ratio_vector(sample.ratios)
-        assert torch.allclose(x["ratios"][b], torch.from_numpy(ratios).float())
+        assert torch.allclose(x.ratios[b], torch.from_numpy(ratios).float())
         for k, (kx, ky) in enumerate(sample.keypoints.tolist()):
             want = (min(max(round(ky), 0), SIZE - 1), min(max(round(kx), 0), SIZE - 1))
-            assert divmod(int(x["x3"][b, k].argmax()), SIZE) == want, (name, k)
-    assert torch.equal(x["x3"], render_heatmaps(x["x4"], SIZE, sigma))
+            assert divmod(int(x.x3[b, k].argmax()), SIZE) == want, (name, k)
+    assert torch.equal(x.x3, render_heatmaps(x.x4, SIZE, sigma))

@@ -34,6 +34,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from cuboidtrain.models.codec import render_heatmaps
+from cuboidtrain.train.losses import ChainBatch
 from cuboidtrain.fit.masks import Framing, frame, silhouette, warp
 from cuboidtrain.fit.options import DEFAULT_MARGIN
 from shared.sample import BIT_SHIFTS, Sample, collate, decode_record, from_record, to_record
@@ -331,17 +332,17 @@ def unpack_masks(packed: torch.Tensor, size: int) -> torch.Tensor:
     return bits.view(-1, 1, size, size).float() * 2 - 1
 
 
-def prepare_batch(batch: dict, device: torch.device, sigma: float, size: int) -> dict[str, torch.Tensor]:
+def prepare_batch(batch: dict, device: torch.device, sigma: float, size: int) -> ChainBatch:
     """A loader batch -> the paper's x1 (noisy), x2 (clean), x3 (heat maps), x4 (keypoints), ratios."""
     non_blocking = device.type == "cuda"
     keypoints = batch["keypoints"].to(device, non_blocking=non_blocking)
-    return {
-        "x1": unpack_masks(batch["noisy"].to(device, non_blocking=non_blocking), size),
-        "x2": unpack_masks(batch["clean"].to(device, non_blocking=non_blocking), size),
-        "x3": render_heatmaps(keypoints, size, sigma),
-        "x4": keypoints,
-        "ratios": batch["ratios"].to(device, non_blocking=non_blocking),
-    }
+    return ChainBatch(
+        x1=unpack_masks(batch["noisy"].to(device, non_blocking=non_blocking), size),
+        x2=unpack_masks(batch["clean"].to(device, non_blocking=non_blocking), size),
+        x3=render_heatmaps(keypoints, size, sigma),
+        x4=keypoints,
+        ratios=batch["ratios"].to(device, non_blocking=non_blocking),
+    )
 
 
 class FreshnessMeter:

@@ -119,21 +119,21 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float,
     """Per-sample errors of one batch, on the CPU, the keypoints read as the Fitter reads them
     (T's, or its extractor's off S's heat maps); with `paths`, each path's scores too."""
     x = prepare_batch(batch, fitter.device, sigma, model.size)
-    out = fitter.predict(model, x["x1"])  # the chain as infer runs it
-    t_alone, _ = model.tabulator(x["x3"])  # T fed perfect heat maps: its own share of the error
-    decoded_alone = fitter.codecs[model.shape].decode(x["x3"], t_alone).keypoints  # the extractor on perfect maps
+    out = fitter.predict(model, x.x1)  # the chain as infer runs it
+    t_alone, _ = model.tabulator(x.x3)  # T fed perfect heat maps: its own share of the error
+    decoded_alone = fitter.codecs[model.shape].decode(x.x3, t_alone).keypoints  # the extractor on perfect maps
     errors = {
-        "keypoint": keypoint_errors(out.keypoints, x["x4"]).cpu(),  # (B, N)
-        "ratio": (out.ratios.float() - x["ratios"]).abs().cpu(),  # (B, R)
-        "iou": mask_iou(out.refined, x["x2"]).cpu(),  # (B,)
-        "tabulator": keypoint_errors(t_alone, x["x4"]).cpu(),  # (B, N)
-        "extractor": keypoint_errors(decoded_alone, x["x4"]).cpu(),  # (B, N)
+        "keypoint": keypoint_errors(out.keypoints, x.x4).cpu(),  # (B, N)
+        "ratio": (out.ratios.float() - x.ratios).abs().cpu(),  # (B, R)
+        "iou": mask_iou(out.refined, x.x2).cpu(),  # (B,)
+        "tabulator": keypoint_errors(t_alone, x.x4).cpu(),  # (B, N)
+        "extractor": keypoint_errors(decoded_alone, x.x4).cpu(),  # (B, N)
     }
     if not paths:
         return errors, {}
     if "sources" not in batch:
         raise ValueError("scoring the paths needs the samples as read: load_batches(..., keep_sources=True)")
-    framed = (x["x1"][:, 0] > 0).cpu().numpy()
+    framed = (x.x1[:, 0] > 0).cpu().numpy()
     return errors, score_paths(fitter, model, out, framed, batch["sources"])
 
 

@@ -9,10 +9,23 @@ D_T: squared L2 distance between predicted and true keypoints in px, averaged
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
 from cuboidtrain.models.networks import CuboidNet
+
+
+@dataclass(frozen=True)
+class ChainBatch:
+    """One batch as the paper names the chain's inputs and targets (3.3.2), on the training device."""
+
+    x1: torch.Tensor  # (B, 1, S, S) +-1: the noisy, occluded mask, R's input
+    x2: torch.Tensor  # (B, 1, S, S) +-1: the clean mask, R's target and S's input in phase 1
+    x3: torch.Tensor  # (B, N, S, S): the keypoints' heat maps, S's target and T's input in phase 1
+    x4: torch.Tensor  # (B, N, 2) px: the keypoints, T's target
+    ratios: torch.Tensor  # (B, R): the shape's ratios, T's other target
 
 
 def refiner_loss(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
@@ -29,7 +42,7 @@ def tabulator_loss(keypoints: torch.Tensor, ratios: torch.Tensor, true_keypoints
     return squared_px + ratio_weight * F.mse_loss(ratios, true_ratios)
 
 
-def phase_losses(model: CuboidNet, x: dict[str, torch.Tensor], phase: str, ratio_weight: float) -> dict[str, torch.Tensor]:
+def phase_losses(model: CuboidNet, x: ChainBatch, phase: str, ratio_weight: float) -> dict[str, torch.Tensor]:
     """D_R, D_S, D_T for one batch, and each stage's outputs.
 
     Phase 1 feeds every network its ground-truth input (x1 -> R, x2 -> S, x3 -> T):
@@ -38,16 +51,16 @@ def phase_losses(model: CuboidNet, x: dict[str, torch.Tensor], phase: str, ratio
     which terms count is decided by the weights (`combine`).
     """
     if phase == "1":
-        refined = model.refiner(x["x1"])
-        heatmaps = model.estimator(x["x2"])
-        keypoints, ratios = model.tabulator(x["x3"])
+        refined = model.refiner(x.x1)
+        heatmaps = model.estimator(x.x2)
+        keypoints, ratios = model.tabulator(x.x3)
     else:
-        out = model(x["x1"], refine_steps=1)
+        out = model(x.x1, refine_steps=1)
         refined, heatmaps, keypoints, ratios = out.refined, out.heatmaps, out.keypoints, out.ratios
     return {
-        "D_R": refiner_loss(refined, x["x2"]),
-        "D_S": estimator_loss(heatmaps, x["x3"]),
-        "D_T": tabulator_loss(keypoints, ratios, x["x4"], x["ratios"], ratio_weight),
+        "D_R": refiner_loss(refined, x.x2),
+        "D_S": estimator_loss(heatmaps, x.x3),
+        "D_T": tabulator_loss(keypoints, ratios, x.x4, x.ratios, ratio_weight),
         "refined": refined,
         "heatmaps": heatmaps,
         "keypoints": keypoints,
