@@ -54,9 +54,9 @@ def score(variant: str, args) -> dict:
     chain = evaluate(model, args.val, model.sigma, FitOptions(device="cpu"), max_samples=args.samples)
     peaks = evaluate(model, args.val, model.sigma, FitOptions(device="cpu", extractor="dark"), max_samples=args.samples)
     return {"variant": variant, "steps": ckpt["step"], "samples_seen": ckpt["step"] * ckpt["config"]["batch_size"],
-            "chain_256": chain["mean_px_error"] * scale, "median_256": chain["median_px_error"] * scale,
-            "refiner_iou": chain["refiner_iou"], "s_peaks_dark_256": peaks["mean_px_error"] * scale,
-            "t_alone_256": chain["tabulator_px_error_on_true_heatmaps"] * scale}
+            "chain_256": chain.mean_px_error * scale, "median_256": chain.median_px_error * scale,
+            "refiner_iou": chain.refiner_iou, "s_peaks_dark_256": peaks.mean_px_error * scale,
+            "t_alone_256": chain.tabulator_px_error_on_true_heatmaps * scale}
 
 
 def main() -> None:

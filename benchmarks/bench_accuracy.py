@@ -72,6 +72,7 @@ from rich.table import Table
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.train.evaluate import evaluate
 from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.infer.records import to_record, to_records
 from cuboidtrain.models.networks import build_model
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.models.zoo import default_checkpoints
@@ -121,7 +122,7 @@ def fit_records(fitter: Fitter, files: list[str]) -> tuple[list[dict], list]:
         fits[index] = fit
         return ()
 
-    return fitter.records(files, explain=keep), fits
+    return to_records(fitter.records(files, explain=keep), fitter.options), fits
 
 
 def corner_errors(records: list[dict], truths: list[Truth]) -> list[float]:
@@ -147,9 +148,9 @@ def eval_figures(model, spool: Path, samples: int) -> dict:
     scale = 256 / model.size
     chain = evaluate(model, spool, model.sigma, FitOptions(device="cpu"), max_samples=samples)
     peaks = evaluate(model, spool, model.sigma, FitOptions(device="cpu", extractor="dark"), max_samples=samples)
-    return {"eval_mean_256": chain["mean_px_error"] * scale, "refiner_iou": chain["refiner_iou"],
-            "s_peaks_dark_256": peaks["mean_px_error"] * scale,
-            "t_alone_256": chain["tabulator_px_error_on_true_heatmaps"] * scale, "skipped": chain["skipped"]}
+    return {"eval_mean_256": chain.mean_px_error * scale, "refiner_iou": chain.refiner_iou,
+            "s_peaks_dark_256": peaks.mean_px_error * scale,
+            "t_alone_256": chain.tabulator_px_error_on_true_heatmaps * scale, "skipped": chain.skipped}
 
 
 def latency_ms(models: list, path: str, repeats: int, options: FitOptions = FitOptions(device="cpu")) -> float:
@@ -201,7 +202,7 @@ def main() -> None:
                         fitter = Fitter(list(models.values()), options)
                         for file in files:  # one call a mask: its time is the whole infer path's
                             start = time.perf_counter()
-                            chosen += fitter.records([file])[0]["shape"] == shape
+                            chosen += to_record(fitter.records([file])[0])["shape"] == shape
                             times.append(1000 * (time.perf_counter() - start))
                         total += len(files)
                 if total:

@@ -40,16 +40,19 @@ class FitActor:
 
         torch.set_num_threads(1)
         self.fitter = Fitter.from_files(checkpoints, options)
+        self.options = self.fitter.options
 
     def __call__(self, batch: dict) -> dict:
         import numpy as np
 
         from cuboidtrain.infer.pool import fit_one
+        from cuboidtrain.infer.records import to_records
 
         groups = [fit_one(self.fitter, int(i), str(p)) for i, p in zip(batch["index"], batch["path"])]
         # one JSON text a input: Arrow would turn the records' dicts into structs (and `{}` into nothing)
         return {"index": np.array([i for i, _ in groups]),
-                "records": np.array([json.dumps(records) for _, records in groups], dtype=object)}
+                "records": np.array([json.dumps(to_records(outcomes, self.options)) for _, outcomes in groups],
+                                    dtype=object)}
 
 
 def ray_run(folder: str, out: str, actors: int, batch_size: int) -> None:

@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
-from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP, gather_inputs
+from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP
 from cuboidtrain.fit.options import FIT_SHAPES, OPTIMIZERS, FitOptions
 from cuboidtrain.models.settings import EXTRACTORS, MAX_REFINE_STEPS
 from shared.console import Commands, choices, console, fail, setup_logging
@@ -74,32 +74,37 @@ def run(
     val_samples: int = typer.Option(TRAIN.val_samples, envvar="CUBOIDTRAIN_VAL_SAMPLES", help="Validation samples per evaluation."),
 ) -> None:
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
-    from cuboidtrain.train.monitor.dashboard import Dashboard
-    from cuboidtrain.train.loop import run as run_training
-    from cuboidtrain.train.preflight import check_paths
-    from cuboidtrain.train.monitor.status import TrainingFailed
-
     setup_logging()
     config = TrainConfig(
-        phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe,
-        steps=steps, epochs=epochs,
-        batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
+        phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe, steps=steps,
+        epochs=epochs, batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
         alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
         out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
         resume=resume, overwrite=overwrite, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
         seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
         val_every=val_every, val_samples=val_samples,
     ).validate()
+    _train(config)
+
+
+def _train(config: TrainConfig) -> None:
+    """`run` once its options are a TrainConfig: the paths checked before the dashboard starts, the
+    training, and one line on how it ended (rank 0's under torchrun)."""
+    from cuboidtrain.train.monitor.dashboard import Dashboard
+    from cuboidtrain.train.loop import run as run_training
+    from cuboidtrain.train.preflight import check_paths
+    from cuboidtrain.train.monitor.status import TrainingFailed
+
     check_paths(config)  # every path option, before the dashboard starts (run() checks them again)
     try:
-        with Dashboard(live=dashboard and sys.stdout.isatty()) as board:
+        with Dashboard(live=config.dashboard and sys.stdout.isatty()) as board:
             status = run_training(config, dashboard=board)
     except TrainingFailed as exc:  # not a bad value (a full disk, a spool that never fills): exit 1
         fail(str(exc), code=1)
-    if status.get("rank", 0) == 0:  # under torchrun rank 0 speaks for the run
-        ckpt = status["last_checkpoint"]
-        console.print(f"{status['state']} at step {status['step']}; "
-                      + (f"checkpoint {ckpt['path']}" if ckpt else "no checkpoint written (no step was trained)"),
+    if status.rank == 0:  # under torchrun rank 0 speaks for the run
+        ckpt = status.last_checkpoint
+        console.print(f"{status.state} at step {status.step}; "
+                      + (f"checkpoint {ckpt.path}" if ckpt else "no checkpoint written (no step was trained)"),
                       highlight=False)
 
 
@@ -107,19 +112,30 @@ EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the pape
                   "dark (sub-pixel Taylor step), pdm (argmax made valid by a PCA shape model). Ratios are always T's.")
 PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape variance to keep (e.g. 0.999)."
 DEVICE_HELP = "auto (CUDA when present), cpu, cuda or cuda:N."
+# Options that more than one command takes, declared once (the same name, default and help in each).
+DEVICE = typer.Option(FIT.device, help=DEVICE_HELP)
+EXTRACTOR = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP)
+PDM_COMPONENTS = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP)
+SHIPPED_SHAPE = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model.")
+THREADS = typer.Option(None, help="CPU threads for torch (default: all cores).")
+
+
+def refine_steps_option(help: str):
+    """--refine-steps, whose help says what the passes are in its command."""
+    return typer.Option(str(FIT.refine_steps), metavar="K|auto", help=help)
 
 
 @app.command("eval")
 def evaluate(
     checkpoint: Optional[Path] = typer.Option(None, help="Checkpoint or model file to evaluate (default: the shipped model of --shape)."),
     spool: Path = typer.Option(..., help="Validation spool (e.g. `cuboidgen run --scene paper-clean --limit 0 --max-samples 1000`); any size: samples are framed as infer frames a mask."),
-    shape: ShapeChoice = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model."),
+    shape: ShapeChoice = SHIPPED_SHAPE,
     batch_size: int = typer.Option(32, help="Samples per forward pass."),
     max_samples: Optional[int] = typer.Option(None, help="Evaluate only the first N samples."),
-    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
-    extractor: ExtractorChoice = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP),
-    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes before S (as in infer)."),
+    device: str = DEVICE,
+    extractor: ExtractorChoice = EXTRACTOR,
+    pdm_components: str = PDM_COMPONENTS,
+    refine_steps: str = refine_steps_option("Refiner passes before S (as in infer)."),
     cuboid: bool = typer.Option(False, "--cuboid", help="Also fit each sample's cuboid (as infer --cuboid) and score both paths side by side: networks only and cuboid."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
@@ -133,7 +149,7 @@ def evaluate(
                          device=device, cuboid=cuboid).validate()
     checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
     result = evaluate_checkpoint(checkpoint, spool, options, batch_size=batch_size, max_samples=max_samples)
-    typer.echo(json_text(result, indent=2) if as_json else format_report(result))
+    typer.echo(json_text(result.to_dict(), indent=2) if as_json else format_report(result))
 
 
 @app.command()
@@ -163,15 +179,15 @@ def infer(
     workers: int = typer.Option(1, min=1, help="Processes fitting at once, each with its own models and one torch thread."),
     cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves."),
     shape: FitShape = typer.Option(FitShape[FIT.shape], help="auto: every given model, the best-explained fit wins."),
-    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help=f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
+    refine_steps: str = refine_steps_option(f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else one building: its pieces (>= 1% of the largest one's area) fitted together."),
     label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
     margin: float = typer.Option(FIT.margin, help="Empty border around the framed object, as a fraction of the model size per side."),
-    extractor: ExtractorChoice = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP),
-    pdm_components: str = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP),
+    extractor: ExtractorChoice = EXTRACTOR,
+    pdm_components: str = PDM_COMPONENTS,
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
-    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
+    device: str = DEVICE,
     cuboid: bool = typer.Option(INFER_CUBOID, "--cuboid/--networks-only", help="--cuboid (the default): fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). --networks-only: the networks' corners alone (free points, the Tabulator's ratios), about 2.5x faster (BENCHMARKS.md)."),
     optimizer: OptimizerChoice = typer.Option(OptimizerChoice[FIT.optimizer], help="The cuboid fit's solver: lm (Levenberg-Marquardt on the outline, ~45 ms a mask) or soft (a soft-rasterised silhouette by L-BFGS: more accurate on every measured set, ~35x slower; BENCHMARKS.md, \"Choosing the mask-fit optimiser\")."),
     mesh: Optional[Path] = typer.Option(None, metavar="DIR", help="Write each fitted box as a Wavefront OBJ mesh here, DIR/<input>.obj, in the camera's frame (x right, y down, z forward; units: box heights); its vertices are the keypoints, in order. Not with --networks-only."),
@@ -180,79 +196,31 @@ def infer(
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.infer.mesh import MeshWriter, check_mesh_options  # no torch: before the workers' warm-up
+    from cuboidtrain.infer.run import InferRequest, infer as run_infer  # no torch: it comes after the workers' warm-up
 
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
                          pdm_components=pdm_components, all_components=all_components, label_id=label_id,
-                         device=device, cuboid=cuboid, optimizer=optimizer.value).validate()
-    json_out = "-" if json_out is None and jsonl is None else json_out
-    check_outputs(("--json", json_out), ("--jsonl", jsonl))
-    if explain is not None:
-        check_writable("--explain", explain, folder=True)
-        if workers > 1 or cluster is not None:
-            what = f"--workers {workers}" if cluster is None else f"--cluster {cluster}"
-            raise UsageError(f"--explain with {what}: expected --workers 1 and no --cluster (pictures are drawn in one process)")
-    check_mesh_options(mesh, options.cuboid, cluster)
-    if mesh is not None:
-        check_writable("--mesh", mesh, folder=True)
-    if cluster is not None:
-        from cuboidtrain.infer.cluster import require_distributed
-
-        require_distributed(cluster)  # before the models load: a missing extra is a one-line error
-    inputs = gather_inputs(paths or [], from_list, glob)  # nothing to fit is one line before the models load
-    if cluster is None:
-        from cuboidtrain.infer.pool import warm_up
-
-        warm_up(workers)  # the workers' torch import, beside this process's below (no torch imported yet)
-    from cuboidtrain.infer.batch import Batch, run_batch
-    from cuboidtrain.infer.records import write_records
-    from cuboidtrain.fit.fitter import Fitter, Writers
-    from cuboidtrain.models.zoo import default_checkpoints
-
-    checkpoints = default_checkpoints(checkpoint, options.shapes)
-    fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
-    batch = Batch(tuple(inputs), tuple(checkpoints), options, workers, jsonl, keep=json_out is not None,
-                  cluster=cluster)
-    explainer = make_explainer(explain, overlay, len(inputs), batch.indexed())
-    mesher = MeshWriter(mesh, batch.indexed()) if mesh is not None else None
-    records, tally = run_batch(batch, fitter, console, Writers.of(explainer, mesher))
-    if json_out == "-":
-        typer.echo(json_text(records, indent=2))
-    elif json_out is not None:
-        write_records(Path(json_out), records)
-    if explainer is not None:
-        count = len(explainer.written)
-        console.print(f"{count} picture{'' if count == 1 else 's'} in {explain}", highlight=False)
-    if mesher is not None:  # a pool's workers write their own: count the folder's then
-        count = len(mesher.written) if workers == 1 else sum(1 for _ in mesher.folder.glob("*.obj"))
-        console.print(f"{count} mesh{'' if count == 1 else 'es'} in {mesh}", highlight=False)
-    if tally.failed:
-        console.print(f"{tally.failed} of {tally.total} inputs have an error (see their records' \"error\" field)",
-                      highlight=False)
+                         device=device, cuboid=cuboid, optimizer=optimizer.value)
+    request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
+                           options=options, json_out="-" if json_out is None and jsonl is None else json_out,
+                           jsonl=jsonl, workers=workers, cluster=cluster, explain=explain, overlay=tuple(overlay),
+                           mesh=mesh)
+    result = run_infer(request, console)
+    if result.pictures is not None:
+        console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False)
+    if result.meshes is not None:
+        console.print(f"{result.meshes} mesh{'' if result.meshes == 1 else 'es'} in {mesh}", highlight=False)
+    if result.tally.failed:
+        console.print(f"{result.tally.failed} of {result.tally.total} inputs have an error (see their records' "
+                      f"\"error\" field)", highlight=False)
         raise typer.Exit(1)
-
-
-def make_explainer(folder: Optional[Path], photos: list[Path], inputs: int, names: Optional[list[str]] = None):
-    """The explanation writer for --explain/--overlay, or None; bad combinations are UsageErrors.
-    `names`, the run's inputs in index order, fix the pictures' names."""
-    if photos and folder is None:
-        raise UsageError("--overlay needs --explain DIR: the folder its pictures go to")
-    if photos and len(photos) != inputs:
-        raise UsageError(f"--overlay given {len(photos)} times for {inputs} inputs: expected one photo per input, "
-                         f"in the same order")
-    if folder is None:
-        return None
-    check_writable("--explain", folder, folder=True)
-    from cuboidtrain.infer.explain import Explainer  # matplotlib: only when pictures are wanted
-
-    return Explainer(folder, photos, names)
 
 
 @app.command()
 def export(
     checkpoint: Optional[Path] = typer.Option(None, metavar="CKPT", help="A trained model (cuboidtrain run's last.pt, or a model file); default: the shipped model of --shape."),
-    shape: ShapeChoice = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model."),
+    shape: ShapeChoice = SHIPPED_SHAPE,
     onnx: Path = typer.Option(..., metavar="OUT.onnx", help="Where the ONNX model goes (replaced atomically)."),
     refine_steps: int = typer.Option(1, metavar="K", help="Refiner passes in the graph, each on the last one's binary output."),
     opset: int = typer.Option(17, help="ONNX opset (11 to 20)."),
@@ -272,6 +240,12 @@ def export(
 STREET_HELP = "A street's known buildings (README: Localization); locate the MASKs in it."
 TEMPERATURE_HELP = "Probabilities are softmax(-distance / temperature)."
 BOX_CHECKPOINT_HELP = "A trained box model (street buildings are single boxes); default: the shipped one."
+BOX_CHECKPOINTS = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP)
+TEMPERATURE = typer.Option(1.0, help=TEMPERATURE_HELP)
+REFINE_STEPS_AS_INFER = refine_steps_option("Refiner passes, as infer.")
+MARGIN_AS_INFER = typer.Option(FIT.margin, help="Framing margin, as infer.")
+RESULT_JSON = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout.")
+BARS = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position.")
 
 
 @app.command()
@@ -279,14 +253,14 @@ def localize(
     mask_args: Optional[list[str]] = typer.Argument(None, metavar="MASK", help="Masks of consecutive buildings, in street order."),
     street: Path = typer.Option(..., metavar="STREET.json", help=STREET_HELP),
     masks: Optional[list[str]] = typer.Option(None, "--masks", metavar="MASK", help="Masks in street order: --masks A B C, or one per --masks."),
-    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP),
-    temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
-    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes, as infer."),
-    margin: float = typer.Option(FIT.margin, help="Framing margin, as infer."),
-    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
-    bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
-    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
-    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
+    checkpoint: Optional[list[Path]] = BOX_CHECKPOINTS,
+    temperature: float = TEMPERATURE,
+    refine_steps: str = REFINE_STEPS_AS_INFER,
+    margin: float = MARGIN_AS_INFER,
+    json_out: Optional[str] = RESULT_JSON,
+    bars: Optional[Path] = BARS,
+    device: str = DEVICE,
+    threads: Optional[int] = THREADS,
 ) -> None:
     """Localization (paper section 5): where in a known street the MASKs were taken, start positions ranked."""
     from cuboidtrain import localize as loc
@@ -309,7 +283,7 @@ def localize(
 
 @app.command("localize-experiment")
 def localize_experiment(
-    checkpoint: Optional[list[Path]] = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP),
+    checkpoint: Optional[list[Path]] = BOX_CHECKPOINTS,
     buildings: int = typer.Option(100, help="N, buildings per random street."),
     max_m: int = typer.Option(30, help="M, the longest sub-sequence (at most N)."),
     top_l: int = typer.Option(5, help="L, the widest top-l."),
@@ -321,16 +295,16 @@ def localize_experiment(
     oracle_noise: float = typer.Option(0.0, metavar="SIGMA", help="The oracle's relative Gaussian noise (0: exact ratios)."),
     example_m: int = typer.Option(4, help="Figure 12's sub-sequence length."),
     example_start: Optional[int] = typer.Option(None, help="Figure 12's true start, 1-based (default the middle)."),
-    temperature: float = typer.Option(1.0, help=TEMPERATURE_HELP),
-    refine_steps: str = typer.Option(str(FIT.refine_steps), metavar="K|auto", help="Refiner passes, as infer."),
-    margin: float = typer.Option(FIT.margin, help="Framing margin, as infer."),
+    temperature: float = TEMPERATURE,
+    refine_steps: str = REFINE_STEPS_AS_INFER,
+    margin: float = MARGIN_AS_INFER,
     cuboid: bool = typer.Option(FIT.cuboid, "--cuboid", help="The ratios of the perspective box fitted to each mask (infer --cuboid), not the Tabulator's."),
-    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="The result as JSON: a file or - for stdout."),
+    json_out: Optional[str] = RESULT_JSON,
     csv_out: Optional[Path] = typer.Option(None, "--csv", metavar="OUT.csv", help="acc(m, l), one row per m."),
     heatmap: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figures 10-11's heat map of acc(m, l)."),
-    bars: Optional[Path] = typer.Option(None, metavar="OUT.png", help="Figure 12: probability of each start position."),
-    device: str = typer.Option(FIT.device, help=DEVICE_HELP),
-    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
+    bars: Optional[Path] = BARS,
+    device: str = DEVICE,
+    threads: Optional[int] = THREADS,
 ) -> None:
     """The localization experiment (paper section 5.1, eq. 2): acc(m, l) on random streets drawn by the generator."""
     from cuboidtrain.experiments import localize_experiment as experiment
@@ -385,7 +359,7 @@ def report(
     samples: int = typer.Option(500, help="Validation samples per spool and model."),
     sweep_samples: int = typer.Option(200, help="Generated samples per noise level, per shape for shape selection (twice this for occlusion)."),
     seed: int = typer.Option(0, help="Seed of the generated sweeps."),
-    threads: Optional[int] = typer.Option(None, help="CPU threads for torch (default: all cores)."),
+    threads: Optional[int] = THREADS,
     device: str = typer.Option("cpu", help="cpu, cuda or cuda:N."),
 ) -> None:
     """Measure Table 3, Figure 14, occlusion, refinement, extractors and shape selection; write REPORT.md."""

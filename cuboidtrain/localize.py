@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.fitter import Fitter, FitFailure
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.fit.options import FitOptions
 from shared.errors import UsageError
@@ -205,14 +205,14 @@ def localize_masks(street: list[Building], masks: list[str], models: list[Cuboid
     if not temperature > 0:
         raise UsageError(f"--temperature {temperature}: expected a positive number")
     options = replace(options or FitOptions(), shape="box")
-    records = Fitter([box_model(models)], options).records(masks)
-    for record in records:
-        if record["error"] is not None:
-            raise UsageError(f"{record['error']} (every mask is needed: the sequence cannot have a gap)")
-    predicted = np.array([[r["ratios"][k] for k in RATIO_KEYS] for r in records])
+    fits = Fitter([box_model(models)], options).records(masks)
+    for fit in fits:
+        if isinstance(fit, FitFailure):
+            raise UsageError(f"{fit.reason} (every mask is needed: the sequence cannot have a gap)")
+    predicted = np.array([[f.ratios[k] for k in RATIO_KEYS] for f in fits])
     return {
         "format": "cuboid-fit/localization", "version": 1, "temperature": temperature,
-        "masks": [{"input": r["input"], "ratios": r["ratios"], "confidence": r["confidence"]} for r in records],
+        "masks": [{"input": f.input, "ratios": f.ratios, "confidence": f.confidence} for f in fits],
         "street": street_to_dict(street),
         "ranking": rank_starts(street, predicted, temperature),
     }

@@ -66,8 +66,10 @@ def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     """`cuboidtrain infer`'s records through the Fitter, on the CPU; `options` as FitOptions'."""
     from cuboidtrain.fit.fitter import Fitter
     from cuboidtrain.fit.options import FitOptions
+    from cuboidtrain.infer.records import to_records
 
-    return Fitter(models, FitOptions(**({"device": "cpu"} | options))).records(paths, explain=explain)
+    fitter = Fitter(models, FitOptions(**({"device": "cpu"} | options)))
+    return to_records(fitter.records(paths, explain=explain), fitter.options)
 
 
 def with_generated_pdm(model):

@@ -18,7 +18,7 @@ from rich.console import Console
 from cuboidtrain.infer.batch import Batch, run_batch
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.infer.records import read_records
+from cuboidtrain.infer.records import read_records, to_records
 from cuboidtrain.models.zoo import default_checkpoints
 from tests.conftest import write_mask_pngs
 
@@ -42,7 +42,8 @@ def reference(paths, options, workers=1) -> list[dict]:
     try:
         checkpoints = default_checkpoints(None, options.shapes)
         batch = Batch(tuple(paths), tuple(checkpoints), options, workers)
-        return run_batch(batch, Fitter.from_files(checkpoints, options), Console(file=open(os.devnull, "w")))[0]
+        outcomes = run_batch(batch, Fitter.from_files(checkpoints, options), Console(file=open(os.devnull, "w")))[0]
+        return to_records(outcomes, options)
     finally:
         torch.set_num_threads(threads)
 

@@ -14,7 +14,7 @@ from rich.console import Console
 from cuboidtrain.infer.batch import Batch, run_batch
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.infer.records import read_records
+from cuboidtrain.infer.records import read_records, to_records
 from cuboidtrain.models.zoo import default_checkpoints
 from shared.errors import UsageError
 from tests.conftest import write_mask_pngs
@@ -35,8 +35,9 @@ def run(paths, **batch) -> list[dict]:
     try:
         checkpoints = default_checkpoints(None, OPTIONS.shapes)
         fitter = Fitter.from_files(checkpoints, OPTIONS)
-        return run_batch(Batch(tuple(paths), tuple(checkpoints), OPTIONS, **batch), fitter,
-                         Console(file=open(os.devnull, "w")))[0]
+        outcomes = run_batch(Batch(tuple(paths), tuple(checkpoints), OPTIONS, **batch), fitter,
+                             Console(file=open(os.devnull, "w")))[0]
+        return to_records(outcomes, OPTIONS)
     finally:
         torch.set_num_threads(threads)
 

@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 import cuboidgen.cli
 import cuboidtrain.cli
-from cuboidtrain.train.monitor.status import TrainerStatus, write_status
+from cuboidtrain.train.monitor.status import Checkpoint, TrainerStatus, write_status
 from shared.sample import encode
 from shared.spool import SpoolWriter
 from tests.conftest import build_sample
@@ -286,7 +286,7 @@ def test_trainer_service_starts_fresh_then_resumes(clean_env, volumes, tmp_path,
 
     def fake_training(config, dashboard=None):
         seen.append(config)
-        return {"state": "done", "step": 0, "last_checkpoint": {"path": f"{config.out}/last.pt"}}
+        return TrainerStatus(state="done", step=0, rank=0, last_checkpoint=Checkpoint(f"{config.out}/last.pt", 0))
 
     clean_env.setattr("cuboidtrain.train.loop.run", fake_training)
     for already_trained in (False, True):

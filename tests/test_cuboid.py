@@ -9,8 +9,9 @@ import pytest
 
 from cuboidgen.config import PAPER_CLEAN
 from cuboidtrain.fit import cuboid as stage
-from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.fitter import Fitter, FitFailure
 from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.infer.records import to_record, to_records
 from shared.files import json_text
 from shared.shapes import get_shape
 from tests.conftest import build_sample
@@ -41,7 +42,7 @@ def records(masks):
     out = {}
     for cuboid in (False, True):
         fitters = {s: Fitter.from_shipped(FitOptions(shape=s, device="cpu", cuboid=cuboid)) for s in ("box", "twobox")}
-        out[cuboid] = [fitters[s.shape].records([p])[0] for p, s in zip(paths, samples)]
+        out[cuboid] = [to_record(fitters[s.shape].records([p])[0], cuboid=cuboid) for p, s in zip(paths, samples)]
     return out
 
 
@@ -102,7 +103,7 @@ def test_without_the_option_the_record_has_no_cuboid(records):
 def test_auto_chooses_by_the_fitted_cuboids(masks):
     paths, samples = masks
     fitted = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)).records(paths[:1] + paths[3:4])
-    for record in fitted:
+    for record in to_records(fitted, FitOptions(cuboid=True)):
         assert set(record["candidates"]) == {"box", "twobox"}
         assert record["cuboid"]["iou"] == record["candidates"][record["shape"]]
         assert concurrency(record["shape"], record["keypoints"]) < 1e-9
@@ -112,7 +113,9 @@ def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
     real = stage.fit_masks
     monkeypatch.setattr(stage, "fit_masks", lambda *a, **k: [replace(f, yaw_deg=float("nan")) for f in real(*a, **k)])
     paths, _ = masks
-    record = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).records(paths[:1])[0]
+    [failure] = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).records(paths[:1])
+    assert isinstance(failure, FitFailure) and failure.input == paths[0]
+    record = to_record(failure, cuboid=True)
     assert record["keypoints"] is None and record["cuboid"] is None
     assert "cuboid fit's yaw/pitch/roll is not finite" in record["error"]
 
@@ -184,7 +187,7 @@ def test_when_no_class_is_plausible_all_are_judged_alike():
 
 
 def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
-    """eval fits a batch of masks at once (`fit_candidates`): each mask's rows read its own outline
+    """eval fits a batch of masks at once (`Fitter.fit_cuboids`): each mask's rows read its own outline
     (padded to the longest), field, corners and anchor, so every fit equals the mask fitted alone;
     a small mask's shorter outline pads the batch."""
     from cuboidtrain.fit.masks import frame
@@ -200,9 +203,9 @@ def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
             candidates.append(fitter.fit_framed(model, *frame(mask, model.size)))
             targets.append(MaskTarget.of(mask))
     assert len({len(t.outline) for t in targets}) > 1  # the outlines differ in length: padding is tested
-    together = stage.fit_candidates(candidates, targets)
+    together = fitter.fit_cuboids(candidates, targets)
     for candidate, target, fitted in zip(candidates, targets, together):
-        alone = stage.fit_candidate(candidate, target)
+        alone = fitter.fit_cuboid(candidate, target)
         assert fitted.fit.shape == candidate.shape
         np.testing.assert_allclose(fitted.fit.keypoints, alone.fit.keypoints, atol=1e-6)
         assert fitted.fit.iou == pytest.approx(alone.fit.iou, abs=1e-9)

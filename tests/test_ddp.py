@@ -78,7 +78,7 @@ def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
 
     from cuboidtrain.train.data import SKIP_REASONS
     from cuboidtrain.train.distributed import Ranks
-    from cuboidtrain.train.loop import batch_facts, stale
+    from cuboidtrain.train.agreement import batch_facts, stale
 
     @dataclass(frozen=True)
     class Pair(Ranks):  # two ranks in one process: sum() adds the other rank's values
@@ -97,11 +97,10 @@ def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
 
     full, short = batch(4, 0), batch(1, 3)  # three of rank 1's four samples were evicted
     for rank, (mine, theirs) in enumerate([(full, short), (short, full)]):
-        skipped, too_small = facts(mine, theirs, rank)
-        assert too_small and skipped["vanished"] == 3  # both ranks skip this step
-        assert not stale(skipped, 2 * 4)  # 3 of 8 vanished: the listing still holds
-    skipped, too_small = facts(batch(2, 2), batch(0, 4), 0)
-    assert stale(skipped, 2 * 4)  # 6 of 8 vanished: every rank lists the spool afresh
+        agreed = facts(mine, theirs, rank)
+        assert agreed.too_small and agreed.skipped["vanished"] == 3  # both ranks skip this step
+        assert not stale(agreed.skipped, 2 * 4)  # 3 of 8 vanished: the listing still holds
+    assert stale(facts(batch(2, 2), batch(0, 4), 0).skipped, 2 * 4)  # 6 of 8 vanished: every rank lists the spool afresh
 
 
 # ---- torchrun ---------------------------------------------------------------------------

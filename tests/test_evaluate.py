@@ -76,18 +76,18 @@ def test_mask_iou_on_hand_made_masks():
 def test_evaluate_reports_every_metric_in_range(box_spool):
     model = tiny_model("box", SIZE, seed=0).train()
     result = evaluate(model, box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=4)  # batches of 4 and 2
-    assert KEYS <= set(result)
-    assert (result["shape"], result["size"], result["samples"]) == ("box", SIZE, 6)
-    assert not any(result["skipped"].values())
-    assert 0 <= result["median_px_error"] and 0 <= result["mean_px_error"] < SIZE * math.sqrt(2)
+    assert KEYS <= set(result.to_dict())  # eval --json's object
+    assert (result.shape, result.size, result.samples) == ("box", SIZE, 6)
+    assert not any(result.skipped.values())
+    assert 0 <= result.median_px_error and 0 <= result.mean_px_error < SIZE * math.sqrt(2)
     geometry = get_shape("box")
-    assert list(result["per_keypoint_px_error"]) == list(geometry.keypoint_names)
-    assert np.mean(list(result["per_keypoint_px_error"].values())) == pytest.approx(result["mean_px_error"])
-    assert list(result["per_ratio_error"]) == list(geometry.ratio_names)
-    assert result["mean_ratio_error"] >= 0 and result["tabulator_px_error_on_true_heatmaps"] >= 0
-    assert 0 <= result["refiner_iou"] <= 1
-    pck = list(result["pck"].values())
-    assert list(result["pck"]) == ["0.5", "1.0", "2.0", "5.0"]
+    assert list(result.per_keypoint_px_error) == list(geometry.keypoint_names)
+    assert np.mean(list(result.per_keypoint_px_error.values())) == pytest.approx(result.mean_px_error)
+    assert list(result.per_ratio_error) == list(geometry.ratio_names)
+    assert result.mean_ratio_error >= 0 and result.tabulator_px_error_on_true_heatmaps >= 0
+    assert 0 <= result.refiner_iou <= 1
+    pck = list(result.pck.values())
+    assert list(result.pck) == ["0.5", "1.0", "2.0", "5.0"]
     assert all(0 <= p <= 1 for p in pck) and pck == sorted(pck)
     assert model.training, "evaluate must hand a training model back in train mode"
 
@@ -96,8 +96,8 @@ def test_evaluate_is_deterministic_and_independent_of_batch_size(box_spool):
     model = tiny_model("box", SIZE, seed=1)
     a = evaluate(model, box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=6)
     b = evaluate(model, box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=1)
-    assert a["mean_px_error"] == pytest.approx(b["mean_px_error"], rel=1e-5)
-    assert a["refiner_iou"] == pytest.approx(b["refiner_iou"], rel=1e-5)
+    assert a.mean_px_error == pytest.approx(b.mean_px_error, rel=1e-5)
+    assert a.refiner_iou == pytest.approx(b.refiner_iou, rel=1e-5)
 
 
 class CentroidTabulator(nn.Module):
@@ -140,14 +140,14 @@ class Oracle(nn.Module):
 
 def test_an_oracle_scores_perfectly(box_spool, box_samples):
     result = evaluate(Oracle(box_samples, "box", SIZE), box_spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=4)
-    assert result["samples"] == 6
-    assert result["mean_px_error"] == pytest.approx(0, abs=1e-5)
-    assert result["median_px_error"] == pytest.approx(0, abs=1e-5)
-    assert all(p == 1.0 for p in result["pck"].values())
-    assert result["mean_ratio_error"] == pytest.approx(0, abs=1e-6)
-    assert result["refiner_iou"] == 1.0
+    assert result.samples == 6
+    assert result.mean_px_error == pytest.approx(0, abs=1e-5)
+    assert result.median_px_error == pytest.approx(0, abs=1e-5)
+    assert all(p == 1.0 for p in result.pck.values())
+    assert result.mean_ratio_error == pytest.approx(0, abs=1e-6)
+    assert result.refiner_iou == 1.0
     # x3 is rendered at x4 in the pixel-centre convention: its centroid lands on it (a 0.5 px slip would show)
-    assert result["tabulator_px_error_on_true_heatmaps"] < 0.05
+    assert result.tabulator_px_error_on_true_heatmaps < 0.05
 
 
 @pytest.mark.parametrize("extractor, bound", [("dark", 0.01), ("centre-of-mass", 0.2), ("argmax", 0.71), ("pdm", 0.5)])
@@ -156,9 +156,9 @@ def test_an_oracles_heat_maps_decode_to_the_truth_with_every_extractor(box_spool
     # argmax its half-pixel grid (at most sqrt(2)/2 px).
     oracle = with_generated_pdm(Oracle(box_samples, "box", SIZE))
     result = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu", extractor=extractor))
-    assert result["extractor"] == extractor
-    assert result["mean_px_error"] < bound
-    assert result["extractor_px_error_on_true_heatmaps"] == pytest.approx(result["mean_px_error"], abs=1e-5)
+    assert result.extractor == extractor
+    assert result.mean_px_error < bound
+    assert result.extractor_px_error_on_true_heatmaps == pytest.approx(result.mean_px_error, abs=1e-5)
 
 
 def test_evaluate_skips_and_counts_other_samples(tmp_path):
@@ -170,10 +170,10 @@ def test_evaluate_skips_and_counts_other_samples(tmp_path):
     model = tiny_model("box", SIZE)
     result = evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"))
     # the 64 px box is framed at the model's size as infer frames a mask: evaluated, not skipped
-    assert result["samples"] == 4
-    assert result["skipped"] == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 0, "cut_off": 0}
+    assert result.samples == 4
+    assert result.skipped == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 0, "cut_off": 0}
     first_two = evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=1, max_samples=2)
-    assert first_two["samples"] == 2  # the first two box samples, past the others
+    assert first_two.samples == 2  # the first two box samples, past the others
 
 
 def test_a_spool_without_the_models_samples_is_a_clear_error(tmp_path):
@@ -192,12 +192,13 @@ def test_evaluate_checkpoint_reports_the_random_weights_row(tmp_path, box_spool)
     config = train_config(shape="box", size=SIZE, steps=1, sigma=1.5)
     path = save_checkpoint(tmp_path / "random.pt", tiny_model("box", SIZE, seed=3), config, step=7)
     result = evaluate_checkpoint(path, box_spool, FitOptions(device="cpu"), max_samples=4, random_init_seed=3)
-    assert {"random_init_mean_px_error", "random_init_median_px_error", "checkpoint", "step", "spool"} <= set(result)
-    assert (result["step"], result["samples"], result["sigma"]) == (7, 4, 1.5)
-    assert result["mean_px_error"] == result["random_init_mean_px_error"]
-    assert result["median_px_error"] == result["random_init_median_px_error"]
+    assert {"random_init_mean_px_error", "random_init_median_px_error", "checkpoint", "step", "spool"} <= set(
+        result.to_dict())  # eval --json's object
+    assert (result.reference.step, result.samples, result.sigma) == (7, 4, 1.5)
+    assert result.mean_px_error == result.reference.random_init_mean_px_error
+    assert result.median_px_error == result.reference.random_init_median_px_error
     other = evaluate_checkpoint(path, box_spool, FitOptions(device="cpu"), max_samples=4, random_init_seed=4)
-    assert other["random_init_mean_px_error"] != other["mean_px_error"]
+    assert other.reference.random_init_mean_px_error != other.mean_px_error
     report = format_report(result)
     assert "random init" in report and "BACK-RIGHT-TOP" in report and "step 7" in report
 
@@ -227,7 +228,7 @@ def test_eval_frames_samples_of_another_size_with_its_margin(spool_of_another_si
 def test_evaluate_honours_the_fit_options_margin(spool_of_another_size):
     model = tiny_model("box", SIZE, seed=3).eval()
     errors = {margin: evaluate(model, spool_of_another_size, sigma=1.0,
-                               options=FitOptions(device="cpu", margin=margin))["mean_px_error"]
+                               options=FitOptions(device="cpu", margin=margin)).mean_px_error
               for margin in (0.1, 0.3)}
     assert errors[0.1] != errors[0.3]  # another framing, other inputs, other answers
 
@@ -243,15 +244,16 @@ def test_an_oracle_scores_both_paths_near_the_truth(box_spool, box_samples):
     oracle = Oracle(box_samples, "box", SIZE)
     result = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu", cuboid=True), batch_size=4,
                       paths=True)
-    networks, cuboid = result["paths"]["networks"], result["paths"]["cuboid"]
+    networks, cuboid = result.paths["networks"], result.paths["cuboid"]
     assert networks["samples"] == cuboid["samples"] == 6 and networks["failed"] == 0
     assert networks["mean_px"] == pytest.approx(0, abs=1e-5)  # the truth's corners, back in the sample's px
     assert networks["posed"] == 6 and networks["yaw_median_deg"] < 0.01 and networks["iou3d_median"] > 0.999
     assert cuboid["failed"] == 0 and cuboid["median_px"] < 2.0  # the cuboid fitted to the noisy mask from there
     assert all(isinstance(cuboid[k], float) and math.isfinite(cuboid[k]) for k in PATH_FIGURES)
     without = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu"), paths=True)
-    assert list(without["paths"]) == ["networks"]  # the cuboid path only where the options ask for it
-    assert "paths" not in evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu"))
+    assert list(without.paths) == ["networks"]  # the cuboid path only where the options ask for it
+    plain = evaluate(oracle, box_spool, sigma=1.0, options=FitOptions(device="cpu"))
+    assert plain.paths is None and "paths" not in plain.to_dict()
 
 
 def test_eval_cuboid_reports_both_paths_with_finite_numbers(tmp_path):
@@ -275,3 +277,32 @@ def test_eval_cuboid_reports_both_paths_with_finite_numbers(tmp_path):
         assert 0 <= figures["iou3d_mean"] <= 1 and 0 <= figures["yaw_mean_deg"] <= 90
     table = CliRunner().invoke(app, args)
     assert table.exit_code == 0 and "3D IoU" in table.output and "cuboid" in table.output, table.output
+
+
+def test_eval_scores_the_very_fits_infer_gives(tmp_path):
+    """One pipeline: each sample's cuboid path in `eval --cuboid` is the answer `Fitter.fit` (what
+    `infer` runs) gives for that sample's mask, though eval fits a batch of samples at once."""
+    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.geometry.scoring import Truth, score
+    from cuboidtrain.train.evaluate import load_batches, measure
+
+    spool = tmp_path / "val"
+    publish(spool, [build_sample(seed, "box", size=128) for seed in range(5)])
+    options = FitOptions(device="cpu", cuboid=True, shape="box")
+    fitter = Fitter.from_shipped(options)
+    [model] = fitter.models
+    batches, _ = load_batches(spool, "box", model.size, 3, None, options.margin, keep_sources=True)
+    scored = measure(model, batches, model.sigma, options, paths=True)["paths"]
+    sources = [source for batch in batches for source in batch["sources"]]
+    assert len(sources) == len(scored["cuboid"]) == 5
+    for source, networks, cuboid in zip(sources, scored["networks"], scored["cuboid"]):
+        fit = fitter.fit(source.sample.noisy)
+        truth = Truth.of_sample(source.sample)
+        expected = score(fit.keypoints, fit.ratios, truth, fit.cuboid.fit.camera)
+        np.testing.assert_allclose(np.concatenate([cuboid.hull, cuboid.interior]),
+                                   np.concatenate([expected.hull, expected.interior]), atol=1e-4)
+        assert cuboid.iou3d == pytest.approx(expected.iou3d, abs=1e-4)
+        plain = Fitter([model], FitOptions(device="cpu", shape="box")).fit(source.sample.noisy)  # --networks-only
+        alone = score(plain.keypoints, plain.ratios, truth)
+        np.testing.assert_allclose(np.concatenate([networks.hull, networks.interior]),
+                                   np.concatenate([alone.hull, alone.interior]), atol=1e-4)

@@ -31,7 +31,8 @@ from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.monitor.dashboard import render, watch
 from cuboidtrain.train.files import sweep_orphans as sweep_run_folder
 from cuboidtrain.train.monitor.status import TrainerStatus, read_status, trainer_died, write_status
-from cuboidtrain.train.loop import NoUsableSamples, StopRequest, run
+from cuboidtrain.train.loop import NoUsableSamples, run
+from cuboidtrain.train.stopping import StopRequest
 from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
 from shared.sample import encode
@@ -69,10 +70,10 @@ def stop_at_listing(monkeypatch, count: int) -> tuple[StopRequest, list[float]]:
     return stop, times
 
 
-def shown(status: dict) -> str:
-    """The dashboard of the status that run() returns (status.json's form)."""
+def shown(status: TrainerStatus) -> str:
+    """The dashboard of the status that run() returns."""
     console = Console(width=200, record=True, file=io.StringIO())
-    console.print(render(TrainerStatus.from_json(status)))
+    console.print(render(status))
     return console.export_text()
 
 
@@ -237,10 +238,10 @@ def polluted(tmp_path) -> Path:
 
 def test_the_trainer_skips_counts_and_reports_corrupt_and_foreign_files(polluted, tmp_path):
     status = run(config(polluted, tmp_path / "run", steps=6))
-    assert status["state"] == "done" and status["step"] == 6
-    assert status["skipped"]["corrupt"] >= 4  # 4 unreadable names in each of >= 2 epochs of 10 names
-    assert status["foreign_files"] == 2  # notes.txt, junk/ (the sample-named folder counts as corrupt)
-    text = " ".join(status["notes"])
+    assert status.state == "done" and status.step == 6
+    assert status.skipped["corrupt"] >= 4  # 4 unreadable names in each of >= 2 epochs of 10 names
+    assert status.foreign_files == 2  # notes.txt, junk/ (the sample-named folder counts as corrupt)
+    text = " ".join(status.notes)
     assert "corrupt samples skipped" in text and "2 foreign files" in text
     assert "corrupt" in shown(status) and "foreign files" in shown(status)  # on the dashboard
 
@@ -260,7 +261,7 @@ def test_an_empty_spool_waits_saying_so_without_spinning_and_stops_when_asked(tm
     stop, listings = stop_at_listing(monkeypatch, 3)
     caplog.set_level(logging.INFO, "cuboidtrain")
     status = run(config(tmp_path / "spool", tmp_path / "run", steps=None), stop=stop)
-    assert status["state"] == "stopped" and status["step"] == 0
+    assert status.state == "stopped" and status.step == 0
     assert "holds 0 samples: waiting for at least 2" in caplog.text
     assert len(listings) == 3 and listings[2] - listings[0] >= 0.9  # polled every 0.5 s, not in a busy loop
     assert not (tmp_path / "run" / "last.pt").exists()  # no checkpoint of untrained weights
@@ -269,9 +270,9 @@ def test_an_empty_spool_waits_saying_so_without_spinning_and_stops_when_asked(tm
 def test_a_spool_of_three_samples_is_reused_and_says_how_often(tmp_path):
     fill(tmp_path / "spool", 3)
     status = run(config(tmp_path / "spool", tmp_path / "run", steps=8))
-    assert status["step"] == 8 and status["epoch"] == 7  # one batch of 2 per listing of 3
-    assert status["freshness"]["mean_reuse"] >= 3  # 16 uses of 3 samples
-    assert f"mean reuse {status['freshness']['mean_reuse']:.1f}" in shown(status)
+    assert status.step == 8 and status.epoch == 7  # one batch of 2 per listing of 3
+    assert status.freshness.mean_reuse >= 3  # 16 uses of 3 samples
+    assert f"mean reuse {status.freshness.mean_reuse:.1f}" in shown(status)
 
 
 def test_a_spool_of_only_corrupt_files_waits_rather_than_spins(tmp_path, monkeypatch, caplog):
@@ -282,9 +283,9 @@ def test_a_spool_of_only_corrupt_files_waits_rather_than_spins(tmp_path, monkeyp
     stop, listings = stop_at_listing(monkeypatch, 3)
     caplog.set_level(logging.INFO, "cuboidtrain")
     status = run(config(spool, tmp_path / "run", steps=None), stop=stop)
-    assert status["state"] == "stopped" and status["step"] == 0
+    assert status.state == "stopped" and status.step == 0
     assert len(listings) == 3 and listings[2] - listings[0] >= 0.9  # a pause between listings: no spinning
-    assert status["skipped"]["corrupt"] == 3 * 2  # one batch of 2 per listing of 3
+    assert status.skipped["corrupt"] == 3 * 2  # one batch of 2 per listing of 3
     assert "no usable sample in the last listing (2 corrupt)" in caplog.text
 
 
@@ -299,10 +300,10 @@ def test_a_spool_of_unusable_samples_backs_off_says_why_and_writes_no_checkpoint
     stop, listings = stop_at_listing(monkeypatch, 9)
     caplog.set_level(logging.INFO, "cuboidtrain")
     status = run(config(spool, tmp_path / "run", steps=None, reframe=False), stop=stop)
-    assert status["state"] == "stopped" and status["step"] == 0
+    assert status.state == "stopped" and status.step == 0
     assert pauses == [0.5, 1, 2, 4, 8, 16, 30, 30, 30]  # doubling up to 30 s between listings
     reason = "no usable sample in the last listing (2 other size); samples of another size need --reframe"
-    assert reason in status["idle"] and reason in " ".join(status["notes"])
+    assert reason in status.idle and reason in " ".join(status.notes)
     assert "no usable sample" in shown(status)  # on the dashboard
     assert reason in caplog.text and "listing again in 0.5 s" in caplog.text
     assert caplog.text.count(reason) == 1  # the same reason is logged once (again after a minute)

@@ -128,15 +128,18 @@ def test_eval_and_infer_refuse_a_diverged_checkpoint_in_one_line(spool, tmp_path
 
 
 def test_a_fit_that_gives_a_non_finite_value_is_an_error_record(monkeypatch):
-    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.fit.fitter import Fitter, FitFailure
     from cuboidtrain.fit.options import FitOptions
+    from cuboidtrain.infer.records import to_records
 
     model = tiny_model("box", SIZE)
     with torch.no_grad():  # a model in hand, not from a file: nothing checked its weights
         for p in model.tabulator.parameters():
             p.fill_(float("nan"))
-    records = Fitter([model], FitOptions(device="cpu")).records(["examples/building.png"])
-    assert len(records) == 1 and records[0]["keypoints"] is None and records[0]["confidence"] is None
+    outcomes = Fitter([model], FitOptions(device="cpu")).records(["examples/building.png"])
+    assert len(outcomes) == 1 and isinstance(outcomes[0], FitFailure)
+    records = to_records(outcomes, FitOptions())
+    assert records[0]["keypoints"] is None and records[0]["confidence"] is None
     assert "not finite" in records[0]["error"]
     strict_loads(json_text(records))
 

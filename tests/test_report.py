@@ -66,9 +66,9 @@ def test_table3_trained_row_is_evaluate_on_the_same_samples(setup):
     rows = table3("box", model, batches, torch.device("cpu"))
     assert [r["configuration"] for r in rows] == list(PAPER_TABLE3)
     expected = evaluate(model, spools["clean-box"], model.sigma, FitOptions(device="cpu"))
-    assert rows[1]["mean_px_error"] == pytest.approx(expected["mean_px_error"], rel=1e-6)
+    assert rows[1]["mean_px_error"] == pytest.approx(expected.mean_px_error, rel=1e-6)
     assert rows[2]["mean_px_error"] == pytest.approx(
-        evaluate(model, spools["clean-box"], model.sigma, FitOptions(device="cpu", extractor="pdm"))["mean_px_error"],
+        evaluate(model, spools["clean-box"], model.sigma, FitOptions(device="cpu", extractor="pdm")).mean_px_error,
         rel=1e-6)
     assert "mean_px_error" not in rows[3] and "mean_px_error" not in rows[4]  # not given: not trained
 
@@ -80,7 +80,7 @@ def test_run_report_measures_every_experiment(setup):
                           noisy_spools=(str(spools["noisy-box"]),), e2e=(str(ckpts["twobox"]),),
                           samples=3, sweep_samples=3)
     results = run_report(config)
-    box, twobox = results["shapes"]["box"], results["shapes"]["twobox"]
+    box, twobox = results.shapes["box"], results.shapes["twobox"]
     assert box["clean_spool"] == str(spools["clean-box"]) and twobox["clean_spool"] == str(spools["clean-twobox"])
     assert box["table3"][1]["samples"] == 3
     assert twobox["table3"][4]["mean_px_error"] == pytest.approx(twobox["table3"][1]["mean_px_error"])  # same file
@@ -88,12 +88,14 @@ def test_run_report_measures_every_experiment(setup):
     assert sum(r["samples"] for r in box["occlusion"]) == 6 and len(box["occlusion"]) == len(OCCLUSION_BINS) - 1
     assert set(box["extractors"]) == {"clean", "noisy"} and set(twobox["extractors"]) == {"clean"}
     assert [r["refine_steps"] for r in box["refinement"]] == [0, 1, 2, 3, "auto"] and "refinement" not in twobox
-    selection = results["shape_selection"]
+    selection = results.shape_selection
     assert selection["samples"] == 6 and sum(map(sum, (r.values() for r in selection["confusion"].values()))) == 6
     assert selection["accuracy"] == pytest.approx((selection["confusion"]["box"]["box"]
                                                    + selection["confusion"]["twobox"]["twobox"]) / 6)
-    assert results["models"]["box"]["trained"]["step"] == 7
-    assert 1 <= results["models"]["box"]["pdm"]["components"] <= 16
+    assert results.models["box"]["trained"]["step"] == 7
+    assert 1 <= results.models["box"]["pdm"]["components"] <= 16
+    assert list(results.to_dict()) == ["config", "models", "shapes", "shape_selection"]  # report.json's keys, in order
+    assert results.config == config and results.to_dict()["config"] == config.__dict__
 
 
 def test_cli_writes_the_report_its_json_and_plots(setup):
@@ -109,6 +111,7 @@ def test_cli_writes_the_report_its_json_and_plots(setup):
         assert heading in text
     assert "## Shape selection" not in text  # one model: nothing to choose between
     results = json.loads((out / "report.json").read_text())
+    assert list(results) == ["config", "models", "shapes"]  # one model: no shape selection
     table = results["shapes"]["box"]["table3"]
     assert f"| random weights | 17.9 | {table[0]['mean_px_error']:.2f}" in text  # the numbers are the JSON's
     for name in ("noise", "occlusion", "refinement", "extractors"):

@@ -22,6 +22,7 @@ from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.data import SpoolBatches, prepare_batch
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.loop import learning_rate, run
+from cuboidtrain.train.monitor.status import TrainerStatus, read_status
 from shared.errors import UsageError
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
@@ -114,7 +115,7 @@ def test_a_short_run_lowers_every_loss_on_its_samples(spool, tmp_path):
     status = run(config(spool, tmp_path, steps=40, lr=2e-3, batch_size=6))
     with torch.no_grad():
         after = phase_losses(load_model(tmp_path / "last.pt")[0].train(), x, "1", 1.0)
-    assert status["state"] == "done" and status["step"] == 40
+    assert status.state == "done" and status.step == 40
     for key in ("D_R", "D_S", "D_T"):
         assert after[key].item() < 0.7 * before[key].item(), key
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
@@ -163,13 +164,13 @@ def test_a_listing_gone_stale_ends_the_epoch_and_lists_afresh(tmp_path, monkeypa
 
     monkeypatch.setattr(train_module, "prepare_batch", evict_after_first_step)
     status = run(config(spool, tmp_path / "run", steps=3))
-    assert status["step"] == 3
-    assert 0 < status["skipped"]["vanished"] <= 8  # one stale batch, not the 32 dead names
+    assert status.step == 3
+    assert 0 < status.skipped["vanished"] <= 8  # one stale batch, not the 32 dead names
 
 
 def test_epochs_mode_trains_whole_passes(spool, tmp_path):
     status = run(config(spool, tmp_path, steps=None, epochs=2))
-    assert status["step"] == 6  # 2 epochs x 3 batches of 4 from 12 samples
+    assert status.step == 6  # 2 epochs x 3 batches of 4 from 12 samples
     assert load_checkpoint(tmp_path / "last.pt")["loader"]["epoch"] == 1
 
 
@@ -276,15 +277,27 @@ def test_a_validation_spool_gone_mid_run_costs_no_step(spool, tmp_path, monkeypa
 
     monkeypatch.setattr(loop, "validate", validate_then_lose_the_spool)
     status = run(config(spool, tmp_path / "run", steps=3, val_spool=str(val), val_every=1, val_samples=4))
-    assert status["state"] == "done" and load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 3
-    assert any(note.startswith(f"--val-spool {val}: validation at step 3 failed") for note in status["notes"])
+    assert status.state == "done" and load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 3
+    assert any(note.startswith(f"--val-spool {val}: validation at step 3 failed") for note in status.notes)
 
 
 def test_a_batch_of_one_trains(spool, tmp_path):
     # Every batch of one was skipped as too small for BatchNorm, which needs two values per
     # channel, not two samples: the run waited for ever on a full spool (issue 22).
     status = run(config(spool, tmp_path / "run", steps=3, batch_size=1, max_wait=5.0))
-    assert status["state"] == "done" and status["step"] == 3
+    assert status.state == "done" and status.step == 3
+
+
+def test_run_returns_the_typed_status_whose_fields_the_command_line_prints(spool, tmp_path):
+    out = tmp_path / "run"
+    status = run(config(spool, out, steps=2, checkpoint_every=1))
+    assert isinstance(status, TrainerStatus)
+    assert (status.state, status.step, status.rank, status.world_size) == ("done", 2, 0, 1)
+    assert status.last_checkpoint.path == str(out / "last.pt") and status.last_checkpoint.step == 2
+    assert status.to_json() == {**read_status(out).to_json(), "updated": status.updated}  # status.json's figures
+    result = cli_run(spool, tmp_path / "cli", "--steps", "2")
+    assert result.exit_code == 0, result.output
+    assert f"done at step 2; checkpoint {tmp_path / 'cli' / 'last.pt'}" in " ".join(result.output.split())  # wrapped
 
 
 def test_the_least_batch_is_measured_and_a_smaller_one_refused_before_any_step(spool, tmp_path):

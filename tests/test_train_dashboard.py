@@ -202,7 +202,7 @@ def test_the_live_panel_leaves_room_for_the_echoed_ctrl_c():
 def test_a_stop_is_seen_before_its_handler_runs(tmp_path):
     import signal
 
-    from cuboidtrain.train.loop import StopRequest
+    from cuboidtrain.train.stopping import StopRequest
 
     with StopRequest().installed() as stop:
         write = signal.set_wakeup_fd(-1)  # the pipe the signal module writes each signal's number to
@@ -245,7 +245,7 @@ def test_status_stays_fresh_through_a_long_step_and_says_when_a_stop_waits_for_i
     assert first["state"] == "training" and second["state"] == "training"
     assert second["updated"] > first["updated"] and t1 - second["updated"] < 2.0  # rewritten during the step
     assert third["state"] == "stopping after this step" and third["step"] == 0
-    assert final["state"] == "stopped" and final["step"] == 1  # the step in hand was finished
+    assert final.state == "stopped" and final.step == 1  # the step in hand was finished
     assert "stopping after this step" in as_text(render(TrainerStatus.from_json(third), now=third["updated"]))
 
 

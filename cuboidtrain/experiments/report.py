@@ -1,7 +1,8 @@
 """The report's experiments (paper section 4.1, Table 3, Figure 14 and our additions), as data.
 
 Each experiment measures trained models on fixed samples and returns plain
-dicts; `cuboidtrain.experiments.report_figures` turns them into REPORT.md and its plots.
+dicts; `run_report` gathers them in a `ReportResults`, which
+`cuboidtrain.experiments.report_figures` turns into REPORT.md, report.json and the plots.
 
 - Table 3: the chain's mean keypoint error on clean validation masks for random
   weights, the trained model (phases 1 + 2), T replaced by a PDM, the phase 1
@@ -20,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,25 @@ class ReportConfig:
         return self
 
 
+@dataclass(frozen=True)
+class ReportResults:
+    """Every experiment's figures (`run_report`): the options they were measured with, each shape
+    class's models (`models`) and figures (`shapes`), and shape selection's, given two or more
+    classes of one size (else None). `to_dict` is report.json's object, key for key."""
+
+    config: ReportConfig
+    models: dict[str, dict]
+    shapes: dict[str, dict]
+    shape_selection: dict | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON object of report.json: config, models, shapes, then shape_selection when measured."""
+        data = {"config": asdict(self.config), "models": self.models, "shapes": self.shapes}
+        if self.shape_selection is not None:
+            data["shape_selection"] = self.shape_selection
+        return data
+
+
 def load_by_shape(paths: tuple[str, ...], role: str) -> dict[str, tuple[CuboidNet, dict, str]]:
     """{shape: (model, checkpoint dict, path)}, one per shape class."""
     models = {}
@@ -102,9 +122,9 @@ def mean_error(model: CuboidNet, batches: list[dict], device, extractor: str = "
                refine_steps: int | None = 1) -> dict:
     options = FitOptions(device=device, extractor=extractor, refine_steps=refine_steps)
     result = report(model, batches, {}, model.sigma, options)
-    return {"mean_px_error": result["mean_px_error"], "median_px_error": result["median_px_error"],
-            "refiner_iou": result["refiner_iou"], "samples": result["samples"],
-            "mean_ratio_error": result["mean_ratio_error"]}
+    return {"mean_px_error": result.mean_px_error, "median_px_error": result.median_px_error,
+            "refiner_iou": result.refiner_iou, "samples": result.samples,
+            "mean_ratio_error": result.mean_ratio_error}
 
 
 def table3(shape: str, model: CuboidNet, batches: list[dict], device, finetune=None, e2e=None) -> list[dict]:
@@ -184,30 +204,33 @@ def shape_selection(models: dict[str, CuboidNet], count: int, seed: int, device,
             "seeds": [seed, seed + count - 1]}
 
 
-def run_report(config: ReportConfig) -> dict:
-    """Every experiment for every shape class given; the dict REPORT.md is written from."""
+def run_report(config: ReportConfig) -> ReportResults:
+    """Every experiment for every shape class given: the results REPORT.md is written from."""
     config = config.validate()
     device = resolve_device(config.device)
     main = load_by_shape(config.checkpoints, "--checkpoint")
     finetune, e2e = load_by_shape(config.finetune, "--finetune"), load_by_shape(config.e2e, "--e2e")
     check_ablations(main, {"--finetune": finetune, "--e2e": e2e})
     library = OccluderLibrary.load(None)
-    results = {"config": config.__dict__, "models": {}, "shapes": {}}
+    models, shapes = {}, {}
     with tempfile.TemporaryDirectory(prefix="cuboid-report-") as tmp:
         for shape, (model, ckpt, path) in main.items():
             log.info("report: %s", shape)
-            results["models"][shape] = _describe(ckpt, path, finetune.get(shape), e2e.get(shape))
+            models[shape] = _describe(ckpt, path, finetune.get(shape), e2e.get(shape))
             pdm = make_codec("pdm", with_pdm(model))
-            results["models"][shape]["pdm"] = {"components": pdm.active, "variance_fraction": pdm.components}
-            results["shapes"][shape] = _shape_results(config, model, finetune.get(shape), e2e.get(shape),
-                                                      Path(tmp), library, device)
-        if len(main) > 1:
-            sizes = {m.size for m, _, _ in main.values()}
-            if len(sizes) == 1:
-                results["shape_selection"] = shape_selection({s: m for s, (m, _, _) in main.items()},
-                                                             config.sweep_samples, config.seed + 50_000, device,
-                                                             library)
-    return results
+            models[shape]["pdm"] = {"components": pdm.active, "variance_fraction": pdm.components}
+            shapes[shape] = _shape_results(config, model, finetune.get(shape), e2e.get(shape), Path(tmp), library,
+                                           device)
+        selection = _selection(config, main, device, library)
+    return ReportResults(config, models, shapes, selection)
+
+
+def _selection(config: ReportConfig, main: dict, device, library) -> dict | None:
+    """Shape selection's figures, given two or more shape classes of one size; else None."""
+    if len(main) < 2 or len({m.size for m, _, _ in main.values()}) != 1:
+        return None
+    return shape_selection({s: m for s, (m, _, _) in main.items()}, config.sweep_samples, config.seed + 50_000,
+                           device, library)
 
 
 def check_ablations(main: dict, ablations: dict[str, dict]) -> None:

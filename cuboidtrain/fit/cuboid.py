@@ -25,6 +25,7 @@ import numpy as np
 from cuboidtrain.fit.candidates import Candidate, choose
 from cuboidtrain.fit.completion import completed_target
 from cuboidtrain.geometry.camera import CuboidFit
+from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.mask_fit import fit_masks
 from cuboidtrain.geometry.outline import MaskTarget, bilinear
 from shared.shapes import Shape, get_shape
@@ -51,6 +52,13 @@ class NonFiniteCuboid(ValueError):
 
 
 @dataclass(frozen=True)
+class NoCuboid:
+    """A batch row whose cuboid could not be fitted (`fit_candidates`), in its place: why."""
+
+    reason: str  # one line, NonFiniteCuboid's message
+
+
+@dataclass(frozen=True)
 class FittedCuboid:
     """One shape class's cuboid fitted to the input, and how far each of its corners is seen."""
 
@@ -69,48 +77,48 @@ class FittedCuboid:
                             for on, s in zip(fit.on_outline, self.corner_scores)]}
 
 
-def fit_candidate(candidate: Candidate, mask: np.ndarray | MaskTarget, optimizer: str = "lm") -> FittedCuboid:
-    """The cuboid of `candidate`'s class fitted to `mask` (H, W) bool, the input component (or its
-    MaskTarget, shared by the shape classes tried); NonFiniteCuboid if it is not finite."""
-    [fitted] = fit_candidates([candidate], [mask], optimizer=optimizer)
-    if isinstance(fitted, NonFiniteCuboid):
-        raise fitted
-    return fitted
-
-
 def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
-                   completion: bool = True, optimizer: str = "lm") -> list[FittedCuboid | NonFiniteCuboid]:
-    """`fit_candidate` for many (candidate, mask) pairs, each shape class's fits solved as one
+                   completion: bool = True, optimizer: str = "lm",
+                   known: Sequence[KnownCamera | None] | None = None,
+                   plausible: bool = False) -> list[FittedCuboid | NoCuboid]:
+    """The cuboid of each candidate's class fitted to its mask (H, W) bool, the input component (or
+    its MaskTarget, shared by the shape classes tried), each shape class's fits solved as one
     batch (`mask_fit.fit_masks`), or one by one by the soft-rasterised fit (`optimizer="soft"`,
-    `soft_raster.fit_soft`); a fit that is not finite is its NonFiniteCuboid, in its place.
-    `completion=False` leaves the Refiner's completion out (benchmarks/bench_cuboid_fit.py)."""
+    `soft_raster.fit_soft`); a fit that is not finite is a NoCuboid saying why, in its place.
+    `completion=False` leaves the Refiner's completion out (benchmarks/bench_cuboid_fit.py).
+    `known`: each pair's given camera (or None), held by the fit (LM only); `plausible`: every
+    camera kept to a plausible one (`intrinsics.PlausibleRows`)."""
     if any(c.framing is None for c in candidates):
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
     targets = [m if isinstance(m, MaskTarget) else MaskTarget.of(m) for m in masks]
+    known = list(known) if known is not None else [None] * len(candidates)
     fitted: list = [None] * len(candidates)
     for name in dict.fromkeys(c.shape for c in candidates):
         batch = [i for i, c in enumerate(candidates) if c.shape == name]
         starts = [fit_start(candidates[i], targets[i], completion) for i in batch]
-        fits = _solve(starts, get_shape(name), optimizer)
+        fits = _solve(starts, get_shape(name), optimizer, [known[i] for i in batch], plausible)
         for i, fit, start in zip(batch, fits, starts):
             try:
                 check_finite(fit)
             except NonFiniteCuboid as exc:
-                fitted[i] = exc
+                fitted[i] = NoCuboid(str(exc))
                 continue
             named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
             fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks))
     return fitted
 
 
-def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str) -> list[CuboidFit]:
-    """The fits of one shape class's starts by `optimizer` (FitOptions.optimizer)."""
+def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
+           known: Sequence[KnownCamera | None], plausible: bool = False) -> list[CuboidFit]:
+    """The fits of one shape class's starts by `optimizer` (FitOptions.optimizer), each held to its
+    given camera, if any (LM only: FitOptions refuses a camera with the soft optimiser)."""
     if optimizer == "soft":
         from cuboidtrain.geometry.soft_raster import fit_soft  # torch's autograd: only when asked for
 
         return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
     return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),
-                     np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts])
+                     np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts], known=known,
+                     plausible=plausible)
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,10 @@
 
 A Fitter is built once from models (the shipped ones, files, or CuboidNets in
 hand) and one FitOptions, checked there. `fit` takes a mask image file or an
-array and returns a `Fit`; `records` is `cuboidtrain infer`: one JSON record per
-input (docs/contract.md, "The infer record"), an unreadable input recorded as an
-error while the others go on. `predict` runs the model's chain (`CuboidNet.forward`)
+array and returns a `Fit`; `records` is `cuboidtrain infer`'s fitting: one outcome per
+input, a `Fit` (per component) or, for an input that cannot be fitted, a `FitFailure`
+while the others go on (`cuboidtrain.infer.records` writes them as docs/contract.md's
+"The infer record"). `predict` runs the model's chain (`CuboidNet.forward`)
 at the options' Refiner passes and reads the keypoints with the options' extractor,
 for `eval`'s batches as for one framed mask. `report` and `localize` fit through
 `fit` and `records`.
@@ -27,9 +28,10 @@ import torch
 from cuboidtrain.models.device import resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, choose, score
 from cuboidtrain.models.codec import make_codec
-from cuboidtrain.fit.cuboid import FittedCuboid, choose_cuboid, fit_candidate
+from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates
 from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
+from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.silhouette import confidence
 from cuboidtrain.models.checkpoint import load_models
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
@@ -74,8 +76,20 @@ class Fit:
         return record | ({"component": self.component} if with_component else {})
 
 
+@dataclass(frozen=True)
+class FitFailure:
+    """An input that could not be fitted (unreadable, empty, a fit whose numbers are not finite): its
+    infer record has `error` set to `reason` and no fit fields."""
+
+    input: str  # the path or URL as given
+    reason: str  # one line
+
+
+Outcome = Fit | FitFailure  # what `records` gives for an input (a Fit per component)
+
+
 class NonFiniteFit(ValueError):
-    """A model gave NaN or Infinity for a mask: no fit, and in `records` an error record (its weights
+    """A model gave NaN or Infinity for a mask: no fit, and in `records` a FitFailure (its weights
     are a diverged training's, or the input broke its arithmetic)."""
 
 
@@ -118,33 +132,20 @@ class Fitter:
         return self._fit_parts(mask, self.options.all_components)
 
     def records(self, paths: Sequence[str | Path],
-                explain: Callable[[int, str, Fit], Sequence[str]] | None = None) -> list[dict]:
-        """`cuboidtrain infer`: the JSON records of the inputs, in input order (one per component
-        with `all_components`). An input that cannot be fitted gets a record with `error` and no
-        keypoints, and the others still run. `explain(index, path, fit)` draws each fitted
-        component (cuboidtrain.infer.explain.Explainer) and returns the warnings it adds to its record."""
-        records = []
-        with_component, cuboid = self.options.all_components, self.options.cuboid
+                explain: Callable[[int, str, Fit], Sequence[str]] | None = None) -> list[Outcome]:
+        """`cuboidtrain infer`'s fits of the inputs, in input order: each input's Fit (one per component
+        with `all_components`), without its explanation's arrays, or a FitFailure for an input that
+        cannot be fitted, and the others still run. `explain(index, path, fit)` draws each fitted
+        component (cuboidtrain.infer.explain.Explainer) and returns the warnings it adds to its Fit."""
+        outcomes: list[Outcome] = []
         for index, path in enumerate(paths):
             try:
                 fits = self.fit_all(path)
             except (ValueError, OSError, cv2.error) as exc:  # bad data: this input only
-                reason = " ".join(str(exc).split())  # one line, whatever cv2 put in it
-                log.warning("%s", reason)
-                records.append(error_record(str(path), reason, with_component, cuboid))
+                outcomes.append(failure(path, " ".join(str(exc).split())))  # one line, whatever cv2 put in it
                 continue
-            for fitted in fits:
-                for warning in fitted.warnings:
-                    log.warning("%s: %s", path, warning)
-                if explain is not None:
-                    fitted = replace(fitted, warnings=fitted.warnings + draw(explain, index, str(path), fitted))
-                record = fitted.record(with_component)
-                if (found := non_finite(record)) is not None:  # the contract's numbers are finite, or an error
-                    reason = f"{path}: the fit's {found[0]} is {found[1]}: no fit"
-                    log.warning("%s", reason)
-                    record = error_record(str(path), reason, with_component, cuboid)
-                records.append(record)
-        return records
+            outcomes += [settle(index, str(path), fitted, explain) for fitted in fits]
+        return outcomes
 
     @torch.inference_mode()
     def predict(self, model: CuboidNet, x1: torch.Tensor) -> ChainOutput:
@@ -182,8 +183,7 @@ class Fitter:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
-        optimizer = self.options.optimizer
-        cuboids = {c.shape: fit_candidate(c, target, optimizer) for c in candidates} if self.options.cuboid else {}
+        cuboids = {c.shape: self.fit_cuboid(c, target) for c in candidates} if self.options.cuboid else {}
         set_aside: list[str] = []
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
             best, set_aside = choose_cuboid(candidates, cuboids)
@@ -207,6 +207,21 @@ class Fitter:
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
         x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
         return self.candidate(model, self.predict(model, x1), 0, framed_mask, framing)
+
+    def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
+                    known: Sequence[KnownCamera | None] | None = None) -> list[FittedCuboid | NoCuboid]:
+        """Each candidate's cuboid fitted to its mask (H, W) bool at the input's resolution, by the
+        options' optimizer, one shape class's rows solved as one batch (`cuboid.fit_candidates`): a
+        component's shape classes for `fit`, a batch of samples for `eval`. NoCuboid where a fit
+        is not finite. `known`: each mask's given camera, or None (fitted)."""
+        return fit_candidates(candidates, masks, optimizer=self.options.optimizer, known=known)
+
+    def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget) -> FittedCuboid:
+        """`fit_cuboids` for one candidate; NonFiniteCuboid where its fit is not finite."""
+        [fitted] = self.fit_cuboids([candidate], [mask])
+        if isinstance(fitted, NoCuboid):
+            raise NonFiniteCuboid(fitted.reason)
+        return fitted
 
     def candidate(self, model: CuboidNet, out: ChainOutput, row: int, framed_mask: np.ndarray,
                   framing: Framing | None = None) -> Candidate:
@@ -255,10 +270,23 @@ def draw(explain, index: int, path: str, fit: Fit) -> tuple[str, ...]:
         return (warning,)
 
 
-def error_record(path: str, reason: str, all_components: bool, cuboid: bool = False) -> dict:
-    record = {"input": path, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
-              "refine_steps": None, "refine_converged": None, "error": reason, "warnings": [], "candidates": {}}
-    return record | ({"cuboid": None} if cuboid else {}) | ({"component": None} if all_components else {})
+def settle(index: int, path: str, fitted: Fit, explain) -> Outcome:
+    """A fitted component as `records` gives it: its warnings logged, drawn by `explain` (with the
+    warnings that adds), its explanation's arrays dropped (a Fit crosses to the process that writes
+    it: as light as its record); a FitFailure where a number of its record is not finite."""
+    for warning in fitted.warnings:
+        log.warning("%s: %s", path, warning)
+    if explain is not None:
+        fitted = replace(fitted, warnings=fitted.warnings + draw(explain, index, path, fitted))
+    if (found := non_finite(fitted.record())) is not None:  # the contract's numbers are finite, or an error
+        return failure(path, f"{path}: the fit's {found[0]} is {found[1]}: no fit")
+    return replace(fitted, explanation=None)
+
+
+def failure(path: str | Path, reason: str) -> FitFailure:
+    """Input `path` could not be fitted, for `reason` (logged)."""
+    log.warning("%s", reason)
+    return FitFailure(str(path), reason)
 
 
 def no_explanation(exc: Exception) -> str:

@@ -12,12 +12,14 @@ vanishing-point start, strongly perspective `paper` views failed in 3-6% of case
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
 
 from cuboidtrain.geometry.camera import CORNER_SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
+from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.vanishing import vanishing_starts
 from shared.shapes import Shape
 
@@ -209,17 +211,24 @@ def affine_starts(points: np.ndarray, shape: Shape, k_starts=(0.0,)) -> tuple[np
     return params, mirror
 
 
-def corner_residuals(points: np.ndarray, sqrt_w: np.ndarray, shape: Shape, mirrors: np.ndarray):
+def corner_residuals(points: np.ndarray, sqrt_w: np.ndarray, shape: Shape, mirrors: np.ndarray,
+                     cameras: CameraTerms | None = None, owner: np.ndarray | None = None):
     """The weighted reprojection residuals of hypotheses with flags `mirrors` (H,), each against
-    its own corners `points` (H, N, 2) with weights `sqrt_w` (H, N, 1), and their analytic Jacobian."""
+    its own corners `points` (H, N, 2) with weights `sqrt_w` (H, N, 1), and their analytic Jacobian;
+    with `cameras`, each hypothesis also held to its input's (`owner` (H,)) given camera."""
 
     def residual(x, rows):
-        return ((project(x, shape, mirrors[rows]) - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
+        r = ((project(x, shape, mirrors[rows]) - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
+        return r if cameras is None else np.concatenate([r, cameras.terms(x, owner[rows], mirrors[rows], False)[0]], axis=1)
 
     def jacobian(x, rows):
         image, jac = project_with_jacobian(x, shape, mirrors[rows])
         r = ((image - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
-        return r, (jac * sqrt_w[rows][..., None]).reshape(len(x), r.shape[1], -1)
+        jac = (jac * sqrt_w[rows][..., None]).reshape(len(x), r.shape[1], -1)
+        if cameras is None:
+            return r, jac
+        held, d_held = cameras.terms(x, owner[rows], mirrors[rows])
+        return np.concatenate([r, held], axis=1), np.concatenate([jac, d_held], axis=1)
 
     return residual, jacobian
 
@@ -241,11 +250,14 @@ class Hypotheses:
 
 
 def hypotheses(points: np.ndarray, weights: np.ndarray, shape: Shape, k_starts=(0.0,), vanishing: bool = True,
-               iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS) -> Hypotheses:
+               iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS,
+               cameras: CameraTerms | None = None) -> Hypotheses:
     """Every start of K named corner sets (K, N, 2) (weights (K, N)), the vanishing-point ones
     (with `vanishing`) then the affine ones for each perspective strength in `k_starts`, solved
     by one batched LM on the weighted reprojection error: numpy's per-call cost paid once for
-    all K. A set's hypotheses stop once one of them reproduces its corners to `accept_rms` px."""
+    all K. A set's hypotheses stop once one of them reproduces its corners to `accept_rms` px.
+    `cameras`: the sets' camera rows (`intrinsics.CameraTerms`): each start moved onto its given
+    camera and held there, and kept to a plausible one."""
     starts, flags, owner = [], [], []
     for k, corners in enumerate(points):
         affine, affine_flags = affine_starts(corners, shape, k_starts)
@@ -256,8 +268,10 @@ def hypotheses(points: np.ndarray, weights: np.ndarray, shape: Shape, k_starts=(
         flags.append(affine_flags)
         owner.append(np.full(len(affine), k))
     starts, flags, owner = np.concatenate(starts), np.concatenate(flags), np.concatenate(owner)
+    if cameras is not None:
+        starts = cameras.start_from(starts, owner)
     sqrt_w = np.sqrt(weights)[owner][..., None]
-    residual, jacobian = corner_residuals(points[owner], sqrt_w, shape, flags)
+    residual, jacobian = corner_residuals(points[owner], sqrt_w, shape, flags, cameras, owner)
     solved = levenberg_marquardt(residual, starts, iterations, tolerance=tolerance, jacobian=jacobian,
                                  enough=0.5 * points.shape[1] * accept_rms**2, groups=owner if len(points) > 1 else None)
     return Hypotheses(solved.params, flags, solved.cost, owner)
@@ -277,31 +291,39 @@ class Lifted:
 
 def lift(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_starts=K_STARTS,
          iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS,
-         polish: int = POLISH_ITERATIONS, vanishing: bool = True) -> Lifted:
+         polish: int = POLISH_ITERATIONS, vanishing: bool = True, known: KnownCamera | None = None,
+         frame: tuple[int, int] | None = None) -> Lifted:
     """Named image corners (N, 2) -> the camera + cuboid that projects onto them (weighted
     least squares; `weights` (N,) per corner, e.g. heat-map confidences).
 
     `k_starts` are groups of perspective-strength starts, tried in turn until one reaches
     `accept_rms` px (a flat tuple is one group); the best is then polished for `polish`
-    more iterations and given k >= 0 (`geometry.canonical`)."""
+    more iterations and given k >= 0 (`geometry.canonical`). `known`: the camera, where given
+    (held: `intrinsics.KnownCamera`); `frame`: the image's (H, W), to keep the camera plausible
+    (`intrinsics.PlausibleRows`; None: unbounded)."""
     points = np.asarray(points, dtype=np.float64)
     return lift_many(points[None], shape, None if weights is None else np.asarray(weights)[None], k_starts,
-                     iterations, tolerance, accept_rms, polish, vanishing)[0]
+                     iterations, tolerance, accept_rms, polish, vanishing, [known],
+                     None if frame is None else [frame])[0]
 
 
 def lift_many(points: np.ndarray, shape: Shape, weights: np.ndarray | None = None, k_starts=K_STARTS,
               iterations: int = 300, tolerance: float = 0.0, accept_rms: float = ACCEPT_RMS,
-              polish: int = POLISH_ITERATIONS, vanishing: bool = True) -> list[Lifted]:
+              polish: int = POLISH_ITERATIONS, vanishing: bool = True,
+              known: Sequence[KnownCamera | None] | None = None,
+              frames: Sequence[tuple[int, int]] | None = None) -> list[Lifted]:
     """`lift` of K corner sets (K, N, 2) at once (weights (K, N)): each group of starts solved for
-    every set not yet reproduced, then every set's best polished, all in one solver each time."""
+    every set not yet reproduced, then every set's best polished, all in one solver each time.
+    `known` (K): each set's given camera, or None; `frames` (K): each set's image (H, W)."""
     points = np.asarray(points, dtype=np.float64)
+    cameras = CameraTerms.of(shape, known, frames)
     weights = np.ones(points.shape[:2]) if weights is None else np.asarray(weights, dtype=np.float64)
     groups = k_starts if isinstance(k_starts[0], (tuple, list)) else (k_starts,)
     tried: list[list[tuple]] = [[] for _ in points]  # per set: (params, mirrors, costs) of each group tried
     pending = np.arange(len(points))
     for number, group in enumerate(groups):
         solved = hypotheses(points[pending], weights[pending], shape, group, vanishing and number == 0, iterations,
-                            tolerance, accept_rms)
+                            tolerance, accept_rms, cameras and cameras.subset(pending))
         reproduced = []
         for row, k in enumerate(pending):
             mine = solved.owner == row
@@ -313,7 +335,8 @@ def lift_many(points: np.ndarray, shape: Shape, weights: np.ndarray | None = Non
     params, mirrors, costs = ([np.concatenate([t[i] for t in per_set]) for per_set in tried] for i in range(3))
     best = [int(np.argmin(c)) for c in costs]
     flags = np.array([bool(m[b]) for m, b in zip(mirrors, best)])
-    residual, jacobian = corner_residuals(points, np.sqrt(weights)[..., None], shape, flags)
+    residual, jacobian = corner_residuals(points, np.sqrt(weights)[..., None], shape, flags, cameras,
+                                          np.arange(len(points)))
     polished = levenberg_marquardt(residual, np.array([p[b] for p, b in zip(params, best)]), polish, tolerance=0.0,
                                    jacobian=jacobian)
     lifted = []

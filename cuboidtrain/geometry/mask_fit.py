@@ -20,6 +20,7 @@ import numpy as np
 
 from cuboidtrain.geometry.camera import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
                                       project_with_jacobian, ratios)
+from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, hypotheses, levenberg_marquardt
 from cuboidtrain.geometry.silhouette import confidence
 from cuboidtrain.geometry.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
@@ -45,15 +46,19 @@ def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, c
 
 def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, confidence: np.ndarray,
               prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights = MaskFitWeights(),
-              starts: int = STARTS, iterations: int = ITERATIONS) -> list[CuboidFit]:
+              starts: int = STARTS, iterations: int = ITERATIONS,
+              known: Sequence[KnownCamera | None] | None = None, plausible: bool = False) -> list[CuboidFit]:
     """`fit_mask` for K masks of one shape class at once: `targets` (K), corners (K, N, 2),
-    confidence (K, N), prior_ratios (K) each (R,) or None; one CuboidFit a mask, in order."""
-    lifted = lift_starts(corners, confidence, shape)
+    confidence (K, N), prior_ratios (K) each (R,) or None; one CuboidFit a mask, in order.
+    `known` (K): each mask's given camera (`intrinsics.KnownCamera`), held in the lift and the fit;
+    `plausible`: every camera kept to a plausible one for its mask's frame (`intrinsics.PlausibleRows`)."""
+    cameras = CameraTerms.of(shape, known, [t.mask.shape for t in targets] if plausible else None, weights.camera)
+    lifted = lift_starts(corners, confidence, shape, cameras)
     chosen = [lifted.best(k, starts) for k in range(len(targets))]
     rows = np.concatenate(chosen)
     owner, mirrors = lifted.owner[rows], lifted.mirrors[rows]
     residual, jacobian = _objective(StackedTargets.of(targets), shape, corners, confidence, prior_ratios,
-                                    weights, owner, mirrors)
+                                    weights, owner, mirrors, cameras)
     solved = levenberg_marquardt(residual, lifted.params[rows], iterations, tolerance=1e-7, jacobian=jacobian)
     fits, first = [], 0
     for target, mine in zip(targets, chosen):
@@ -63,19 +68,20 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
     return fits
 
 
-def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape) -> Hypotheses:
+def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,
+                cameras: CameraTerms | None = None) -> Hypotheses:
     """The lift hypotheses of K corner sets (K, N, 2) (confidence (K, N)) that mask fits start
     from, each set's best first (`Hypotheses.best`): any optimiser's starts
-    (`cuboidtrain.geometry.soft_raster` starts from the same)."""
+    (`cuboidtrain.geometry.soft_raster` starts from the same). `cameras`: the sets' given cameras."""
     return hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=LIFT_ITERATIONS,
-                      tolerance=1e-9)
+                      tolerance=1e-9, cameras=cameras)
 
 
 def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confidence: np.ndarray,
                prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights, owner: np.ndarray,
-               mirrors: np.ndarray):
+               mirrors: np.ndarray, cameras: CameraTerms | None = None):
     """The residuals and Jacobian functions of the hypotheses (rows) of every mask, each row
-    reading its own mask's (`owner`) outline, field, corners and anchor."""
+    reading its own mask's (`owner`) outline, field, corners and anchor (and given camera)."""
     # Boundary terms are normalised so the corner pull means the same whatever the outline length.
     norm = (1 / np.sqrt(stacked.count))[:, None]  # (K, 1)
     pull = weights.corners * np.sqrt(np.clip(confidence, 0.05, 1.0))[..., None]  # (K, N, 1)
@@ -91,7 +97,8 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
                                       derivatives, valid=stacked.valid[own])
         pulled = ((image - corners[own]) * pull[own]).reshape(len(x), -1) * norm[own]
         extents = [anchor[own] * np.log(ratios(x, shape) / prior[own])] if anchored.any() else []
-        return np.concatenate([fit * norm[own], pulled, *extents], axis=1), d_fit
+        held = [cameras.terms(x, own, mirrors[rows], derivatives=False)[0]] if cameras is not None else []
+        return np.concatenate([fit * norm[own], pulled, *extents, *held], axis=1), d_fit
 
     def residual(x, rows):  # a trial step needs no derivatives: the plain projection
         return terms(x, rows, project(x, shape, mirrors[rows]), derivatives=False)[0]
@@ -104,6 +111,8 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
                     (d_image * (pull[own] * norm[own][..., None])[..., None]).reshape(len(x), -1, x.shape[1])]
         if anchored.any():
             rows_jac.append(anchor[own][:, :, None] * log_ratio_jacobian(x, shape))
+        if cameras is not None:
+            rows_jac.append(cameras.terms(x, own, mirrors[rows])[1])
         return values, np.concatenate(rows_jac, axis=1)
 
     return residual, jacobian

@@ -32,6 +32,7 @@ class MaskFitWeights:
     # depth/height median from 46% to 27-37% on `paper-clean`, near the networks' 24%, but
     # the corners pay (clean twobox 3.2 -> 5.4 px mean): kept at 1.
     depth_ratio: float = 1.0
+    camera: float = 0.3  # the typical camera's pull (`intrinsics.PlausibleRows`), per sd: 30 masks a set, 0.1-1 tried: 0.3 best on paper d/h (BENCHMARKS.md)
     samples_per_edge: int = 4
     max_boundary_points: int = 120
 

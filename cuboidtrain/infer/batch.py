@@ -2,9 +2,10 @@
 a pool), store each input's records as it completes, report progress, summarise.
 
 The pieces have a module each: `inputs` (what to fit), `storage` (where a mask is read from: a
-local path or an fsspec URL), `store` (the JSONL file and its resume), `pool` (where fits run on
-this machine), `cluster` (on a Dask cluster, imported only for `--cluster`), `progress` (what
-the user sees).
+local path or an fsspec URL), `records` (the records, the JSONL file and its resume), `pool`
+(where fits run on this machine), `cluster` (on a Dask cluster, imported only for `--cluster`),
+`progress` (what the user sees). What travels between them is typed: each input's outcomes
+(`Fit`, `FitFailure`), made into records only by `records` as they are written.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
+from cuboidtrain.fit.fitter import Outcome
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.pool import fit_groups
 from cuboidtrain.infer.progress import Reporter, Tally
@@ -32,7 +34,7 @@ class Batch:
     options: FitOptions
     workers: int = 1  # 1: in this process, with the caller's Fitter
     jsonl: Path | None = None  # the record store, resumed when it exists
-    keep: bool = True  # return the records (for --json's list); a city's run keeps none in memory
+    keep: bool = True  # return the outcomes (for --json's list); a city's run keeps none in memory
     cluster: str | None = None  # a Dask scheduler's address, or "local" (`workers` processes here); None: no cluster
 
     def indexed(self) -> list[str]:
@@ -41,10 +43,12 @@ class Batch:
         return list(dict.fromkeys(self.inputs)) if self.jsonl else list(self.inputs)
 
 
-def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) -> tuple[list[dict], Tally]:
-    """The records of the inputs in input order (when `batch.keep`) and the run's Tally."""
+def run_batch(batch: Batch, fitter, console,
+              explain: Callable | None = None) -> tuple[list[Outcome | dict], Tally]:
+    """The outcomes of the inputs in input order (when `batch.keep`; an input OUT already held
+    by its records, as read back: `records.to_record` passes them on) and the run's Tally."""
     inputs = unique(batch.inputs) if batch.jsonl else list(batch.inputs)
-    with RecordStore(batch.jsonl) if batch.jsonl else nullcontext() as store:
+    with RecordStore(batch.jsonl, batch.options) if batch.jsonl else nullcontext() as store:
         # resume: the inputs OUT already holds are counted, not fitted again
         held = defaultdict(list)
         for record in store.records if store else ():
@@ -54,29 +58,29 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None) ->
         jobs = []
         for index, path in enumerate(inputs):
             if path in held:
-                tally.add(held[path], resumed=True)
+                tally.resume(held[path])
                 kept[index] = held[path] if batch.keep else None
             else:
                 jobs.append((index, path))
         if tally.resumed:
             log.info("%s holds %d of the %d inputs; fitting the other %d", batch.jsonl, tally.resumed,
                      len(inputs), len(jobs))
-        # fit, store and show each input's records as they complete
+        # fit, store and show each input's outcomes as they complete
         groups = fitted(batch, jobs, fitter, explain)
         with Reporter(tally, console) as reporter:
-            for index, records in groups:
+            for index, outcomes in groups:
                 if store:
-                    store.write(index, records)
+                    store.write(index, outcomes)
                 if batch.keep:
-                    kept[index] = records
-                tally.add(records)
+                    kept[index] = outcomes
+                tally.add(outcomes)
                 reporter.update()
-    records = [r for index in sorted(kept) for r in kept[index]] if batch.keep else []
-    return records, tally
+    outcomes = [o for index in sorted(kept) for o in kept[index]] if batch.keep else []
+    return outcomes, tally
 
 
 def fitted(batch: Batch, jobs: list[tuple[int, str]], fitter, explain: Callable | None):
-    """The jobs' (index, records) from wherever `batch` says fits run."""
+    """The jobs' (index, outcomes) from wherever `batch` says fits run."""
     if batch.cluster is None:
         return fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain)
     from cuboidtrain.infer.cluster import cluster_groups  # Dask only when asked: an optional extra

@@ -1,7 +1,7 @@
 """Fitting many inputs on a Dask cluster (`cuboidtrain infer --cluster ADDRESS`), the optional extra
 `pip install 'cuboid-fit[cluster]'`.
 
-`cluster_groups` yields `(index, records)` per input as fits complete, as `pool.fit_groups` does,
+`cluster_groups` yields `(index, outcomes)` per input as fits complete, as `pool.fit_groups` does,
 so `batch.run_batch` stores, resumes and reports them the same way. ADDRESS `local` starts a
 LocalCluster on 127.0.0.1 with `workers` processes of one thread; `tcp://host:8786` joins a running
 scheduler. Inputs go out as chunks of paths (`pool.CHUNK`), at most two chunks a worker thread in
@@ -26,7 +26,7 @@ _local = threading.local()  # a worker thread's Fitter, keyed by what built it
 
 def cluster_groups(jobs: Sequence[tuple[int, str]], checkpoints: Sequence[Path], options: FitOptions,
                    address: str, workers: int = 1) -> Iterator[Group]:
-    """Each job's (index, records), fitted on the cluster at `address`, in completion order."""
+    """Each job's (index, outcomes), fitted on the cluster at `address`, in completion order."""
     distributed = require_distributed(address)
     logging.getLogger("distributed").setLevel(logging.WARNING)  # its INFO lines would drown the progress
     cluster = None

@@ -1,11 +1,14 @@
 """Fitting many inputs on one machine: in this process, or in `workers` processes, each with its own
 Fitter (models loaded once per worker) and one torch thread.
 
-`fit_groups` yields `(index, records)` per input as fits complete: in input order in this
-process, in completion order from a pool (the index says which input). Inputs go to the
-workers in chunks of `CHUNK` paths (each worker reads its own masks), at most two chunks a
-worker in flight, so a kill loses at most those and memory does not grow with the run. A per-fit
-writer (`explain`: `--mesh`'s files) goes to each worker as a pickled copy and writes there.
+`fit_groups` yields `(index, outcomes)` per input as fits complete: in input order in this
+process, in completion order from a pool (the index says which input). The outcomes are typed
+(`Fit`, `FitFailure`), their explanations' arrays left behind (`Fitter.records`), so a pool
+sends back about as much as their records would weigh: records are made where they are
+written (`records.to_record`). Inputs go to the workers in chunks of `CHUNK` paths (each
+worker reads its own masks), at most two chunks a worker in flight, so a kill loses at most
+those and memory does not grow with the run. A per-fit writer (`explain`: `--mesh`'s files)
+goes to each worker as a pickled copy and writes there.
 
 The workers are forked from a fork server that has imported torch and the Fitter once
 (`warm_up`, called by `infer` before this process imports torch itself, so the two imports
@@ -26,18 +29,22 @@ from contextlib import contextmanager
 from dataclasses import replace
 from multiprocessing import get_all_start_methods, get_context
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cuboidtrain.fit.options import FitOptions
 
+if TYPE_CHECKING:  # the fitter imports torch, which `warm_up` must come before
+    from cuboidtrain.fit.fitter import Outcome
+
 CHUNK = 4  # inputs a task: at ~16 ms a mask, enough to hide the pickling, little lost to a kill
-Group = tuple[int, list[dict]]  # (input index, its records)
+Group = tuple[int, list["Outcome"]]  # (input index, its outcomes)
 
 _fitter = None  # the worker's own Fitter, built once by `_start_worker`
 _explain = None  # and its per-fit writer (a pickled copy of the parent's: `--mesh`), or None
 
 
 def fit_one(fitter, index: int, path: str, explain: Callable | None = None) -> Group:
-    """Input `index`'s records (`Fitter.records` on it alone; `explain` sees the run's index)."""
+    """Input `index`'s outcomes (`Fitter.records` on it alone; `explain` sees the run's index)."""
     call = None if explain is None else (lambda _i, p, f: explain(index, p, f))
     return index, list(fitter.records([path], explain=call))
 
@@ -45,7 +52,7 @@ def fit_one(fitter, index: int, path: str, explain: Callable | None = None) -> G
 def fit_groups(jobs: Sequence[tuple[int, str]], fitter=None, checkpoints: Sequence[Path] = (),
                options: FitOptions | None = None, workers: int = 1,
                explain: Callable | None = None) -> Iterator[Group]:
-    """Each job's (index, records): with `fitter` in this process when `workers` is 1, else in a
+    """Each job's (index, outcomes): with `fitter` in this process when `workers` is 1, else in a
     pool whose workers build theirs from `checkpoints` and `options`."""
     if workers <= 1:
         for index, path in jobs:

@@ -6,7 +6,10 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+from cuboidtrain.fit.fitter import FitFailure, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -15,7 +18,7 @@ LOG_SECONDS = 5.0  # between plain progress lines
 
 @dataclass
 class Tally:
-    """Inputs and records counted as they complete (those OUT already held apart)."""
+    """Inputs and their outcomes counted as they complete (the records OUT already held apart)."""
 
     total: int  # inputs of the run, resumed ones included
     resumed: int = 0  # inputs OUT already held
@@ -24,13 +27,20 @@ class Tally:
     shapes: Counter = field(default_factory=Counter)  # records by shape class ("failed" for errors)
     started: float = field(default_factory=time.monotonic)
 
-    def add(self, records: list[dict], resumed: bool = False) -> None:
-        if resumed:
-            self.resumed += 1
-        else:
-            self.done += 1
-        self.failed += bool(records) and records[0]["error"] is not None
-        self.shapes.update(r["shape"] or "failed" for r in records)
+    def add(self, outcomes: Sequence[Outcome]) -> None:
+        """An input fitted this run: its outcomes (a FitFailure is a failed input)."""
+        self.done += 1
+        self.count([None if isinstance(o, FitFailure) else o.shape for o in outcomes],
+                   bool(outcomes) and isinstance(outcomes[0], FitFailure))
+
+    def resume(self, records: Sequence[dict]) -> None:
+        """An input OUT already held: its records, as read back."""
+        self.resumed += 1
+        self.count([r["shape"] for r in records], bool(records) and records[0]["error"] is not None)
+
+    def count(self, shapes: list[str | None], failed: bool) -> None:
+        self.failed += failed
+        self.shapes.update(shape or "failed" for shape in shapes)
 
     @property
     def rate(self) -> float:

@@ -1,9 +1,11 @@
-"""The JSONL record store of `cuboidtrain infer --jsonl OUT`: written as fits complete, resumed after a kill.
+"""The infer records, made from the typed outcomes where JSON is written, and the JSONL store of `--jsonl OUT`.
 
-The byte format lives here, writer and reader (docs/contract.md, "The JSONL form"): one infer
-record a line, UTF-8, each line ending in a newline, every record led by `"index"` (the
-input's position in the run's inputs) then `"input"`. An input's records (one, or one per
-component) go out in one `os.write`, in the order fits complete, not input order.
+`to_record` turns a Fit or a FitFailure into its JSON record (docs/contract.md, "The infer
+record"): for the `--json` list, and for each line of OUT, which is written as fits complete
+and resumed after a kill. The byte format lives here, writer and reader (docs/contract.md,
+"The JSONL form"): one infer record a line, UTF-8, each line ending in a newline, every record
+led by `"index"` (the input's position in the run's inputs) then `"input"`. An input's records
+(one, or one per component) go out in one `os.write`, in the order fits complete, not input order.
 
 Resuming: `RecordStore` reads OUT first. A last line without its newline is a torn write
 (a kill or a full disk mid-write): it is cut off, with the lines of the same input before
@@ -18,14 +20,35 @@ import json
 import os
 import re
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from cuboidtrain.fit.fitter import Fit, FitFailure, Outcome
+from cuboidtrain.fit.options import FitOptions
 from shared.errors import UsageError
 from shared.files import json_text, write_json
 
 FSYNC_SECONDS = 2.0  # at most this much work is only in the page cache
 _TORN_INDEX = re.compile(rb'^\{"index": (\d+)')  # a torn line still names its input, if it got that far
+
+
+def to_record(outcome: Outcome | dict, with_component: bool = False, cuboid: bool = False) -> dict:
+    """The infer record of an outcome: a Fit's fields, or a FitFailure's `error` with the fit fields
+    null (`cuboid` null with the cuboid fit, `component` null with `all_components`). A record read
+    back from OUT (a resumed input's) is one already: as read."""
+    if isinstance(outcome, Fit):
+        return outcome.record(with_component)
+    if isinstance(outcome, FitFailure):
+        record = {"input": outcome.input, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
+                  "refine_steps": None, "refine_converged": None, "error": outcome.reason, "warnings": [],
+                  "candidates": {}}
+        return record | ({"cuboid": None} if cuboid else {}) | ({"component": None} if with_component else {})
+    return outcome
+
+
+def to_records(outcomes: Iterable[Outcome | dict], options: FitOptions) -> list[dict]:
+    """The infer records of outcomes fitted with `options`."""
+    return [to_record(o, options.all_components, options.cuboid) for o in outcomes]
 
 
 def encode_group(index: int, records: Iterable[dict]) -> bytes:
@@ -69,11 +92,14 @@ class RecordStore:
 
         with RecordStore(out) as store:
             todo = [(i, p) for i, p in enumerate(inputs) if p not in store.done]
-            store.write(index, records)
+            store.write(index, outcomes)
+
+    `options`, the run's, give the records' form (`to_records`).
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, options: FitOptions = FitOptions()):
         self.path = Path(path)
+        self.options = options
         self.records: list[dict] = []  # what OUT held when opened
         self.done: set[str] = set()  # the inputs OUT holds
         self.written = 0  # records this run
@@ -94,10 +120,10 @@ class RecordStore:
         self.done = {r["input"] for r in self.records}
         return self
 
-    def write(self, index: int, records: list[dict]) -> None:
+    def write(self, index: int, outcomes: Sequence[Outcome]) -> None:
         """One input's records; a full disk truncates back to the last whole input and is a
         one-line UsageError that says the records written are kept."""
-        data, start = encode_group(index, records), os.lseek(self.fd, 0, os.SEEK_CUR)
+        data, start = encode_group(index, to_records(outcomes, self.options)), os.lseek(self.fd, 0, os.SEEK_CUR)
         try:
             view = memoryview(data)
             while view:
@@ -109,7 +135,7 @@ class RecordStore:
             except OSError:
                 pass  # then the next open cuts the torn tail
             raise self.failed(exc) from None
-        self.written += len(records)
+        self.written += len(outcomes)
         if time.monotonic() - self.synced > FSYNC_SECONDS:
             self.sync()
 

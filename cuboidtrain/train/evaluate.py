@@ -19,19 +19,20 @@ errors):
   ratios; it has no box, so its yaw and 3D IoU are those of its corners lifted
   (`cuboidtrain.geometry.lift.lift`);
 * `cuboid`, with FitOptions(cuboid=True) (`eval --cuboid`): the cuboid fitted to the
-  sample's own noisy mask from the same batch row (`Fitter.candidate`, then
-  `cuboid.fit_candidates`, as `infer --cuboid` fits a mask, a batch at once).
+  sample's own noisy mask from the same batch row by the Fitter's own calls (`Fitter.candidate`,
+  then `Fitter.fit_cuboids`, as `infer --cuboid` fits a mask), a batch at once.
 
-The networks run batched, and so do the lifts of their corners (`lift.lift_many`) and the
-cuboid fits (`cuboid.fit_candidates`): a batch's samples are solved at once, one solver for
-all their starts.
+One pipeline: the networks run through `Fitter.predict`, each row becomes its Candidate by
+`Fitter.candidate` and its cuboid by `Fitter.fit_cuboids`, the calls `infer` makes; only the
+batching differs (a batch's samples are solved at once, one solver for all their starts, and
+so are the lifts of the networks' corners, `lift.lift_many`).
 """
 from __future__ import annotations
 
 import logging
 import math
 from collections import Counter
-from dataclasses import replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,7 @@ import torch
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.train.data import SKIP_REASONS, Source, SpoolBatches, prepare_batch
 from cuboidtrain.fit.candidates import Candidate
-from cuboidtrain.fit.cuboid import NonFiniteCuboid, fit_candidates
+from cuboidtrain.fit.cuboid import NoCuboid
 from cuboidtrain.fit.fitter import Fitter, NonFiniteFit
 from cuboidtrain.fit.masks import silhouette
 from cuboidtrain.geometry.camera import CameraParams
@@ -59,6 +60,50 @@ log = logging.getLogger(__name__)
 
 PCK_THRESHOLDS = (0.5, 1.0, 2.0, 5.0)  # px
 PATHS = ("networks", "cuboid")
+
+
+@dataclass(frozen=True)
+class Reference:
+    """Table 3's reference row beside a saved model's figures (`evaluate_checkpoint`): the same
+    networks with random weights on the very same samples, and where the model came from."""
+
+    random_init_mean_px_error: float
+    random_init_median_px_error: float
+    random_init_seed: int
+    checkpoint: str
+    step: int | None
+    spool: str
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A model's figures on a spool (`evaluate`): the chain's keypoint error at model resolution and
+    what explains it; with paths, each path's figures in the samples' own px (`summarise_paths`).
+    `to_dict` is `eval --json`'s object, key for key."""
+
+    shape: str
+    size: int
+    sigma: float
+    samples: int
+    extractor: str
+    refine_steps: int | None
+    skipped: dict[str, int]
+    mean_px_error: float
+    median_px_error: float
+    per_keypoint_px_error: dict[str, float]
+    pck: dict[str, float]  # threshold px (as a string) -> share of keypoints within it
+    mean_ratio_error: float
+    per_ratio_error: dict[str, float]
+    refiner_iou: float
+    tabulator_px_error_on_true_heatmaps: float
+    extractor_px_error_on_true_heatmaps: float
+    paths: dict[str, dict] | None = None  # path name -> `summarise_paths` figures
+    reference: Reference | None = None
+
+    def to_dict(self) -> dict:
+        figures = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("paths", "reference")}
+        return (figures | ({"paths": self.paths} if self.paths is not None else {})
+                | (asdict(self.reference) if self.reference is not None else {}))
 
 
 def keypoint_errors(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
@@ -155,7 +200,7 @@ def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.n
     scored["networks"] = [None if k is None else score(k, c.ratios, t, cameras.get(row))
                           for row, (k, c, t) in enumerate(zip(keypoints, candidates, truths))]
     if fitter.options.cuboid:
-        scored["cuboid"] = _cuboid_scores(candidates, sources, truths, fitter.options.optimizer)
+        scored["cuboid"] = _cuboid_scores(fitter, candidates, sources, truths)
     return scored
 
 
@@ -169,19 +214,18 @@ def _lifted(keypoints: list[np.ndarray | None], truths: list[Truth], shape: str)
     return {row: one.camera for row, one in zip(rows, lifted)}
 
 
-def _cuboid_scores(candidates: list[Candidate | None], sources: list[Source], truths: list[Truth],
-                   optimizer: str = "lm") -> list[CornerErrors | None]:
+def _cuboid_scores(fitter: Fitter, candidates: list[Candidate | None], sources: list[Source],
+                   truths: list[Truth]) -> list[CornerErrors | None]:
     """The cuboid of each candidate fitted to its sample's own noisy mask, the building's pieces
-    together (what `Fitter` fits: `masks.silhouette`), the batch's fits solved at once
-    (`cuboid.fit_candidates`), and scored; None where there is no fit."""
+    together (what `Fitter` fits: `masks.silhouette`), the batch's fits solved at once by the
+    call `infer` makes (`Fitter.fit_cuboids`), and scored; None where there is no fit."""
     masks = [None if c is None else silhouette(s.sample.noisy) for c, s in zip(candidates, sources)]
     fittable = [i for i, m in enumerate(masks) if m is not None]
-    fitted = dict(zip(fittable, fit_candidates([candidates[i] for i in fittable], [masks[i] for i in fittable],
-                                               optimizer=optimizer)))
+    fitted = dict(zip(fittable, fitter.fit_cuboids([candidates[i] for i in fittable], [masks[i] for i in fittable])))
     scores: list[CornerErrors | None] = []
     for i, truth in enumerate(truths):
         fit = fitted.get(i)
-        if fit is None or isinstance(fit, NonFiniteCuboid):
+        if fit is None or isinstance(fit, NoCuboid):
             scores.append(None)
             continue
         scores.append(score(fit.fit.keypoints, fit.fit.ratios, truth, fit.fit.camera))
@@ -206,7 +250,8 @@ def measure(model: CuboidNet, batches: list[dict], sigma: float, options: FitOpt
     return errors
 
 
-def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict:
+def _summarise(errors: dict[str, torch.Tensor], shape: str, thresholds) -> dict[str, float | dict[str, float]]:
+    """The chain's figures: Evaluation's fields from `mean_px_error` on."""
     geometry = get_shape(shape)
     px = errors["keypoint"].double()  # (S, N)
     return {
@@ -238,7 +283,7 @@ def summarise_paths(scored: dict[str, list[CornerErrors | None]]) -> dict[str, d
 
 def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | None = None,
              batch_size: int = 32, max_samples: int | None = None, pck_thresholds=PCK_THRESHOLDS,
-             paths: bool = False) -> dict:
+             paths: bool = False) -> Evaluation:
     """Metrics of `model` on the first `max_samples` samples of its shape and size in `spool`;
     with `paths`, each path's figures in the samples' own px (`paths`: networks, and cuboid
     with `options.cuboid`).
@@ -254,16 +299,15 @@ def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | 
 
 
 def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, options: FitOptions | None = None,
-           thresholds=PCK_THRESHOLDS, paths: bool = False) -> dict:
+           thresholds=PCK_THRESHOLDS, paths: bool = False) -> Evaluation:
     """The metrics of `model` on batches already read (`load_batches`; with `keep_sources` for `paths`)."""
     options = (options or FitOptions()).validate()
     errors = measure(model, batches, sigma, options, paths)
-    result = {"shape": model.shape, "size": model.size, "sigma": sigma, "samples": len(errors["iou"]),
-              "extractor": options.extractor, "refine_steps": options.refine_steps, "skipped": skipped}
-    result.update(_summarise(errors, model.shape, thresholds))
-    if paths:
-        result["paths"] = summarise_paths(errors["paths"])
-    if (found := non_finite(result)) is not None:  # never a nan in a table or a JSON as if it were a figure
+    result = Evaluation(shape=model.shape, size=model.size, sigma=sigma, samples=len(errors["iou"]),
+                        extractor=options.extractor, refine_steps=options.refine_steps, skipped=skipped,
+                        **_summarise(errors, model.shape, thresholds),
+                        paths=summarise_paths(errors["paths"]) if paths else None)
+    if (found := non_finite(result.to_dict())) is not None:  # never a nan in a table or a JSON as if it were a figure
         raise UsageError(f"evaluation of the {model.shape} model: {found[0]} is {found[1]}: its outputs are not "
                          f"finite (its weights are a diverged training's?); no metric to report")
     return result
@@ -277,7 +321,7 @@ def _check_counts(batch_size: int, max_samples: int | None) -> None:
 
 
 def evaluate_checkpoint(checkpoint: Path, spool: Path, options: FitOptions | None = None, batch_size: int = 32,
-                        max_samples: int | None = None, random_init_seed: int = 0, paths: bool = True) -> dict:
+                        max_samples: int | None = None, random_init_seed: int = 0, paths: bool = True) -> Evaluation:
     """`evaluate` for a saved model (with `paths`), plus Table 3's reference row: random weights on
     the same samples (its figures only)."""
     options = (options or FitOptions()).validate()  # before the model and the spool are read
@@ -289,42 +333,35 @@ def evaluate_checkpoint(checkpoint: Path, spool: Path, options: FitOptions | Non
     random_model = build_model(model.shape, model.size, seed=random_init_seed, sigma=ckpt["sigma"], arch=model.arch)
     random_model.pdm = model.pdm  # the same shape model: only the networks' weights differ
     baseline = report(random_model, batches, skipped, ckpt["sigma"], replace(options, cuboid=False))
-    result.update({
-        "random_init_mean_px_error": baseline["mean_px_error"],
-        "random_init_median_px_error": baseline["median_px_error"],
-        "random_init_seed": random_init_seed,
-        "checkpoint": str(checkpoint),
-        "step": ckpt.get("step"),
-        "spool": str(spool),
-    })
-    return result
+    return replace(result, reference=Reference(baseline.mean_px_error, baseline.median_px_error, random_init_seed,
+                                               str(checkpoint), ckpt.get("step"), str(spool)))
 
 
-def format_report(result: dict) -> str:
+def format_report(result: Evaluation) -> str:
     """A short plain-text table of an `evaluate` / `evaluate_checkpoint` result."""
-    skipped = ", ".join(f"{n} {reason}" for reason, n in result["skipped"].items() if n) or "none"
-    lines = []
-    if "checkpoint" in result:
-        lines.append(f"checkpoint   {result['checkpoint']} (step {result['step']}) on spool {result['spool']}")
+    skipped = ", ".join(f"{n} {reason}" for reason, n in result.skipped.items() if n) or "none"
+    ref, lines = result.reference, []
+    if ref is not None:
+        lines.append(f"checkpoint   {ref.checkpoint} (step {ref.step}) on spool {ref.spool}")
     lines += [
-        f"samples      {result['samples']} {result['shape']} {result['size']} px (skipped: {skipped})",
-        f"keypoints    mean {result['mean_px_error']:.3f} px   median {result['median_px_error']:.3f} px",
+        f"samples      {result.samples} {result.shape} {result.size} px (skipped: {skipped})",
+        f"keypoints    mean {result.mean_px_error:.3f} px   median {result.median_px_error:.3f} px",
     ]
-    if "random_init_mean_px_error" in result:
-        lines.append(f"random init  mean {result['random_init_mean_px_error']:.3f} px   "
-                     f"median {result['random_init_median_px_error']:.3f} px")
-    lines.append("PCK          " + "   ".join(f"@{t} px {v:.3f}" for t, v in result["pck"].items()))
-    lines.append(f"T alone      {result['tabulator_px_error_on_true_heatmaps']:.3f} px on true heat maps")
-    if result.get("extractor", "tabulator") != "tabulator":
-        lines.append(f"extractor    {result['extractor']}: {result['extractor_px_error_on_true_heatmaps']:.3f} px "
+    if ref is not None:
+        lines.append(f"random init  mean {ref.random_init_mean_px_error:.3f} px   "
+                     f"median {ref.random_init_median_px_error:.3f} px")
+    lines.append("PCK          " + "   ".join(f"@{t} px {v:.3f}" for t, v in result.pck.items()))
+    lines.append(f"T alone      {result.tabulator_px_error_on_true_heatmaps:.3f} px on true heat maps")
+    if result.extractor != "tabulator":
+        lines.append(f"extractor    {result.extractor}: {result.extractor_px_error_on_true_heatmaps:.3f} px "
                      f"on true heat maps")
-    lines.append(f"R IoU        {result['refiner_iou']:.4f}")
-    lines.append(f"ratios       mean abs error {result['mean_ratio_error']:.4f}")
-    lines += [f"  {name:<22} {err:.4f}" for name, err in result["per_ratio_error"].items()]
+    lines.append(f"R IoU        {result.refiner_iou:.4f}")
+    lines.append(f"ratios       mean abs error {result.mean_ratio_error:.4f}")
+    lines += [f"  {name:<22} {err:.4f}" for name, err in result.per_ratio_error.items()]
     lines.append("per keypoint (px)")
-    lines += [f"  {name:<22} {err:.3f}" for name, err in result["per_keypoint_px_error"].items()]
-    if "paths" in result:
-        lines += format_paths(result["paths"])
+    lines += [f"  {name:<22} {err:.3f}" for name, err in result.per_keypoint_px_error.items()]
+    if result.paths is not None:
+        lines += format_paths(result.paths)
     return "\n".join(lines)
 
 

@@ -15,6 +15,7 @@ import time
 from collections import Counter
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -26,6 +27,9 @@ from cuboidtrain.train.monitor.stats import Rates, RunningStats
 from cuboidtrain.train.monitor.status import FINISHED, Checkpoint, TrainerStatus, TrainingFailed, Validation
 from shared.errors import UsageError
 from shared.spool import foreign_names
+
+if TYPE_CHECKING:  # the loop imports evaluation lazily: only when a validation spool is given
+    from cuboidtrain.train.evaluate import Evaluation
 
 log = logging.getLogger(__name__)
 
@@ -114,9 +118,9 @@ class Progress:
         self._status.last_checkpoint = Checkpoint(str(path), step, time.time())
         self._publish(force=True)
 
-    def validated(self, step: int, result: dict) -> None:
+    def validated(self, step: int, result: Evaluation) -> None:
         self.val_failed = None
-        self._status.val = Validation(step, result["mean_px_error"], result["median_px_error"])
+        self._status.val = Validation(step, result.mean_px_error, result.median_px_error)
         self.metrics_log.validated(self._status.val)
         self._publish(force=True)
 
