@@ -3,7 +3,7 @@
 #   docker build -t cuboid-fit:cpu .                                  CPU-only torch (the default)
 #   docker build -t cuboid-fit:cuda --build-arg TORCH_VARIANT=cuda .  CUDA torch (PyPI's build)
 #
-# Build arguments (all optional; README: Operations > Containers):
+# Build arguments (all optional; docs/operations.md: Containers):
 #   BASE_IMAGE      a Debian-based image with Python 3.11 and its venv module (python:3.11-slim,
 #                   or one built locally: ops/compose-smoke.sh does where no registry answers)
 #   TORCH_VARIANT   cpu or cuda. cpu takes torch and torchvision from TORCH_INDEX and fails

@@ -6,12 +6,14 @@ For each set (`paper-clean`, noisy and occluded `paper`, `street`) and shape cla
 * **lift**: the true corners plus Gaussian noise of 0.5, 1 and 2 px, lifted to a cuboid
   (`lift.lift`), the camera free and given (the true focal length and principal point, held:
   `intrinsics.KnownCamera`): how much the camera fixes when the corners are good;
-* **mask fit**: the cuboid fitted to the noisy mask from the shipped networks' corners, the
-  mask's own shape class (`Fitter.fit_cuboids`, as `infer` fits it), free and given.
+* **infer**: the answer `infer` gives for the noisy mask (`Fitter.fit`: both shipped models,
+  their cuboids, the choice), the camera fitted unbounded (`plausible_camera=False`), fitted
+  within plausible bounds (the default) and given.
 
 Each with the median relative error of depth/height (every part), the median 3D IoU up to
-scale, the median yaw error, and for the mask fit the median corner error on the true outline
-(hull) and of the interior corners.
+scale, the median yaw error, the median corner error on the true outline (hull) and of the
+interior corners, and for infer the share of masks given their own shape class (the figures
+are those of these masks).
 
     .venv/bin/python benchmarks/bench_camera.py --samples 40 --json bench-camera.json
 """
@@ -29,13 +31,11 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_accuracy import spool_for  # noqa: E402
-from cuboidtrain.fit.cuboid import fit_candidates  # noqa: E402
 from cuboidtrain.fit.fitter import Fitter  # noqa: E402
-from cuboidtrain.fit.masks import frame, silhouette  # noqa: E402
 from cuboidtrain.fit.options import FitOptions  # noqa: E402
 from cuboidtrain.geometry.intrinsics import KnownCamera  # noqa: E402
 from cuboidtrain.geometry.lift import lift  # noqa: E402
-from cuboidtrain.geometry.scoring import Truth, score  # noqa: E402
+from cuboidtrain.geometry.scoring import Truth, score, yaw_error_deg  # noqa: E402
 from shared.sample import decode  # noqa: E402
 from shared.spool import enumerate_spool, read_sample_bytes  # noqa: E402
 
@@ -47,8 +47,7 @@ CAMERAS = ("free", "plausible", "given")  # fitted unbounded, fitted within plau
 
 def true_camera(truth: Truth) -> KnownCamera:
     """The focal length and principal point the generator framed the sample with, in its px."""
-    vector = truth.camera.vector
-    return KnownCamera(float(np.exp(vector[7]) / vector[8]), (float(vector[9]), float(vector[10])))
+    return truth.known_camera()
 
 
 def figures(scored: list) -> dict:
@@ -80,17 +79,38 @@ def lift_rows(truths: list[Truth], rng: np.random.Generator) -> dict:
     return rows
 
 
-def mask_rows(fitter: Fitter, samples: list, truths: list[Truth], shape: str) -> dict:
-    model = next(m for m in fitter.models if m.shape == shape)
-    masks = [silhouette(s.noisy.astype(bool)) for s in samples]
-    candidates = [fitter.fit_framed(model, *frame(m, model.size, fitter.options.margin)) for m in masks]
+def infer_rows(fitters: dict[str, Fitter], samples: list, truths: list[Truth]) -> dict:
+    """The answer `infer` gives (`Fitter.fit` on the noisy mask, both shape classes, the choice
+    among them), the camera fitted unbounded, fitted within plausible bounds, and given."""
     rows = {}
-    for camera in CAMERAS:
-        known = [true_camera(t) if camera == "given" else None for t in truths]
-        fitted = fit_candidates(candidates, masks, known=known, plausible=camera != "free")
-        rows[f"mask fit, {camera}"] = figures([score(f.fit.keypoints, f.fit.ratios, t, f.fit.camera)
-                                               if hasattr(f, "fit") else None for f, t in zip(fitted, truths)])
+    for camera, fitter in fitters.items():
+        fits = [fitter.fit(s.noisy.astype(np.uint8) * 255, camera=true_camera(t) if camera == "given" else None)
+                for s, t in zip(samples, truths)]
+        right = [f.shape == t.shape.name for f, t in zip(fits, truths)]
+        scored = [score(f.keypoints, f.ratios, t, f.cuboid.fit.camera) if ok else None
+                  for f, t, ok in zip(fits, truths, right)]
+        rows[f"infer, {camera}"] = (figures(scored) | {"shape_right": float(np.mean(right))}
+                                    | coverage([f for f, ok in zip(fits, right) if ok],
+                                               [t for t, ok in zip(truths, right) if ok]))
     return rows
+
+
+def coverage(fits: list, truths: list[Truth]) -> dict:
+    """How often the truth lies within one and two of the fit's standard deviations: every ratio
+    (each part's), the yaw, the focal length where fitted."""
+    z = {"ratios": [], "yaw": [], "focal": []}
+    for fit, truth in zip(fits, truths):
+        spread = fit.cuboid.fit.spread
+        if spread is None:
+            continue
+        fitted = truth.shape.ratio_vector(fit.ratios)
+        z["ratios"] += list(np.abs(fitted - truth.shape.ratio_vector(truth.ratios)) / spread.ratios)
+        z["yaw"].append(yaw_error_deg(fit.cuboid.fit.camera, truth.camera) / spread.yaw_deg)
+        if spread.focal_px is not None:
+            z["focal"].append(abs(fit.cuboid.fit.focal_px - truth.camera.focal_px()) / spread.focal_px)
+    every = np.concatenate([np.asarray(v, dtype=float) for v in z.values()])
+    return {f"within_{n}sd_{name}": float(np.mean(np.asarray(v) <= n)) if len(v) else None
+            for name, v in (*z.items(), ("all", every)) for n in (1, 2)}
 
 
 def main() -> None:
@@ -101,13 +121,14 @@ def main() -> None:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+    fitters = {camera: Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, plausible_camera=camera != "free"))
+               for camera in CAMERAS}
     rng, result = np.random.default_rng(args.seed), {}
     for scene, shape in SETS:
         spool = spool_for(args.spools, shape, scene, args.samples)
         samples = [decode(read_sample_bytes(spool, n)) for n in enumerate_spool(spool)[: args.samples]]
         truths = [Truth.of_sample(s) for s in samples]
-        result[f"{scene} {shape}"] = lift_rows(truths, rng) | mask_rows(fitter, samples, truths, shape)
+        result[f"{scene} {shape}"] = lift_rows(truths, rng) | infer_rows(fitters, samples, truths)
     show(result)
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
@@ -115,16 +136,19 @@ def main() -> None:
 
 def show(result: dict) -> None:
     table = Table(title="depth/height, 3D IoU and yaw, camera free and given (medians)")
-    for column in ("set", "row", "d/h rel %", "3D IoU", "yaw deg", "hull px", "interior px"):
+    for column in ("set", "row", "d/h rel %", "3D IoU", "yaw deg", "hull px", "interior px", "shape %",
+                   "in 1 sd %", "in 2 sd %"):
         table.add_column(column)
     for name, rows in result.items():
         for row, f in rows.items():
             if not f.get("answered"):
-                table.add_row(name, row, "-", "-", "-", "-", "-")
+                table.add_row(name, row, *["-"] * 8)
                 continue
             interior = "-" if f["interior_median_px"] is None else f"{f['interior_median_px']:.2f}"
+            shape = f"{100 * f['shape_right']:.0f}" if "shape_right" in f else ""
+            within = [f"{100 * f[k]:.0f}" if f.get(k) is not None else "" for k in ("within_1sd_all", "within_2sd_all")]
             table.add_row(name, row, f"{100 * f['depth_height_median_rel']:.1f}", f"{f['iou3d_median']:.3f}",
-                          f"{f['yaw_median_deg']:.1f}", f"{f['hull_median_px']:.2f}", interior)
+                          f"{f['yaw_median_deg']:.1f}", f"{f['hull_median_px']:.2f}", interior, shape, *within)
     Console(width=140).print(table)
 
 

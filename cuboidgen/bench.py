@@ -3,7 +3,8 @@
 Figures are medians over repeats (this machine is shared and noisy). Ratios
 compare against a baseline measured in the same run:
 
-* generation: published samples/s on one core, against drawing and encoding only;
+* generation: published samples/s on one core, against drawing and encoding only; and
+  for every scene preset and shape class, and the daemon with one worker into a capped spool;
 * spool read: read + decode + collate into torch tensors on one core, against what
   a user would otherwise write: generating each sample on the fly inside torch
   DataLoader workers (all cores).
@@ -20,8 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cuboidgen.config import PAPER, GenConfig
+from cuboidgen.config import PAPER, SCENES, GenConfig, SceneConfig
 from cuboidgen.occluders import OccluderLibrary
+from shared.threads import threads_held
 from cuboidgen.synth import make_sample
 from shared.sample import collate, decode_record, encode
 from shared.spool import SpoolWriter, enumerate_spool, read_sample_bytes
@@ -42,15 +44,23 @@ def timed(fn, repeats: int) -> list[float]:
     return times
 
 
-def bench_generate(size: int, samples: int, repeats: int, library, where: str = ".") -> dict:
+def bench_generate(size: int, samples: int, repeats: int, library, where: str = ".", shape: str = "box",
+                   scene: SceneConfig = PAPER) -> dict:
     """One core: draw + encode only, and draw + encode + publish into a spool at its cap."""
-    cv2.setNumThreads(1)
+    # one core's pace; the caller's count restored after: a process that goes on to fit masks keeps
+    # its own (OpenCV's sums, and so a fit's last bits, follow it)
+    with threads_held(cv2.getNumThreads, cv2.setNumThreads):
+        return _bench_generate(size, samples, repeats, library, where, shape, scene)
+
+
+def _bench_generate(size: int, samples: int, repeats: int, library, where: str, shape: str,
+                    scene: SceneConfig) -> dict:
     seeds = iter(range(10**9))
-    draw = lambda: [encode(make_sample("box", PAPER, size, next(seeds), library)) for _ in range(samples)]  # noqa: E731
+    draw = lambda: [encode(make_sample(shape, scene, size, next(seeds), library)) for _ in range(samples)]  # noqa: E731
     with tempfile.TemporaryDirectory(dir=where, prefix=".bench-") as spool, SpoolWriter(Path(spool), limit=samples) as writer:
         def publish():
             for _ in range(samples):
-                writer.publish(encode(make_sample("box", PAPER, size, next(seeds), library)))
+                writer.publish(encode(make_sample(shape, scene, size, next(seeds), library)))
 
         publish()  # untimed: fill the spool to its cap, so every timed publish also evicts, as a running daemon's does
         draw_times, publish_times = [], []
@@ -61,11 +71,18 @@ def bench_generate(size: int, samples: int, repeats: int, library, where: str = 
     generate_only = rate(samples, statistics.median(draw_times))
     published = rate(samples, statistics.median(publish_times))
     return {
-        "size": size, "samples_per_repeat": samples, "repeats": repeats,
+        "size": size, "shape": shape, "scene": scene.name, "samples_per_repeat": samples, "repeats": repeats,
         "generate_only_per_s": generate_only, "published_per_s_per_core": published,
         "publish_vs_generate_only": published / generate_only,
         "bytes_per_sample_mean": float(np.mean(sizes)), "bytes_per_sample_max": int(max(sizes)),
     }
+
+
+def bench_scenes(size: int, samples: int, repeats: int, library, where: str = ".") -> list[dict]:
+    """`bench_generate` for every scene preset and shape class: a generator worker's pace at each
+    (issue 29: when a GPU outruns the generator, the spool's reuse is the answer, not a faster one)."""
+    return [bench_generate(size, samples, repeats, library, where, shape, scene)
+            for scene in SCENES.values() for shape in ("box", "twobox")]
 
 
 def bench_stages(size: int, samples: int, library, where: str = ".") -> dict:
@@ -109,17 +126,20 @@ def bench_stages(size: int, samples: int, library, where: str = ".") -> dict:
     return {"size": size, "samples": 2 * samples, **{f"{k}_us": statistics.median(v) * 1e6 for k, v in times.items()}}
 
 
-def bench_daemon(size: int, samples: int, workers: int, where: str = ".") -> dict:
-    """The real daemon on all cores, process start-up included."""
+def bench_daemon(size: int, samples: int, workers: int, where: str = ".", limit: int | None = None) -> dict:
+    """The real daemon with `workers` workers, process start-up included, into a spool capped at
+    `limit` samples (default `samples`: it never evicts; fewer: it evicts as a running daemon does)."""
     from cuboidgen.daemon import run
 
+    limit = samples if limit is None else limit
     with tempfile.TemporaryDirectory(dir=where, prefix=".bench-") as spool:
-        config = GenConfig(spool=Path(spool), limit=samples, max_samples=samples, workers=workers, size=size,
+        config = GenConfig(spool=Path(spool), limit=limit, max_samples=samples, workers=workers, size=size,
                            seed=0, dashboard=False)
         start = time.perf_counter()
         run(config)
         seconds = time.perf_counter() - start
-    return {"workers": workers, "samples": samples, "published_per_s": rate(samples, seconds)}
+    return {"workers": workers, "samples": samples, "limit": limit, "published_per_s": rate(samples, seconds),
+            "published_per_s_per_worker": rate(samples, seconds) / workers}
 
 
 def bench_read(size: int, samples: int, batch: int, repeats: int, library, where: str = ".") -> dict:
@@ -190,9 +210,12 @@ def run_benchmarks(size: int = 256, samples: int = 400, repeats: int = 5, batch:
     read = bench_read(size, max(samples * 5, 1000), batch, repeats, library, where)
     fly = bench_on_the_fly(size, samples, batch, cores, max(repeats // 2, 2))
     daemon = bench_daemon(size, samples * 4, cores, where)
+    scenes = bench_scenes(size, samples, max(repeats // 2, 2), library, where)
+    capped = bench_daemon(size, samples * 20, 1, where, limit=samples * 5)  # 8,000 samples into 2,000 by default
     results = {
         "machine": {"cores": cores, "cpu": _cpu_name(), "spool_dir": str(Path(where).resolve())},
         "generate": generate, "daemon": daemon, "read": read, "on_the_fly": fly,
+        "scenes": scenes, "daemon_one_worker_capped": capped,
         "ratios": {
             "read_unpacked_over_generate_per_core": read["read_unpacked_per_s"] / generate["published_per_s_per_core"],
             "read_unpacked_over_on_the_fly": read["read_unpacked_per_s"] / fly["on_the_fly_per_s"],
@@ -213,6 +236,12 @@ def print_table(r: dict) -> None:
     t.add_row("generate + encode, 1 core", f"{g['generate_only_per_s']:,.0f} /s", "")
     t.add_row("generate + publish, 1 core", f"{g['published_per_s_per_core']:,.0f} /s", f">= {TARGETS['generate_per_core']:,.0f} /s")
     t.add_row(f"daemon, {d['workers']} workers (start-up included)", f"{d['published_per_s']:,.0f} /s", "")
+    c = r["daemon_one_worker_capped"]
+    t.add_row(f"daemon, 1 worker, {c['samples']:,} samples into {c['limit']:,} (start-up included)",
+              f"{c['published_per_s']:,.0f} /s", "")
+    for scene in r["scenes"]:
+        t.add_row(f"generate + publish, 1 core: {scene['scene']} {scene['shape']}",
+                  f"{scene['published_per_s_per_core']:,.0f} /s", "")
     t.add_row("bytes per sample (mean / max)", f"{g['bytes_per_sample_mean']:,.0f} / {g['bytes_per_sample_max']:,}", "<= 20,480")
     t.add_row("spool read -> tensors, 1 core (unpacked)", f"{rd['read_unpacked_per_s']:,.0f} /s", ">= 20,000 /s")
     t.add_row("spool read -> tensors, 1 core (packed bits)", f"{rd['read_packed_per_s']:,.0f} /s", "")

@@ -104,6 +104,23 @@ def inspect(
 
 
 @app.command()
+def masks(
+    spool: Path = typer.Argument(..., metavar="SPOOL", help="Spool folder."),
+    out: Path = typer.Argument(..., metavar="OUT_DIR", help="Folder to write into (created if missing)."),
+    count: Optional[int] = typer.Option(None, metavar="N", help="Only the first N samples, in the spool's order (default: all)."),
+    clean: bool = typer.Option(False, "--clean", help="The clean silhouette instead of the noisy, occluded input mask."),
+) -> None:
+    """Write each sample's input mask as OUT_DIR/NNNNN.png and its truth as NNNNN.json (shape, keypoints,
+    ratios, camera focal length and principal point in px): for `cuboidtrain infer OUT_DIR`."""
+    from cuboidgen.masks import write_masks
+
+    check_writable("OUT_DIR", out, folder=True)
+    written = write_masks(spool, out, count, clean)
+    console.print(f"wrote {written} mask{'' if written == 1 else 's'} and their truth to {out} "
+                  f"(try: cuboidtrain infer {out} --json -)", highlight=False, soft_wrap=True)
+
+
+@app.command()
 def health(
     spool: Path = typer.Argument(..., help="Spool folder."),
     max_age: float = typer.Option(60.0, help="Healthy while the newest sample is at most this many seconds old."),

@@ -156,7 +156,7 @@ class GenConfig:
     fsync: bool = False  # sync each sample before publishing (survives power loss; slower)
     evict_every: int = number(EVICT_EVERY, lo=1, integer=True)  # publishes between spool listings (the bound on overshoot per writer)
     # samples a second, all workers together (each takes its share); None: as fast as they go.
-    # A trainer that reads slower than this rate misses samples (README: the generator's throttle).
+    # A trainer that reads slower than this rate misses samples (docs/generator.md: `--max-rate`).
     max_rate: float | None = number(None, lo=0, lo_open=True, optional=True, unit="samples a second")
 
     def validate(self) -> "GenConfig":

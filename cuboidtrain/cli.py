@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
-from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP
+from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP, read_cameras
 from cuboidtrain.fit.options import FIT_SHAPES, OPTIMIZERS, FitOptions
 from cuboidtrain.models.settings import EXTRACTORS, MAX_REFINE_STEPS
 from shared.console import Commands, choices, console, fail, setup_logging
@@ -63,7 +63,7 @@ def run(
     overwrite: bool = typer.Option(TRAIN.overwrite, envvar="CUBOIDTRAIN_OVERWRITE", help="Start over in an --out that holds a run, replacing its last.pt and metrics.jsonl (without it, or --resume, such a run is refused)."),
     checkpoint_every: int = typer.Option(TRAIN.checkpoint_every, envvar="CUBOIDTRAIN_CHECKPOINT_EVERY", help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
     log_every: int = typer.Option(TRAIN.log_every, envvar="CUBOIDTRAIN_LOG_EVERY", help="Steps between records in OUT/metrics.jsonl."),
-    loader_workers: int = typer.Option(TRAIN.loader_workers, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool."),
+    loader_workers: Optional[int] = typer.Option(TRAIN.loader_workers, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool (default: 2; on CUDA a quarter of the cores, 2 to 6)."),
     seed: int = typer.Option(TRAIN.seed, envvar="CUBOIDTRAIN_SEED", help="Seed of the initial weights and the epoch order."),
     device: str = typer.Option(TRAIN.device, envvar="CUBOIDTRAIN_DEVICE", help="auto (CUDA when present), cpu, cuda or cuda:N."),
     threads: Optional[int] = typer.Option(TRAIN.threads, envvar="CUBOIDTRAIN_THREADS", help="CPU threads for torch (default: all cores)."),
@@ -97,7 +97,7 @@ def _train(config: TrainConfig) -> None:
 
     check_paths(config)  # every path option, before the dashboard starts (run() checks them again)
     try:
-        with Dashboard(live=config.dashboard and sys.stdout.isatty()) as board:
+        with Dashboard(live=config.dashboard and console.is_terminal) as board:  # the panel is on stderr, with the log
             status = run_training(config, dashboard=board)
     except TrainingFailed as exc:  # not a bad value (a full disk, a spool that never fills): exit 1
         fail(str(exc), code=1)
@@ -170,18 +170,20 @@ def watch(
 
 @app.command()
 def infer(
-    paths: Optional[list[str]] = typer.Argument(None, metavar="PATH", help="Mask images (PNG/JPG, any size): object non-black, or by --label-id; a folder: its images, recursively. Or a URL fsspec reads (s3://bucket/masks/, gs://..., file://...; a glob in it is expanded)."),
+    paths: Optional[list[str]] = typer.Argument(None, metavar="PATH", help="Mask images (PNG/JPG, any size): two-valued, the object its light side (--invert: dark; --threshold T for a greyscale image), or by --label-id; a folder: its images, recursively. Or a URL fsspec reads (s3://bucket/masks/, gs://..., file://...; a glob in it is expanded)."),
     from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders, or URLs), one a line; - for stdin."),
     glob: Optional[str] = typer.Option(None, metavar="PATTERN", help=f"In folders, the files matching this (e.g. '*_mask.png'); default {DEFAULT_GLOB_HELP}."),
     checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl)."),
     jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run."),
     workers: int = typer.Option(1, min=1, help="Processes fitting at once, each with its own models and one torch thread."),
-    cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves."),
+    cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit\\[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves."),
     shape: FitShape = typer.Option(FitShape[FIT.shape], help="auto: every given model, the best-explained fit wins."),
     refine_steps: str = refine_steps_option(f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
     all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else one building: its pieces (>= 1% of the largest one's area) fitted together."),
     label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
+    threshold: Optional[float] = typer.Option(None, metavar="T", help="Not a two-valued mask (a greyscale image, a photo): the object is the pixels whose level is above T, in the image's own units (0-255 for 8 bits; colour: its grey). Without it an image must be two-valued, or it is refused."),
+    invert: bool = typer.Option(False, "--invert", help="The object is the dark side: a dark building on a light background (an object that covers the whole border is refused, naming this option)."),
     margin: float = typer.Option(FIT.margin, help="Empty border around the framed object, as a fraction of the model size per side."),
     extractor: ExtractorChoice = EXTRACTOR,
     pdm_components: str = PDM_COMPONENTS,
@@ -191,6 +193,9 @@ def infer(
     cuboid: bool = typer.Option(INFER_CUBOID, "--cuboid/--networks-only", help="--cuboid (the default): fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). --networks-only: the networks' corners alone (free points, the Tabulator's ratios), about 2.5x faster (BENCHMARKS.md)."),
     optimizer: OptimizerChoice = typer.Option(OptimizerChoice[FIT.optimizer], help="The cuboid fit's solver: lm (Levenberg-Marquardt on the outline, ~45 ms a mask) or soft (a soft-rasterised silhouette by L-BFGS: more accurate on every measured set, ~35x slower; BENCHMARKS.md, \"Choosing the mask-fit optimiser\")."),
     mesh: Optional[Path] = typer.Option(None, metavar="DIR", help="Write each fitted box as a Wavefront OBJ mesh here, DIR/<input>.obj, in the camera's frame (x right, y down, z forward; units: box heights); its vertices are the keypoints, in order. Not with --networks-only."),
+    focal_px: Optional[float] = typer.Option(None, metavar="F", help="The camera's focal length in the inputs' pixels, where known: held by the cuboid fit (the record says so). With the camera given, depth/height is several times more accurate (BENCHMARKS.md)."),
+    principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given)."),
+    camera: Optional[Path] = typer.Option(None, metavar="FILE", help='Each input\'s camera: a JSON object mapping its path as given (or its file name) to {"focal_px": F, "principal_px": [X, Y]}; over --focal-px and --principal-px.'),
 ) -> None:
     """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
 
@@ -201,7 +206,8 @@ def infer(
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
                          pdm_components=pdm_components, all_components=all_components, label_id=label_id,
-                         device=device, cuboid=cuboid, optimizer=optimizer.value)
+                         threshold=threshold, invert=invert, device=device, cuboid=cuboid, optimizer=optimizer.value, focal_px=focal_px,
+                         principal_px=principal_px, cameras=read_cameras(camera) if camera is not None else ())
     request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
                            options=options, json_out="-" if json_out is None and jsonl is None else json_out,
                            jsonl=jsonl, workers=workers, cluster=cluster, explain=explain, overlay=tuple(overlay),
@@ -211,10 +217,22 @@ def infer(
         console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False)
     if result.meshes is not None:
         console.print(f"{result.meshes} mesh{'' if result.meshes == 1 else 'es'} in {mesh}", highlight=False)
+    if result.stopped is not None:
+        console.print(stopped_line(result.tally, result.records, request), highlight=False, soft_wrap=True)
+        raise typer.Exit(result.stopped)
     if result.tally.failed:
         console.print(f"{result.tally.failed} of {result.tally.total} inputs have an error (see their records' "
                       f"\"error\" field)", highlight=False)
         raise typer.Exit(1)
+
+
+def stopped_line(tally, records: int | None, request) -> str:
+    """What a stopped `infer` kept: the inputs fitted of all, and where their records are."""
+    kept = [f"{records} record{'' if records == 1 else 's'} in {request.json_out}"] if records is not None and request.json_out != "-" else []
+    if request.jsonl is not None:
+        kept.append(f"the store {request.jsonl} (the same command resumes it)")
+    where = f"; {' and '.join(kept)}" if kept else ""
+    return f"stopped by {tally.stopped}: {tally.resumed + tally.done} of {tally.total} inputs fitted{where}"
 
 
 @app.command()
@@ -237,7 +255,7 @@ def export(
                   f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False)
 
 
-STREET_HELP = "A street's known buildings (README: Localization); locate the MASKs in it."
+STREET_HELP = "A street's known buildings (docs/inference.md: Localization); locate the MASKs in it."
 TEMPERATURE_HELP = "Probabilities are softmax(-distance / temperature)."
 BOX_CHECKPOINT_HELP = "A trained box model (street buildings are single boxes); default: the shipped one."
 BOX_CHECKPOINTS = typer.Option(None, metavar="CKPT", help=BOX_CHECKPOINT_HELP)
@@ -407,7 +425,7 @@ def models(
     if as_json:
         typer.echo(json_text(found, indent=2))
     else:
-        console.print(_cards_table(found))
+        print_table(_cards_table(found))
 
 
 def _cards_table(found: list[dict]):
@@ -415,7 +433,7 @@ def _cards_table(found: list[dict]):
 
     table = Table(title="Model files (cuboidtrain models --json: the whole cards)" if found else "No model files")
     for column in ("shape", "arch", "px", "scenes", "steps", "samples", "hours", "clean/paper/street", "MiB"):
-        table.add_column(column, overflow="fold")
+        table.add_column(column, no_wrap=column != "scenes", overflow="fold")  # a number is never split
     for card in found:
         sets = card.get("validation", {}).get("sets", {})
         figures = "/".join(f"{sets[s]['infer_mean_256']:.2f}" if s in sets else "-"
@@ -426,6 +444,17 @@ def _cards_table(found: list[dict]):
     if found:
         table.caption = "errors: mean corner px at 256 px, through infer"
     return table
+
+
+def print_table(table) -> None:
+    """A table on the console: in a terminal at its width; elsewhere (a log, `make demo`'s 80
+    columns without a terminal) at the table's own, so that no row is wrapped."""
+    from rich.console import Console
+    from rich.measure import Measurement
+
+    natural = Measurement.get(console, console.options.update(max_width=10_000), table).maximum
+    out = console if console.is_terminal or natural <= console.width else Console(stderr=True, width=natural)
+    out.print(table)
 
 
 @models_app.command("pack")

@@ -59,7 +59,7 @@ def street_ratios(street: list[Building]) -> np.ndarray:
 
 
 def read_street(path: str | Path) -> list[Building]:
-    """A street JSON file (README: "Localization"); ValueError names what is wrong."""
+    """A street JSON file (docs/inference.md, "Localization"); ValueError names what is wrong."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())

@@ -1,5 +1,5 @@
 #!/bin/bash
-# End-to-end check of docker-compose.yml on a real Docker engine (README: Operations >
+# End-to-end check of docker-compose.yml on a real Docker engine (docs/operations.md:
 # Containers; RELIABILITY.md: Compose smoke run). It
 #   1. uses the engine DOCKER_HOST points at, or starts a throwaway one (ops/dockerd-tmp.sh,
 #      root and Debian's docker.io package) when none answers;

@@ -50,7 +50,8 @@ TRAIN = TrainConfig(arch="tiny", size=32)
 GEN = GenConfig(workers=1, size=32)
 FIT = FitOptions(device="cpu")
 CONFIGS = {"train": TRAIN, "gen": GEN, "fit": FIT}
-PARSED = {("fit", "refine_steps"), ("fit", "pdm_components")}  # strings parsed by their own functions (tested below)
+PARSED = {("fit", "refine_steps"), ("fit", "pdm_components"),  # strings parsed by their own functions (tested below)
+          ("fit", "principal_px")}  # a point (x, y), any finite numbers: FitOptions._check_camera (tests/test_camera_fit.py)
 
 
 def numeric_fields(cls) -> list[str]:

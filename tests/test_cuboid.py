@@ -73,8 +73,11 @@ def test_the_cuboid_object_is_whole_and_finite(records):
     for record in records[True]:
         json_text(record)  # strict JSON: no NaN or Infinity anywhere
         cuboid = record["cuboid"]
-        assert set(cuboid) == {"yaw_deg", "pitch_deg", "roll_deg", "focal_px", "principal_px", "mirror", "iou",
-                               "outline_rms_px", "corners"}
+        assert set(cuboid) == {"yaw_deg", "yaw_sd_deg", "pitch_deg", "roll_deg", "focal_px", "focal_sd_px",
+                               "principal_px", "intrinsics", "mirror", "iou", "outline_rms_px", "corners"}
+        assert cuboid["intrinsics"] == {"focal_px": "fitted", "principal_px": "fitted"}  # nothing was given
+        assert cuboid["yaw_sd_deg"] > 0 and (cuboid["focal_sd_px"] is None) == (cuboid["focal_px"] is None)
+        assert set(record["ratios_sd"]) == set(record["ratios"]) and list(record)[5] == "ratios_sd"
         assert all(-180 <= cuboid[k] <= 180 for k in ("yaw_deg", "pitch_deg", "roll_deg"))
         assert cuboid["focal_px"] is None or cuboid["focal_px"] > 0
         assert (cuboid["focal_px"] is None) == (cuboid["principal_px"] is None)

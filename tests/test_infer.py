@@ -283,9 +283,13 @@ def test_the_stages_hand_on_typed_results_and_none_edits_another(tmp_path):
 def test_a_mask_that_fills_the_frame_is_not_confident(tmp_path):
     block = rectangles((60, 80), (20, 15, 60, 45))
     whole = fitted_record(tmp_path, block, lambda framed: rect_keypoints(framed, 8))
-    full = fitted_record(tmp_path, np.ones((60, 80), bool), lambda framed: rect_keypoints(framed, 8))
+    # All but a notch in the top edge (an all-foreground mask has no outline at all: it is refused,
+    # tests/test_not_a_mask.py): its outline is almost all the image's edge.
+    full = np.ones((60, 80), bool)
+    full[0, 40:42] = False
+    full = fitted_record(tmp_path, full, lambda framed: rect_keypoints(framed, 8))
     assert whole["confidence"] > 0.9
-    assert full["confidence"] < 0.05  # a perfect box fit to no outline at all explains nothing
+    assert full["confidence"] < 0.05  # a perfect box fit to an outline that is the image's edge explains nothing
     assert any("outline lies on the image's edge" in w for w in full["warnings"])
     cut = fitted_record(tmp_path, rectangles((60, 80), (20, 15, 60, 59)), lambda framed: rect_keypoints(framed, 8))
     assert full["confidence"] < cut["confidence"] < whole["confidence"]  # cut along one side: in between
@@ -441,8 +445,9 @@ def test_a_huge_image_is_refused_before_decoding_and_the_others_still_run(tmp_pa
     records = infer_paths([huge, good, full], random_models)
     assert "40000 x 30000 px is too large" in records[0]["error"] and records[0]["keypoints"] is None
     check_record(records[1], good)
-    # An all-foreground mask is a silhouette cut on every side: it is fitted, with a warning.
-    assert records[2]["error"] is None and "top and bottom and left and right border" in records[2]["warnings"][0]
+    # An all-foreground mask has no background, so no outline: an error record, saying what reads it otherwise.
+    assert records[2]["keypoints"] is None and "every pixel is the object" in records[2]["error"]
+    assert "pass --invert" in records[2]["error"]
 
 
 def test_a_silhouette_cut_by_the_border_gets_a_warning_naming_the_sides(tmp_path, random_models):

@@ -1,7 +1,7 @@
 """Several `cuboidgen run` processes on one spool, as `docker compose up --scale generator=N` runs them.
 
 The spool's stated bound is `limit + writers x evict_every`, where writers counts the
-worker processes of every generator sharing it (shared/spool.py, README). Here three
+worker processes of every generator sharing it (shared/spool.py, docs/generator.md). Here three
 daemons with 1, 1 and 2 workers (four writers) fill one spool while this test lists
 it over and over, decoding everything listed.
 """

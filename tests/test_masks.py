@@ -189,7 +189,7 @@ def jpeg_declaring(width: int, height: int, icc_bytes: int = 0, progressive: boo
     """A tiny JPEG whose frame header claims width x height, after an ICC profile of `icc_bytes` in
     APP2 segments (at most 65533 bytes each, as real profiles are split), and some fill bytes."""
     flags = [cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if progressive else []
-    data = bytearray(cv2.imencode(".jpg", np.full((8, 8), 255, np.uint8), flags)[1].tobytes())
+    data = bytearray(cv2.imencode(".jpg", np.pad(np.full((4, 4), 255, np.uint8), 2), flags)[1].tobytes())  # a mask
     position = 2
     while not (0xC0 <= data[position + 1] <= 0xC2):  # baseline or progressive frame header
         position += 2 + int.from_bytes(data[position + 2 : position + 4], "big")

@@ -64,14 +64,24 @@ class FittedCuboid:
 
     fit: CuboidFit  # keypoints (N, 2) input px, viewer-named; ratios; angles; intrinsics; IoU
     corner_scores: np.ndarray  # (N,) in [0, 1], viewer-named (`corner_scores`)
+    given: tuple[str, ...] = ()  # the intrinsics given (`KnownCamera.given`): focal_px, principal_px
+
+    def ratios_sd(self) -> dict | None:
+        """The standard deviations of the ratios, shaped as the record's `ratios` (None: no error bars)."""
+        spread = self.fit.spread
+        return None if spread is None else get_shape(self.fit.shape).ratio_dict(spread.ratios)
 
     def record(self) -> dict:
         """The infer record's `cuboid` object (docs/contract.md, "The cuboid object")."""
         fit = self.fit
         perspective = math.isfinite(fit.focal_px)  # inf: weak perspective, no focal length or principal point
-        return {"yaw_deg": fit.yaw_deg, "pitch_deg": fit.pitch_deg, "roll_deg": fit.roll_deg,
+        spread = fit.spread
+        return {"yaw_deg": fit.yaw_deg, "yaw_sd_deg": None if spread is None else spread.yaw_deg,
+                "pitch_deg": fit.pitch_deg, "roll_deg": fit.roll_deg,
                 "focal_px": fit.focal_px if perspective else None,
+                "focal_sd_px": None if spread is None or not perspective else spread.focal_px,
                 "principal_px": list(fit.principal_px) if perspective else None,
+                "intrinsics": {name: "given" if name in self.given else "fitted" for name in ("focal_px", "principal_px")},
                 "mirror": fit.mirror, "iou": fit.iou, "outline_rms_px": fit.residual_px,
                 "corners": [{"on_outline": bool(on), "score": float(s)}
                             for on, s in zip(fit.on_outline, self.corner_scores)]}
@@ -104,7 +114,8 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
                 fitted[i] = NoCuboid(str(exc))
                 continue
             named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
-            fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks))
+            fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks),
+                                     known[i].given if known[i] is not None else ())
     return fitted
 
 

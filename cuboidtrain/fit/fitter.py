@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import torch
 
-from cuboidtrain.models.device import resolve_device
+from cuboidtrain.models.device import one_thread, resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, choose, score
 from cuboidtrain.models.codec import make_codec
 from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates
@@ -72,8 +72,16 @@ class Fit:
                   "refine_steps": self.refine_steps, "refine_converged": self.refine_converged, "error": None,
                   "warnings": list(self.warnings), "candidates": self.candidates}
         if self.cuboid is not None:
+            record = _after(record, "ratios", {"ratios_sd": self.cuboid.ratios_sd()})
             record["cuboid"] = self.cuboid.record()
         return record | ({"component": self.component} if with_component else {})
+
+
+def _after(record: dict, key: str, added: dict) -> dict:
+    """`record` with `added` right after `key` (the contract's order)."""
+    keys = list(record)
+    at = keys.index(key) + 1
+    return {k: record[k] for k in keys[:at]} | added | {k: record[k] for k in keys[at:]}
 
 
 @dataclass(frozen=True)
@@ -121,11 +129,12 @@ class Fitter:
 
     # --- fitting ---------------------------------------------------------------------------
 
-    def fit(self, mask: str | Path | np.ndarray) -> Fit:
+    def fit(self, mask: str | Path | np.ndarray, camera: KnownCamera | None = None) -> Fit:
         """The building of a mask image file, URL (`s3://...`, read by fsspec: `storage`) or array (H, W)
-        (object > half its maximum, or `label_id`): its pieces of at least 1% of the largest one's area,
-        together (`masks.silhouette`); ValueError when it has none, or the file cannot be read."""
-        return self._fit_parts(mask, all_components=False)[0]
+        (object > half its maximum, or `label_id`, `threshold`, `invert`: `masks.to_mask`): its pieces of at least 1% of the largest one's area,
+        together (`masks.silhouette`); ValueError when it has none, or the file cannot be read.
+        `camera`: what is known of its camera, in its pixels (else the options', `FitOptions.camera_for`)."""
+        return self._fit_parts(mask, all_components=False, camera=camera)[0]
 
     def fit_all(self, mask: str | Path | np.ndarray) -> list[Fit]:
         """One Fit per component (>= 16 px, largest first) with `all_components`, else `fit`'s one."""
@@ -156,10 +165,10 @@ class Fitter:
 
     def _read(self, mask: str | Path | np.ndarray) -> np.ndarray:
         if isinstance(mask, (str, Path)):
-            return load_mask(mask, self.options.label_id)  # a URL stays a string
-        return to_mask(mask, self.options.label_id)
+            return load_mask(mask, self.options.label_id, self.options.threshold, self.options.invert)  # a URL stays a string
+        return to_mask(mask, self.options.label_id, threshold=self.options.threshold, invert=self.options.invert)
 
-    def _fit_parts(self, mask, all_components: bool) -> list[Fit]:
+    def _fit_parts(self, mask, all_components: bool, camera: KnownCamera | None = None) -> list[Fit]:
         name = str(mask) if isinstance(mask, (str, Path)) else None
         mask = self._read(mask)
         if all_components:  # a mask of several objects: each fitted alone
@@ -169,12 +178,13 @@ class Fitter:
             parts = [] if building is None else [building]
         if not parts:
             raise UsageError(f"{name or 'mask'}: no component of at least 16 px")
-        fits = [self._fit_component(part, name) for part in parts]
+        known = camera or (self.options.camera_for(name, mask.shape) if self.options.cuboid else None)
+        fits = [self._fit_component(part, name, known) for part in parts]
         if all_components:
             fits = [replace(f, component=k) for k, f in enumerate(fits)]
         return fits
 
-    def _fit_component(self, mask: np.ndarray, name: str | None) -> Fit:
+    def _fit_component(self, mask: np.ndarray, name: str | None, known: KnownCamera | None = None) -> Fit:
         """Frame one component for every candidate model and keep the best-explained fit,
         its keypoints mapped back to the input's pixels; with `cuboid`, each candidate's cuboid
         fitted to the component, judged by its own silhouette, and its projection kept."""
@@ -183,7 +193,7 @@ class Fitter:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
-        cuboids = {c.shape: self.fit_cuboid(c, target) for c in candidates} if self.options.cuboid else {}
+        cuboids = {c.shape: self.fit_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
         set_aside: list[str] = []
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
             best, set_aside = choose_cuboid(candidates, cuboids)
@@ -206,7 +216,9 @@ class Fitter:
         if framed_mask.shape != (model.size, model.size):
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
         x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
-        return self.candidate(model, self.predict(model, x1), 0, framed_mask, framing)
+        with one_thread(self.device):  # the same numbers however many threads this machine gives torch
+            out = self.predict(model, x1)
+        return self.candidate(model, out, 0, framed_mask, framing)
 
     def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
                     known: Sequence[KnownCamera | None] | None = None) -> list[FittedCuboid | NoCuboid]:
@@ -214,11 +226,13 @@ class Fitter:
         options' optimizer, one shape class's rows solved as one batch (`cuboid.fit_candidates`): a
         component's shape classes for `fit`, a batch of samples for `eval`. NoCuboid where a fit
         is not finite. `known`: each mask's given camera, or None (fitted)."""
-        return fit_candidates(candidates, masks, optimizer=self.options.optimizer, known=known)
+        return fit_candidates(candidates, masks, optimizer=self.options.optimizer, known=known,
+                              plausible=self.options.plausible_camera)
 
-    def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget) -> FittedCuboid:
+    def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget,
+                   known: KnownCamera | None = None) -> FittedCuboid:
         """`fit_cuboids` for one candidate; NonFiniteCuboid where its fit is not finite."""
-        [fitted] = self.fit_cuboids([candidate], [mask])
+        [fitted] = self.fit_cuboids([candidate], [mask], [known])
         if isinstance(fitted, NoCuboid):
             raise NonFiniteCuboid(fitted.reason)
         return fitted

@@ -7,9 +7,12 @@ builds its choices from these lists, and `--help` must not wait for torch.
 """
 from __future__ import annotations
 
+import math
 import numbers
 from dataclasses import dataclass, replace
+from pathlib import PurePath
 
+from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.models.settings import (DEFAULT_PDM_COMPONENTS, EXTRACTORS, MAX_REFINE_STEPS, check_device,
                                          parse_components)
 from shared.checks import check_choice, check_numbers, number
@@ -49,9 +52,18 @@ class FitOptions:
     pdm_components: int | float | str = DEFAULT_PDM_COMPONENTS  # with extractor "pdm": a count or a fraction
     all_components: bool = False  # one fit per 8-connected component (>= 16 px), else one building (masks.silhouette)
     label_id: int | None = number(None, lo=0, hi=65535, integer=True, optional=True)  # read a grey label map: pixels equal to this id are the object
+    # What the object is in an image that is not a two-valued mask (masks.to_mask): the levels above T,
+    # in the image's own units (0-255 for 8 bits); invert: the other side (a dark object on light).
+    threshold: float | None = number(None, lo=0, optional=True, unit="a level in the image's own units")
+    invert: bool = False
     device: str = "auto"  # auto (CUDA when present), cpu, cuda or cuda:N
     cuboid: bool = False  # fit a perspective cuboid to the mask at the input's resolution (cuboidtrain.fit.cuboid)
     optimizer: str = "lm"  # the cuboid fit's: lm (fast) or soft (more accurate, ~35x slower; BENCHMARKS.md)
+    # The camera, where known (cuboid fit): held by the fit, which the record says (docs/contract.md).
+    focal_px: float | None = number(None, lo=0, lo_open=True, optional=True)  # every input's focal length, px
+    principal_px: tuple[float, float] | None = None  # every input's principal point (x, y), px
+    cameras: tuple[tuple[str, KnownCamera], ...] = ()  # per input (its path as given, or its file name): --camera FILE
+    plausible_camera: bool = True  # a fitted camera kept plausible (geometry.intrinsics.PlausibleRows)
 
     def validate(self) -> "FitOptions":
         """The checked options, strings parsed; a ValueError names the bad value and what was expected.
@@ -62,9 +74,41 @@ class FitOptions:
         if self.optimizer != "lm" and not self.cuboid:
             raise UsageError(f"--optimizer {self.optimizer} with --networks-only: expected the cuboid fit "
                              f"(the optimizer is the cuboid fit's)")
-        check_numbers(self)  # margin, label_id: finite and in their declared ranges
+        check_numbers(self)  # margin, label_id, focal_px: finite and in their declared ranges
+        if self.label_id is not None and (self.threshold is not None or self.invert):
+            given = f"--threshold {self.threshold:g}" if self.threshold is not None else "--invert"
+            raise UsageError(f"{given} with --label-id {self.label_id}: expected one of them (a label map's "
+                             f"object is its label's pixels, not a side of a threshold)")
+        self._check_camera()
         return replace(self, refine_steps=parse_refine_steps(self.refine_steps),
                        pdm_components=parse_components(self.pdm_components), device=check_device(self.device))
+
+    def _check_camera(self) -> None:
+        principal = self.principal_px
+        if principal is not None and (not isinstance(principal, (tuple, list)) or len(principal) != 2
+                                      or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in principal)):
+            raise UsageError(f"--principal-px {principal!r}: expected two finite numbers X Y (px)")
+        given = ("--focal-px" if self.focal_px is not None else "--principal-px" if principal is not None
+                 else "--camera" if self.cameras else None)
+        if given is not None and self.optimizer != "lm":
+            raise UsageError(f"{given} with --optimizer {self.optimizer}: expected --optimizer lm (only the LM fit "
+                             f"holds a given camera)")
+        if given is not None and not self.cuboid:
+            raise UsageError(f"{given} with --networks-only: expected the cuboid fit (the camera is the cuboid's)")
+
+    def camera_for(self, name: str | None, frame: tuple[int, int]) -> KnownCamera | None:
+        """What is known of the camera of input `name` (its entry in `cameras`, by the path as given or
+        its file name, over `focal_px` / `principal_px`), None if nothing. A full frame (`label_id` or
+        `all_components`: the whole photo) has its principal point at the frame's centre unless given."""
+        entry = dict(self.cameras).get(name) or dict(self.cameras).get(PurePath(name).name if name else None)
+        focal = entry.focal_px if entry is not None and entry.focal_px is not None else self.focal_px
+        principal = entry.principal_px if entry is not None and entry.principal_px is not None else self.principal_px
+        if principal is None and (self.label_id is not None or self.all_components):
+            principal = ((frame[1] - 1) / 2, (frame[0] - 1) / 2)
+        if focal is None and principal is None:
+            return None
+        return KnownCamera(None if focal is None else float(focal),
+                           None if principal is None else (float(principal[0]), float(principal[1])))
 
     @property
     def shapes(self) -> tuple[str, ...]:

@@ -335,6 +335,15 @@ def from_sample_params(shape: Shape, params: dict) -> CameraParams:
 
 
 @dataclass(frozen=True)
+class Spread:
+    """A fit's standard deviations in the record's terms (`cuboidtrain.geometry.uncertainty`)."""
+
+    ratios: np.ndarray  # (R,) in `shape.ratio_names` order, in the ratios' own units
+    yaw_deg: float
+    focal_px: float | None  # None where the focal length is given, or infinite (weak perspective)
+
+
+@dataclass(frozen=True)
 class CuboidFit:
     """A cuboid that explains a mask (or corners), in the record's terms: input px and degrees."""
 
@@ -351,6 +360,7 @@ class CuboidFit:
     iou: float | None  # the fitted silhouette's IoU with the input mask; None for a lift of corners alone
     residual_px: float  # rms distance the objective left (corners for a lift, the outline for a mask fit)
     camera: CameraParams  # the parameter vector, for a caller that fits on from here
+    spread: Spread | None = None  # the error bars, where the solver gave them (a mask fit)
 
 
 def describe(camera: CameraParams, residual_px: float, iou: float | None = None) -> CuboidFit:

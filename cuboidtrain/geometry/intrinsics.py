@@ -131,8 +131,8 @@ class PlausibleRows:
 
     side: np.ndarray  # (K,) px: each frame's longer side
     centre: np.ndarray  # (K, 2) px: each frame's centre
-    free_focal: np.ndarray  # (K,) bool: the focal length is fitted
-    free_principal: np.ndarray  # (K,) bool: the principal point is fitted
+    free_focal: np.ndarray  # (K,) 1.0 where the focal length is fitted, else 0.0
+    free_principal: np.ndarray  # (K,) 1.0 where the principal point is fitted, else 0.0
     stiffness: float = PLAUSIBLE
     typical: float = TYPICAL_WEIGHT  # the weight of the typical camera's Gaussian (0: bounds only)
 
@@ -142,41 +142,43 @@ class PlausibleRows:
         frames = np.asarray(frames, dtype=np.float64).reshape(-1, 2)
         known = list(known) if known is not None else [None] * len(frames)
         return cls(frames.max(1), frames[:, ::-1] / 2 - 0.5,
-                   np.array([k is None or k.focal_px is None for k in known]),
-                   np.array([k is None or k.principal_px is None for k in known]))
+                   np.array([k is None or k.focal_px is None for k in known], dtype=np.float64),
+                   np.array([k is None or k.principal_px is None for k in known], dtype=np.float64))
 
-    def terms(self, x: np.ndarray, owner: np.ndarray, rotated_z: np.ndarray,
+    def terms(self, x: np.ndarray, owner: np.ndarray, rotated_z: np.ndarray | None,
               derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """(B, 3 + N) residuals of params (B, P) of inputs `owner` (B,) whose rotated corners have
-        depths `rotated_z` (B, N) (object centre at 0, in height units), and their Jacobian. The
-        in-front rows' derivative follows k only (the corners' depths held): enough to push a
-        camera out of the building, and LM takes no step that raises the cost."""
+        """(B, 6 or 7) residuals of params (B, P) of inputs `owner` (B,) whose rotated corners have
+        depths `rotated_z` (B, N) (object centre at 0, in height units; None: no in-front row), and
+        their Jacobian. The in-front row is the nearest corner's; its derivative follows k only
+        (the corners' depths held): enough to push a camera out of the building, and LM takes no
+        step that raises the cost."""
         w, side, centre = self.stiffness, self.side[owner], self.centre[owner]
+        free_focal, free_principal = self.free_focal[owner], self.free_principal[owner]  # float 0/1
         # |k|: a hypothesis with k < 0 is the depth-reversed twin of one with k > 0 (`camera.canonical`).
-        s, k, sign = np.exp(x[:, 7]), np.abs(x[:, 8]), np.sign(x[:, 8])
-        short = self.free_focal[owner] & (MIN_FOCAL_SIDES * side * k / s > 1)
-        focal = np.where(short, w * (MIN_FOCAL_SIDES * side * k / s - 1), 0.0)
+        s, sign = np.exp(x[:, 7]), np.sign(x[:, 8])
+        kappa = side * np.abs(x[:, 8]) / s  # the frame's side over the focal length
         offset = (x[:, 9:11] - centre) / side[:, None]
-        outside = self.free_principal[owner][:, None] & (np.abs(offset) > PRINCIPAL_SIDES)
-        principal = np.where(outside, w * (np.abs(offset) - PRINCIPAL_SIDES), 0.0)
-        share = 1.0 + x[:, 8, None] * rotated_z  # the same for both twins: each has z and k negated
-        behind = share < MIN_DEPTH_SHARE
-        front = np.where(behind, w * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE, 0.0)
-        free = np.stack([self.free_focal[owner], *[self.free_principal[owner]] * 2], axis=1)
-        typical = np.concatenate([(side * k / s)[:, None], offset], axis=1)
-        prior = np.where(free, self.typical * (typical - np.array(TYPICAL)) / np.array(TYPICAL_SD), 0.0)
-        values = np.concatenate([focal[:, None], principal, front, prior], axis=1)
+        short = free_focal * (MIN_FOCAL_SIDES * kappa > 1)
+        outside = free_principal[:, None] * (np.abs(offset) > PRINCIPAL_SIDES)
+        pull = self.typical / np.array(TYPICAL_SD)
+        columns = [w * short * (MIN_FOCAL_SIDES * kappa - 1), *(w * outside * (np.abs(offset) - PRINCIPAL_SIDES)).T]
+        if rotated_z is not None:
+            nearest = np.take_along_axis(rotated_z, (x[:, 8, None] * rotated_z).argmin(1)[:, None], axis=1)[:, 0]
+            share = 1.0 + x[:, 8] * nearest  # the same for both twins: each has z and k negated
+            behind = share < MIN_DEPTH_SHARE
+            columns.append(w * behind * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE)
+        columns += [pull[0] * free_focal * (kappa - TYPICAL[0]),
+                    *(pull[1:] * free_principal[:, None] * (offset - np.array(TYPICAL[1:]))).T]
+        values = np.stack(columns, axis=1)
         if not derivatives:
             return values, None
         jac = np.zeros((len(x), values.shape[1], x.shape[1]))
-        scale = np.where(free, self.typical / np.array(TYPICAL_SD), 0.0)  # (B, 3)
-        jac[:, -3, 7] = -scale[:, 0] * side * k / s
-        jac[:, -3, 8] = scale[:, 0] * side * sign / s
-        jac[:, -2, 9], jac[:, -1, 10] = scale[:, 1] / side, scale[:, 2] / side
-        jac[:, 0, 7] = np.where(short, -w * MIN_FOCAL_SIDES * side * k / s, 0.0)
-        jac[:, 0, 8] = np.where(short, w * MIN_FOCAL_SIDES * side * sign / s, 0.0)
-        jac[:, 1, 9], jac[:, 2, 10] = (np.where(outside[:, a], w * np.sign(offset[:, a]) / side, 0.0) for a in (0, 1))
-        jac[:, 3:-3, 8] = np.where(behind, -w * rotated_z / MIN_DEPTH_SHARE, 0.0)
+        jac[:, 0, 7], jac[:, 0, 8] = -w * short * MIN_FOCAL_SIDES * kappa, w * short * MIN_FOCAL_SIDES * side * sign / s
+        jac[:, 1, 9], jac[:, 2, 10] = (w * outside[:, a] * np.sign(offset[:, a]) / side for a in (0, 1))
+        if rotated_z is not None:
+            jac[:, 3, 8] = -w * behind * nearest / MIN_DEPTH_SHARE
+        jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * side * sign / s
+        jac[:, -2, 9], jac[:, -1, 10] = pull[1] * free_principal / side, pull[2] * free_principal / side
         return values, jac
 
     def subset(self, rows: np.ndarray) -> "PlausibleRows":
@@ -192,6 +194,7 @@ class CameraTerms:
     shape: Shape
     held: CameraRows | None
     plausible: PlausibleRows | None
+    in_front: bool = True  # the plausible bounds include the nearest corner's (a mask fit's starts leave it out)
 
     @classmethod
     def of(cls, shape: Shape, known=None, frames=None, typical: float = TYPICAL_WEIGHT) -> "CameraTerms | None":
@@ -210,14 +213,26 @@ class CameraTerms:
         if self.held is not None:
             parts.append(self.held.terms(x, owner, derivatives))
         if self.plausible is not None:
-            depth = rotated_points(x, self.shape, mirrors)[..., 2]
-            parts.append(self.plausible.terms(x, owner, depth, derivatives))
+            depths = self._depths(x, mirrors) if self.in_front else None
+            parts.append(self.plausible.terms(x, owner, depths, derivatives))
         values = np.concatenate([v for v, _ in parts], axis=1)
         return values, (np.concatenate([j for _, j in parts], axis=1) if derivatives else None)
 
+    def _depths(self, x: np.ndarray, mirrors: np.ndarray) -> np.ndarray:
+        """(B, N) the corners' depths about the box centre (height units), only where a corner could
+        be near the camera: no corner is further from the centre than the box's half-diagonal, so
+        where |k| times that leaves every corner past MIN_DEPTH_SHARE, zeros do (and cost nothing)."""
+        extents = np.exp(x[:, :2])  # width, depth; height 1 (a twobox's LEFT part: p12, below)
+        reach = 0.5 * np.sqrt((extents**2).sum(1) + np.maximum(1.0, np.exp(x[:, 12]) if x.shape[1] > 12 else 1.0) ** 2)
+        near = np.flatnonzero(1.0 - np.abs(x[:, 8]) * reach * 2.0 < MIN_DEPTH_SHARE)  # x2: the twobox's taller part
+        depths = np.zeros((len(x), self.shape.num_keypoints))
+        if len(near):
+            depths[near] = rotated_points(x[near], self.shape, mirrors[near])[..., 2]
+        return depths
+
     def subset(self, rows: np.ndarray) -> "CameraTerms":
         return CameraTerms(self.shape, self.held and self.held.subset(rows),
-                           self.plausible and self.plausible.subset(rows))
+                           self.plausible and self.plausible.subset(rows), self.in_front)
 
     def start_from(self, params: np.ndarray, owner: np.ndarray) -> np.ndarray:
         return params if self.held is None else self.held.start_from(params, owner)

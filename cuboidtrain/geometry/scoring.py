@@ -30,12 +30,14 @@ networks' corners lifted by `lift.lift`: they have no box of their own) with the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from cuboidtrain.geometry.camera import CameraParams, canonical, euler_angles, from_sample_params, rotation_matrices
+from cuboidtrain.geometry.camera import (CameraParams, Spread, canonical, euler_angles, from_sample_params,
+                                         rotation_matrices)
+from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.iou3d import OrientedBox, union_iou
 from cuboidtrain.geometry.lift import lift
 from shared.shapes import Shape, get_shape
@@ -62,6 +64,9 @@ class CornerErrors:
     yaw_deg: float = math.nan  # `yaw_error_deg`; NaN without a true camera
     iou3d: float = math.nan  # `iou_up_to_scale`; NaN without a true camera
     focal: float = math.nan  # `focal_error`; NaN without a true camera, or for a weak-perspective fit
+    # |error| / sd of every value the fit gave an error bar for (ratios, yaw, the focal length where
+    # fitted: `camera.Spread`), against the truth: calibrated error bars hold two thirds within 1
+    z_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,13 @@ class Truth:
             camera = None
         return cls(shape, np.asarray(sample.keypoints, dtype=np.float64), sample.ratios, camera)
 
+    def known_camera(self) -> KnownCamera | None:
+        """The focal length and principal point the generator framed the sample with, in its px."""
+        if self.camera is None:
+            return None
+        vector = self.camera.vector
+        return KnownCamera(float(np.exp(vector[7]) / vector[8]), (float(vector[9]), float(vector[10])))
+
 
 def corner_errors(shape: Shape, keypoints: np.ndarray, truth: np.ndarray, ratios: dict, true_ratios: dict) -> CornerErrors:
     """Score one fit (keypoints in the truth's px, `ratios` in the record's nested layout)."""
@@ -94,17 +106,30 @@ def corner_errors(shape: Shape, keypoints: np.ndarray, truth: np.ndarray, ratios
     return CornerErrors(error[on_hull], error[~on_hull], float(error.mean()) / span, relative[0::2], relative[1::2])
 
 
-def score(keypoints: np.ndarray, ratios: dict, truth: Truth, camera: CameraParams | None = None) -> CornerErrors:
+def score(keypoints: np.ndarray, ratios: dict, truth: Truth, camera: CameraParams | None = None,
+          spread: Spread | None = None) -> CornerErrors:
     """All the figures of one fit against its truth. `camera`: the fit's cuboid (a cuboid fit's
     `CuboidFit.camera`); None for the networks' corners alone, which are then lifted
-    (`lift.lift`, its defaults) to get a yaw and a box."""
+    (`lift.lift`, its defaults) to get a yaw and a box. `spread`: the fit's error bars."""
     errors = corner_errors(truth.shape, keypoints, truth.keypoints, ratios, truth.ratios)
     if truth.camera is None:
         return errors
     if camera is None:
         camera = lift(np.asarray(keypoints, dtype=np.float64), truth.shape).camera
-    return replace(errors, yaw_deg=yaw_error_deg(camera, truth.camera), iou3d=iou_up_to_scale(camera, truth.camera),
-                   focal=focal_error(camera, truth.camera))
+    yaw = yaw_error_deg(camera, truth.camera)
+    z_scores = np.zeros(0) if spread is None else _z_scores(ratios, truth, camera, yaw, spread)
+    return replace(errors, yaw_deg=yaw, iou3d=iou_up_to_scale(camera, truth.camera),
+                   focal=focal_error(camera, truth.camera), z_scores=z_scores)
+
+
+def _z_scores(ratios: dict, truth: Truth, camera: CameraParams, yaw_deg: float, spread: Spread) -> np.ndarray:
+    """|error| / sd of each ratio, the yaw and (where fitted) the focal length."""
+    shape = truth.shape
+    z = list(np.abs(shape.ratio_vector(ratios) - shape.ratio_vector(truth.ratios)) / spread.ratios)
+    z.append(yaw_deg / spread.yaw_deg)
+    if spread.focal_px is not None and math.isfinite(camera.focal_px()):
+        z.append(abs(camera.focal_px() - truth.camera.focal_px()) / spread.focal_px)
+    return np.array(z)
 
 
 def focal_error(camera: CameraParams, truth: CameraParams) -> float:
@@ -144,7 +169,10 @@ def camera_boxes(camera: CameraParams) -> list[OrientedBox] | None:
 def centroid(boxes: list[OrientedBox]) -> np.ndarray:
     """The solid's centre of volume."""
     volumes = np.array([b.volume for b in boxes])
-    return (volumes[:, None] * np.array([b.centre for b in boxes])).sum(0) / volumes.sum()
+    centres = np.array([b.centre for b in boxes])
+    if volumes.sum() <= 0:  # a degenerate fit (a flat box): the parts' plain mean
+        return centres.mean(0)
+    return (volumes[:, None] * centres).sum(0) / volumes.sum()
 
 
 def iou_up_to_scale(camera: CameraParams, truth: CameraParams) -> float:
@@ -181,6 +209,9 @@ def summarise(errors: list[CornerErrors]) -> dict[str, float]:
     out["yaw_mean_deg"], out["yaw_median_deg"] = _mean_median(yaw[np.isfinite(yaw)])
     out["iou3d_mean"], out["iou3d_median"] = _mean_median(iou3d[np.isfinite(iou3d)])
     out["focal_mean_rel"], out["focal_median_rel"] = _mean_median(focal[np.isfinite(focal)])
+    z_scores = np.concatenate([e.z_scores for e in errors]) if errors else np.zeros(0)
+    out["within_1sd"], out["within_2sd"] = ((float(np.mean(z_scores <= n)) if len(z_scores) else float("nan"))
+                                            for n in (1, 2))
     return out
 
 

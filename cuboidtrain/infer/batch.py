@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
+from contextlib import closing, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,10 +43,12 @@ class Batch:
         return list(dict.fromkeys(self.inputs)) if self.jsonl else list(self.inputs)
 
 
-def run_batch(batch: Batch, fitter, console,
-              explain: Callable | None = None) -> tuple[list[Outcome | dict], Tally]:
+def run_batch(batch: Batch, fitter, console, explain: Callable | None = None,
+              stop=()) -> tuple[list[Outcome | dict], Tally]:
     """The outcomes of the inputs in input order (when `batch.keep`; an input OUT already held
-    by its records, as read back: `records.to_record` passes them on) and the run's Tally."""
+    by its records, as read back: `records.to_record` passes them on) and the run's Tally.
+    Once `stop` is true (`stopping.Stop`: Ctrl-C, SIGTERM) no input starts: the outcomes are
+    those fitted by then, and the Tally says what stopped it."""
     inputs = unique(batch.inputs) if batch.jsonl else list(batch.inputs)
     with RecordStore(batch.jsonl, batch.options) if batch.jsonl else nullcontext() as store:
         # resume: the inputs OUT already holds are counted, not fitted again
@@ -66,8 +68,8 @@ def run_batch(batch: Batch, fitter, console,
             log.info("%s holds %d of the %d inputs; fitting the other %d", batch.jsonl, tally.resumed,
                      len(inputs), len(jobs))
         # fit, store and show each input's outcomes as they complete
-        groups = fitted(batch, jobs, fitter, explain)
-        with Reporter(tally, console) as reporter:
+        groups = fitted(batch, jobs, fitter, explain, stop)
+        with Reporter(tally, console) as reporter, closing(groups):
             for index, outcomes in groups:
                 if store:
                     store.write(index, outcomes)
@@ -75,14 +77,18 @@ def run_batch(batch: Batch, fitter, console,
                     kept[index] = outcomes
                 tally.add(outcomes)
                 reporter.update()
+                if stop and batch.cluster is not None:  # a pool finishes its inputs in hand; a cluster's are dropped
+                    break
+            if stop and tally.resumed + tally.done < tally.total:
+                tally.stopped = stop.name
     outcomes = [o for index in sorted(kept) for o in kept[index]] if batch.keep else []
     return outcomes, tally
 
 
-def fitted(batch: Batch, jobs: list[tuple[int, str]], fitter, explain: Callable | None):
+def fitted(batch: Batch, jobs: list[tuple[int, str]], fitter, explain: Callable | None, stop=()):
     """The jobs' (index, outcomes) from wherever `batch` says fits run."""
     if batch.cluster is None:
-        return fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain)
+        return fit_groups(jobs, fitter, batch.checkpoints, batch.options, batch.workers, explain, stop)
     from cuboidtrain.infer.cluster import cluster_groups  # Dask only when asked: an optional extra
 
     return cluster_groups(jobs, batch.checkpoints, batch.options, batch.cluster, batch.workers)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -251,6 +251,7 @@ def _box3d_tile(ax, fit: Fit) -> None:
     for a, b in geometry.edges:
         colour = FRONT_COLOUR if a in front and b in front else BACK_COLOUR
         ax.plot(*show[[a, b]].T, color=colour, linewidth=1.8, zorder=3)
+    depth_sd = _depth_bounds(ax, fit, geometry, corners)
     for k, point in enumerate(show):
         ax.text(*point, f" {k}", fontsize=7, color="white", weight="bold", zorder=10,
                 bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
@@ -307,7 +308,29 @@ def _box3d_tile(ax, fit: Fit) -> None:
         where = f"focal {box.focal:.0f} px; the box drawn nearer, in a wider view: it is {distance:.1f} box heights away"
     else:
         where = f"focal {f:.0f} px; the box {distance:.1f} box heights away"
-    ax.set_title(f"the fitted box in 3D and its camera (oblique view)\n{where}; units: box height", fontsize=9)
+    given = fit.cuboid.given
+    said = ", ".join(f"{name.split('_')[0]} {'given' if name in given else 'fitted'}" for name in ("focal_px", "principal_px"))
+    spread = "" if depth_sd is None else f"; depth +-1 sd ({100 * depth_sd:.0f}%) dashed"
+    ax.set_title(f"the fitted box in 3D and its camera (oblique view): {said}\n{where}; units: box height{spread}",
+                 fontsize=9)
+
+
+def _depth_bounds(ax, fit: Fit, geometry: Shape, corners: np.ndarray) -> float | None:
+    """The box at plus and minus one sd of its depth (scaled about its centre along its depth axis),
+    dashed; the relative sd drawn, None without error bars."""
+    spread = fit.cuboid.fit.spread
+    if spread is None:
+        return None
+    relative = float(spread.ratios[0] / geometry.ratio_vector(fit.ratios)[0])
+    front, back = geometry.having("FRONT"), geometry.having("BACK")
+    axis = corners[back].mean(axis=0) - corners[front].mean(axis=0)  # FRONT -> BACK, one depth long
+    side = np.zeros(len(corners))
+    side[back], side[front] = 0.5, -0.5
+    for sign in (-1.0, 1.0):
+        moved = (corners + sign * relative * side[:, None] * axis) @ DISPLAY.T
+        for a, b in geometry.edges:
+            ax.plot(*moved[[a, b]].T, color="#444444", linewidth=0.8, linestyle=(0, (3, 2)), zorder=3)
+    return relative
 
 
 def _ground(geometry: Shape, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -386,7 +409,7 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
     heat_grid = fig.add_gridspec(heat_rows, columns, top=(small * heat_rows) / height, bottom=0.01,
                                  left=0.01, right=0.99, hspace=0.35, wspace=0.06)
     _heatmap_tiles(fig, heat_grid, geometry, candidate.heatmaps, keypoints, candidate.refined)
-    fig.suptitle(_caption(fit), fontsize=11, y=1 - 0.12 / height)
+    fig.suptitle(caption(fit), fontsize=11, y=1 - 0.12 / height)
     return fig
 
 
@@ -395,16 +418,26 @@ def input_keypoints(fit: Fit) -> np.ndarray:
     return np.asarray(fit.keypoints, dtype=np.float64)
 
 
-def _caption(fit: Fit) -> str:
+def caption(fit: Fit) -> str:
+    """The panel's title: the input, the chosen shape and its confidence beside the others', the ratios."""
     ratios = fit.ratios
     if "depth_height" not in ratios:
         ratios = {f"{part}.{k}": v for part, values in ratios.items() for k, v in values.items()}
-    others = ", ".join(f"{s} {c:.2f}" for s, c in fit.candidates.items() if s != fit.shape)
+    rivals = {s: c for s, c in fit.candidates.items() if s != fit.shape}
+    digits = distinct_digits(fit.confidence, rivals.values())
+    others = ", ".join(f"{s} {c:.{digits}f}" for s, c in rivals.items())
     name = Path(fit.input).name if fit.input is not None else "mask"  # an array fitted through the API has no file
-    text = (f"{name}: {fit.shape}, confidence {fit.confidence:.2f}"
+    text = (f"{name}: {fit.shape}, confidence {fit.confidence:.{digits}f}"
             + (f" (vs {others})" if others else "")
             + "   ratios " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
     return text + ("\nwarning: " + fit.warnings[0] if fit.warnings else "")
+
+
+def distinct_digits(value: float, others: Iterable[float], most: int = 4) -> int:
+    """Decimals, 2 to `most`, at which `value` reads apart from each of `others` (0.903 against 0.901,
+    not 0.90 against 0.90, which made a choice look arbitrary); `most` where they are that close."""
+    others = list(others)
+    return next((d for d in range(2, most) if all(f"{value:.{d}f}" != f"{o:.{d}f}" for o in others)), most)
 
 
 def to_photo(points: np.ndarray, mask_shape: tuple[int, int], photo_shape: tuple[int, int]) -> np.ndarray:

@@ -14,12 +14,15 @@ a URL folder (a prefix) is walked as a folder is, by the same rules; a URL with 
 """
 from __future__ import annotations
 
+import json
 import logging
+import math
 import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePath, PurePosixPath
 
 from cuboidtrain.fit.storage import Lookup, has_glob, is_url
+from cuboidtrain.geometry.intrinsics import KnownCamera
 from shared.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -158,3 +161,33 @@ class OutputNames:
         if self.stems.setdefault(stem, index) != index:
             stem = f"{stem}-input{index}"
         return stem
+
+
+def read_cameras(path: Path) -> tuple[tuple[str, KnownCamera], ...]:
+    """`--camera FILE`: a JSON object mapping each input (its path as given, or its file name) to
+    `{"focal_px": F, "principal_px": [X, Y]}` in that input's pixels (either key may be left out);
+    a one-line UsageError naming the file and the entry that is not so."""
+    try:
+        given = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise UsageError(f"--camera {path}: cannot read it ({exc.strerror or exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise UsageError(f"--camera {path}: not JSON ({exc})") from None
+    if not isinstance(given, dict):
+        raise UsageError(f"--camera {path}: expected a JSON object mapping each input to its camera")
+    return tuple((str(name), _camera_entry(path, name, entry)) for name, entry in given.items())
+
+
+def _camera_entry(path: Path, name: str, entry) -> KnownCamera:
+    expected = '{"focal_px": F, "principal_px": [X, Y]} (px; either may be left out)'
+    if not isinstance(entry, dict) or not set(entry) <= {"focal_px", "principal_px"}:
+        raise UsageError(f"--camera {path}: {name!r}: {entry!r}: expected {expected}")
+    focal, principal = entry.get("focal_px"), entry.get("principal_px")
+    numeric = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+    if (focal is not None and not (numeric(focal) and focal > 0)) or (
+            principal is not None and not (isinstance(principal, list) and len(principal) == 2
+                                           and all(numeric(v) for v in principal))):
+        raise UsageError(f"--camera {path}: {name!r}: {entry!r}: expected {expected}, the focal "
+                         f"length > 0")
+    return KnownCamera(None if focal is None else float(focal),
+                       None if principal is None else (float(principal[0]), float(principal[1])))

@@ -38,7 +38,7 @@ from cuboidtrain.geometry.camera import CuboidFit
 from cuboidtrain.infer.inputs import OutputNames
 from shared.errors import UsageError
 from shared.files import atomic_path
-from shared.shapes import Shape
+from shared.shapes import Shape, get_shape
 
 if TYPE_CHECKING:
     from cuboidtrain.fit.fitter import Fit
@@ -163,7 +163,7 @@ class MeshWriter:
             height, width = fit.explanation.mask.shape if fit.explanation is not None else (None, None)
             header = [f"cuboidtrain infer --cuboid --mesh: {fit.shape} fitted to {path}"
                       + (f" (component {fit.component})" if fit.component is not None else ""),
-                      *([f"input {width} x {height} px"] if width is not None else [])]
+                      *([f"input {width} x {height} px"] if width is not None else []), *uncertainty(fit)]
             text = obj_text(box, header)
             with atomic_path(target) as tmp:  # a reader never sees half a mesh
                 Path(tmp).write_text(text, encoding="utf-8")
@@ -186,3 +186,16 @@ def check_mesh_options(mesh: Path | None, cuboid: bool, cluster: str | None) -> 
     if cluster is not None:
         raise UsageError(f"--mesh with --cluster {cluster}: expected no --cluster (meshes are written by the "
                          f"process that fits; use --workers)")
+
+
+def uncertainty(fit: Fit) -> list[str]:
+    """The header's lines on how far to trust the box: each ratio with its sd, which intrinsics
+    were given (docs/contract.md, "Error bars")."""
+    sd = fit.cuboid.ratios_sd()
+    lines = [f"intrinsics: focal_px {'given' if 'focal_px' in fit.cuboid.given else 'fitted'}, "
+             f"principal_px {'given' if 'principal_px' in fit.cuboid.given else 'fitted'}"]
+    if sd is not None:
+        shape = get_shape(fit.shape)
+        lines.append("ratios +- sd: " + ", ".join(f"{name} {value:.3f} +- {spread:.3f}" for name, value, spread in zip(
+            shape.ratio_names, shape.ratio_vector(fit.ratios), shape.ratio_vector(sd))))
+    return lines

@@ -20,11 +20,13 @@ threads, never forks.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import replace
 from multiprocessing import get_all_start_methods, get_context
@@ -51,14 +53,17 @@ def fit_one(fitter, index: int, path: str, explain: Callable | None = None) -> G
 
 def fit_groups(jobs: Sequence[tuple[int, str]], fitter=None, checkpoints: Sequence[Path] = (),
                options: FitOptions | None = None, workers: int = 1,
-               explain: Callable | None = None) -> Iterator[Group]:
+               explain: Callable | None = None, stop=()) -> Iterator[Group]:
     """Each job's (index, outcomes): with `fitter` in this process when `workers` is 1, else in a
-    pool whose workers build theirs from `checkpoints` and `options`."""
+    pool whose workers build theirs from `checkpoints` and `options`. Once `stop` is true
+    (`stopping.Stop`) no job starts; those in hand finish and are yielded."""
     if workers <= 1:
         for index, path in jobs:
+            if stop:
+                return
             yield fit_one(fitter, index, path, explain)
         return
-    yield from _pooled(jobs, list(map(str, checkpoints)), options, workers, explain)
+    yield from _pooled(jobs, list(map(str, checkpoints)), options, workers, explain, stop)
 
 
 PRELOAD = ["torch", "cuboidtrain.fit.fitter"]  # what the fork server imports for every worker
@@ -88,7 +93,7 @@ def _context():
     saved = {name: os.environ.get(name) for name in ONE_THREAD}
     os.environ.update(ONE_THREAD)  # what the server inherits, only while it starts
     try:
-        with _stdout_to_devnull():
+        with _stdout_to_devnull(), _ctrl_c_ignored():
             forkserver.ensure_running()
     finally:
         for name, value in saved.items():
@@ -116,7 +121,23 @@ def _stdout_to_devnull():
         os.close(devnull)
 
 
-def _pooled(jobs, checkpoints, options, workers, explain: Callable | None = None) -> Iterator[Group]:
+@contextmanager
+def _ctrl_c_ignored():
+    """The fork server, and so every worker, starts with Ctrl-C ignored (an ignored signal stays
+    ignored across exec, and the server hands its own disposition down): Ctrl-C reaches the whole
+    process group, and this process decides (`stopping.Stop`). Without it a Ctrl-C while the
+    server imports torch printed its traceback, and one while a worker started broke the pool."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _pooled(jobs, checkpoints, options, workers, explain: Callable | None = None, stop=()) -> Iterator[Group]:
     chunks = [list(jobs[i:i + CHUNK]) for i in range(0, len(jobs), CHUNK)]
     context = _context()
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
@@ -124,13 +145,21 @@ def _pooled(jobs, checkpoints, options, workers, explain: Callable | None = None
         pending, queued = set(), iter(chunks)
         try:
             while True:
-                while len(pending) < 2 * workers and (chunk := next(queued, None)) is not None:
+                while not stop and len(pending) < 2 * workers and (chunk := next(queued, None)) is not None:
                     pending.add(pool.submit(_fit_chunk, chunk))
+                if stop:  # the chunks no worker has taken yet never start
+                    pending = {future for future in pending if not future.cancel()}
                 if not pending:
                     return
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for future in finished:
-                    yield from future.result()
+                    try:
+                        groups = future.result()
+                    except BrokenProcessPool:
+                        if stop:  # Ctrl-C reached a worker still starting, before it could leave it to us
+                            return
+                        raise
+                    yield from groups
         finally:
             for future in pending:
                 future.cancel()
@@ -142,8 +171,10 @@ def _start_worker(checkpoints: list[str], options: FitOptions, parent: int, expl
     import torch
 
     from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.infer.stopping import leave_signals_to_parent
 
     global _fitter, _explain
+    leave_signals_to_parent()
     # A spawned worker writes to the terminal behind the parent's progress bar: on a 20,000-mask
     # run its warnings tore the bar every few lines. A fit's warnings are in its record: errors only here.
     logging.basicConfig(level=logging.ERROR, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

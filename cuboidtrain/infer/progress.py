@@ -25,6 +25,7 @@ class Tally:
     done: int = 0  # inputs fitted this run
     failed: int = 0  # inputs whose first record has an error (this run and resumed)
     shapes: Counter = field(default_factory=Counter)  # records by shape class ("failed" for errors)
+    stopped: str | None = None  # what stopped the run before its end ("Ctrl-C", "SIGTERM"), if anything
     started: float = field(default_factory=time.monotonic)
 
     def add(self, outcomes: Sequence[Outcome]) -> None:
@@ -57,7 +58,9 @@ class Tally:
         seconds = time.monotonic() - self.started
         shapes = ", ".join(f"{name} {n}" for name, n in sorted(self.shapes.items()) if name != "failed") or "none"
         resumed = f" ({self.resumed} already in OUT)" if self.resumed else ""
-        return (f"{self.resumed + self.done} masks{resumed}; fitted {self.done} in {seconds:.1f} s "
+        count = f"stopped by {self.stopped}: {self.resumed + self.done} of {self.total}" if self.stopped else \
+            f"{self.resumed + self.done}"
+        return (f"{count} masks{resumed}; fitted {self.done} in {seconds:.1f} s "
                 f"({self.rate:.1f} masks/s); records by shape: {shapes}; {self.failed} failed")
 
 
@@ -95,5 +98,5 @@ class Reporter:
         if self.bar is not None:
             self.update()
             self.bar.stop()
-        if self.tally.total > 1:  # one mask's run is its record
+        if self.tally.total > 1 or self.tally.stopped:  # one mask's run is its record
             self.console.print(self.tally.summary(), highlight=False, soft_wrap=True)

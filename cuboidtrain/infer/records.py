@@ -40,7 +40,7 @@ def to_record(outcome: Outcome | dict, with_component: bool = False, cuboid: boo
         return outcome.record(with_component)
     if isinstance(outcome, FitFailure):
         record = {"input": outcome.input, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
-                  "refine_steps": None, "refine_converged": None, "error": outcome.reason, "warnings": [],
+                  **({"ratios_sd": None} if cuboid else {}), "refine_steps": None, "refine_converged": None, "error": outcome.reason, "warnings": [],
                   "candidates": {}}
         return record | ({"cuboid": None} if cuboid else {}) | ({"component": None} if with_component else {})
     return outcome

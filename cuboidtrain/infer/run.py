@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.inputs import gather_inputs
 from cuboidtrain.infer.mesh import MeshWriter, check_mesh_options
+from cuboidtrain.infer.stopping import Stop
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
 
@@ -26,7 +27,7 @@ if TYPE_CHECKING:  # torch: imported by `infer` only after the warm-up
 
 @dataclass(frozen=True)
 class InferRequest:
-    """What `cuboidtrain infer` is asked, option by option (README, "Many masks"; docs/contract.md)."""
+    """What `cuboidtrain infer` is asked, option by option (docs/inference.md; docs/contract.md)."""
 
     paths: tuple[str, ...] = ()  # mask files, folders or URLs
     from_list: str | None = None  # a text file of paths, one a line; - for stdin
@@ -52,6 +53,8 @@ class InferResult:
     tally: Tally  # inputs, failures, records by shape
     pictures: int | None = None  # explanation panels written, with `explain`
     meshes: int | None = None  # OBJ files in the `mesh` folder, with `mesh`
+    records: int | None = None  # records in the JSON list, when one was written
+    stopped: int | None = None  # the exit status of a run a signal stopped (130 Ctrl-C, 143 SIGTERM), else None
 
 
 def infer(request: InferRequest, console) -> InferResult:
@@ -74,12 +77,14 @@ def infer(request: InferRequest, console) -> InferResult:
                   keep=request.json_out is not None or request.jsonl is None, cluster=request.cluster)
     explainer = make_explainer(request.explain, list(request.overlay), len(inputs), batch.indexed())
     mesher = MeshWriter(request.mesh, batch.indexed()) if request.mesh is not None else None
-    outcomes, tally = run_batch(batch, fitter, console, Writers.of(explainer, mesher))
-    write_list(request.json_out, outcomes, options)
+    with Stop().installed() as stop:  # Ctrl-C, SIGTERM: what was fitted is written, as at the end
+        outcomes, tally = run_batch(batch, fitter, console, Writers.of(explainer, mesher), stop)
+        records = write_list(request.json_out, outcomes, options)
     meshes = None
     if mesher is not None:  # a pool's workers write their own: count the folder's then
         meshes = len(mesher.written) if request.workers == 1 else sum(1 for _ in mesher.folder.glob("*.obj"))
-    return InferResult(outcomes, tally, None if explainer is None else len(explainer.written), meshes)
+    return InferResult(outcomes, tally, None if explainer is None else len(explainer.written), meshes, records,
+                       stop.exit_code if tally.stopped else None)
 
 
 def check_request(request: InferRequest, options: FitOptions) -> None:
@@ -116,10 +121,11 @@ def make_explainer(folder: Path | None, photos: list[Path], inputs: int, names: 
     return Explainer(folder, photos, names)
 
 
-def write_list(json_out: str | None, outcomes: list[Outcome | dict], options: FitOptions) -> None:
-    """The JSON list of the records, in input order: to a file (atomically), to stdout for -, or nowhere."""
+def write_list(json_out: str | None, outcomes: list[Outcome | dict], options: FitOptions) -> int | None:
+    """The JSON list of the records, in input order: to a file (atomically), to stdout for -, or nowhere;
+    how many records it holds."""
     if json_out is None:
-        return
+        return None
     from cuboidtrain.infer.records import to_records, write_records
 
     records = to_records(outcomes, options)
@@ -128,3 +134,4 @@ def write_list(json_out: str | None, outcomes: list[Outcome | dict], options: Fi
         sys.stdout.flush()
     else:
         write_records(Path(json_out), records)
+    return len(records)

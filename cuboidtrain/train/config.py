@@ -5,6 +5,7 @@ says exactly how it was trained.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, fields, replace
 
 from cuboidtrain.models.settings import check_device
@@ -23,6 +24,7 @@ PHASES = {
 LR_SCHEDULES = ("constant", "cosine")  # cosine decays to lr/100 at --steps
 MAX_SIZE = 2048  # px: a batch of heat maps grows with size squared (2048 px: 16 MiB per map)
 MAX_BATCH = 4096  # samples per step
+LOADER_WORKERS_MOST = 6  # loader workers a CUDA run starts by default (`TrainConfig.workers_on`)
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,7 @@ class TrainConfig:
     overwrite: bool = False  # start over in an OUT that holds a run (its last.pt, metrics.jsonl); else refused
     checkpoint_every: int = number(500, lo=1, integer=True)  # steps
     log_every: int = number(10, lo=1, integer=True)  # steps between metrics.jsonl records
-    loader_workers: int = number(2, lo=0, hi=max_processes(), integer=True, unit=PER_CORE)  # DataLoader processes reading the spool
+    loader_workers: int | None = number(None, lo=0, hi=max_processes(), integer=True, optional=True, unit=PER_CORE)  # DataLoader processes reading the spool; None: `workers_on`
     seed: int = number(0, lo=0, hi=MAX_SEED, integer=True)
     device: str = "auto"  # auto: cuda when present, else cpu
     threads: int | None = number(None, lo=1, hi=max_processes(), integer=True, optional=True, unit=PER_CORE)  # CPU threads for torch; None: torch's default (all cores)
@@ -86,6 +88,15 @@ class TrainConfig:
             raise UsageError("--phase e2e trains from scratch: drop --init (or use --phase finetune)")
         check_device(self.device)
         return self
+
+    def workers_on(self, device_type: str) -> int:
+        """The loader's worker processes: --loader-workers, else 2, or on CUDA a quarter of the
+        cores, 2 to LOADER_WORKERS_MOST. A worker only reads, decodes and finds each sample's
+        framing (the masks are framed on the device): about 8,000 samples/s of one core at 64 px
+        (BENCHMARKS.md, "The input path"), so the rest of the cores are left to the generator."""
+        if self.loader_workers is not None:
+            return self.loader_workers
+        return max(2, min(LOADER_WORKERS_MOST, (os.cpu_count() or 1) // 4)) if device_type == "cuda" else 2
 
     @property
     def heatmap_sigma(self) -> float:

@@ -59,7 +59,7 @@ from shared.spool import check_spool, enumerate_spool, read_sample_bytes
 log = logging.getLogger(__name__)
 
 PCK_THRESHOLDS = (0.5, 1.0, 2.0, 5.0)  # px
-PATHS = ("networks", "cuboid")
+PATHS = ("networks", "cuboid", "cuboid_camera_given")  # the last: the generator's camera held (Truth.known_camera)
 
 
 @dataclass(frozen=True)
@@ -186,8 +186,9 @@ def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.n
                 sources: list[Source]) -> dict[str, list[CornerErrors | None]]:
     """Each path's scores (`where.score`) for the rows of one batch's chain output (`Fitter.predict`
     on the framed masks (B, S, S)); None where a path gave no answer (a non-finite output, a
-    failed cuboid fit). `cuboid` only with the Fitter's options' `cuboid`."""
-    scored: dict[str, list] = {name: [] for name in PATHS[: 2 if fitter.options.cuboid else 1]}
+    failed cuboid fit). The cuboid paths only with the Fitter's options' `cuboid`: the camera
+    fitted, and given (the generator's, where the sample says it)."""
+    scored: dict[str, list] = {name: [] for name in PATHS[: 3 if fitter.options.cuboid else 1]}
     candidates: list[Candidate | None] = []
     truths = [Truth.of_sample(source.sample) for source in sources]
     for row, source in enumerate(sources):
@@ -201,6 +202,7 @@ def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.n
                           for row, (k, c, t) in enumerate(zip(keypoints, candidates, truths))]
     if fitter.options.cuboid:
         scored["cuboid"] = _cuboid_scores(fitter, candidates, sources, truths)
+        scored["cuboid_camera_given"] = _cuboid_scores(fitter, candidates, sources, truths, given=True)
     return scored
 
 
@@ -215,20 +217,23 @@ def _lifted(keypoints: list[np.ndarray | None], truths: list[Truth], shape: str)
 
 
 def _cuboid_scores(fitter: Fitter, candidates: list[Candidate | None], sources: list[Source],
-                   truths: list[Truth]) -> list[CornerErrors | None]:
+                   truths: list[Truth], given: bool = False) -> list[CornerErrors | None]:
     """The cuboid of each candidate fitted to its sample's own noisy mask, the building's pieces
     together (what `Fitter` fits: `masks.silhouette`), the batch's fits solved at once by the
-    call `infer` makes (`Fitter.fit_cuboids`), and scored; None where there is no fit."""
+    call `infer` makes (`Fitter.fit_cuboids`), and scored; None where there is no fit. `given`:
+    each sample's true camera held (None where the sample does not say it: not scored)."""
     masks = [None if c is None else silhouette(s.sample.noisy) for c, s in zip(candidates, sources)]
-    fittable = [i for i, m in enumerate(masks) if m is not None]
-    fitted = dict(zip(fittable, fitter.fit_cuboids([candidates[i] for i in fittable], [masks[i] for i in fittable])))
+    known = [t.known_camera() if given else None for t in truths]
+    fittable = [i for i, m in enumerate(masks) if m is not None and (known[i] is not None or not given)]
+    fitted = dict(zip(fittable, fitter.fit_cuboids([candidates[i] for i in fittable], [masks[i] for i in fittable],
+                                                   [known[i] for i in fittable])))
     scores: list[CornerErrors | None] = []
     for i, truth in enumerate(truths):
         fit = fitted.get(i)
         if fit is None or isinstance(fit, NoCuboid):
             scores.append(None)
             continue
-        scores.append(score(fit.fit.keypoints, fit.fit.ratios, truth, fit.fit.camera))
+        scores.append(score(fit.fit.keypoints, fit.fit.ratios, truth, fit.fit.camera, fit.fit.spread))
     return scores
 
 
@@ -380,7 +385,9 @@ def format_paths(paths: dict[str, dict]) -> list[str]:
             ("width/height rel %", lambda f: pair(f, "width_height", 100, 1, "_rel")),
             ("yaw error deg", lambda f: pair(f, "yaw", unit="_deg")),
             ("3D IoU", lambda f: pair(f, "iou3d", digits=3)),
-            ("focal length rel %", lambda f: pair(f, "focal", 100, 1, "_rel"))]
+            ("focal length rel %", lambda f: pair(f, "focal", 100, 1, "_rel")),
+            ("truth in 1 / 2 sd %", lambda f: "-" if f.get("within_1sd") is None
+             else f"{100 * f['within_1sd']:.0f} / {100 * f['within_2sd']:.0f}")]
     names = list(paths)
     lines = ["paths        in the samples' own px, mean / median; networks' yaw and 3D IoU: its corners lifted",
              f"  {'':<22}" + "".join(f"{name:<20}" for name in names)]

@@ -116,7 +116,7 @@ def open_loader(config: TrainConfig, ranks: Ranks, device: torch.device, stop: S
                 loader_timeout: float | None) -> tuple[DataLoader, EpochSampler]:
     """The spool's loader and its sampler (`make_loader`'s), this rank's share under torchrun."""
     return make_loader(config.spool, config.shape, config.size, config.batch_size, config.seed,
-                       config.loader_workers, pin_memory=device.type == "cuda",
+                       config.workers_on(device.type), pin_memory=device.type == "cuda",
                        timeout=loader_timeout if loader_timeout is not None else config.max_wait,
                        worker_init_fn=leave_signals_to_main, reframe="always" if config.reframe else "never",
                        **_sampler_options(ranks, stop))

@@ -22,7 +22,7 @@ from rich.table import Table
 from rich.text import Text
 
 from cuboidtrain.train.monitor.status import FINISHED, BatchFreshness, Checkpoint, TrainerStatus, Validation, read_status, trainer_died
-from shared.console import ECHO_ROOM
+from shared.console import ECHO_ROOM, console as log_console
 
 log = logging.getLogger(__name__)
 
@@ -30,6 +30,7 @@ DASH = "—"
 SPARK = "▁▂▃▄▅▆▇█"
 SPARK_POINTS = 30  # points of loss_history drawn as the trend
 WAIT_TARGET = 0.05  # data-wait fraction of step time above which the loader is starving the GPU
+WAIT_WARNING = 0.20  # and above which the GPU mostly idles: a warning (issue 29)
 # Short words for the title line; config.PHASES has the full sentences.
 PHASE_MEANING = {"1": "separate networks", "2": "chained", "e2e": "ablation: end to end",
                  "finetune": "ablation: fine-tune"}
@@ -98,9 +99,12 @@ def trend(values: list[float] | None) -> Text:
 
 
 def wait_cell(fraction: float | None) -> Text:
-    """Data wait as a share of step time: the target is under 5%; above it the GPU idles."""
+    """Data wait as a share of step time: the target is under 5%; above it the GPU idles, and
+    above 20% it mostly idles."""
     if fraction is None:
         return Text(DASH)
+    if fraction > WAIT_WARNING:
+        return Text(f"{fraction:.1%} > {WAIT_WARNING:.0%}: warning, the device idles waiting for the loader", style="bold red")
     if fraction > WAIT_TARGET:
         return Text(f"{fraction:.1%} > {WAIT_TARGET:.0%}: loader starving", style="bold red")
     return Text(f"{fraction:.1%}")
@@ -212,10 +216,15 @@ def log_line(status: TrainerStatus) -> str:
 
 class Dashboard:
     """A live panel redrawn on each update, or else a log line at most every `log_interval`
-    seconds and on every change of state."""
+    seconds and on every change of state.
+
+    The panel is drawn on the console every log line goes through (stderr: `shared.console`), so
+    that a warning logged while it is live (samples evicted unread, at an epoch's change) is printed
+    above it: a line written past rich's Live, on another console, is not erased by its next redraw,
+    which then leaves the top of the last panel behind, a stale frame a warning."""
 
     def __init__(self, live: bool, console: Console | None = None, log_interval: float = 10.0):
-        self.console = console or Console()
+        self.console = console or log_console
         self.log_interval = log_interval
         # No auto refresh: the trainer updates about once a second, and a redraw between
         # updates would show nothing new.

@@ -34,6 +34,8 @@ if TYPE_CHECKING:  # the loop imports evaluation lazily: only when a validation 
 log = logging.getLogger(__name__)
 
 STARVING = 0.05  # data wait above this fraction of step time is a problem (docs/contract.md, "Targets")
+STARVED = 0.20  # and above this one, over a full window of steps, a warning: the GPU idles (issue 29)
+OUTRUN = 1.0  # mean earlier uses of a batch's samples above which the trainer outruns the generator
 IDLE_LOG_EVERY = 60.0  # s between repeats of the same "no usable samples" warning
 
 
@@ -191,8 +193,15 @@ class Progress:
     def _notes(self, rates: Rates) -> list[str]:
         notes = [m for m in (self.error, self._status.idle, self.val_failed) if m]
         wait, skipped, foreign = rates.data_wait_fraction, self.stats.skipped, self.stats.foreign
-        if wait is not None and wait > STARVING and self.stats.window_full():
+        if wait is not None and wait > STARVED and self.stats.window_full():
+            notes.append(f"warning: data wait {wait:.0%} of step time stays above {STARVED:.0%}: the device idles "
+                         "waiting for the loader (more --loader-workers, fewer generator workers on the same cores)")
+        elif wait is not None and wait > STARVING and self.stats.window_full():
             notes.append(f"data wait {wait:.0%} of step time: the loader is starving (more --loader-workers, or a faster spool disk)")
+        reuse = self.stats.freshness.mean_reuse
+        if reuse is not None and reuse > OUTRUN:
+            notes.append(f"samples reused {reuse:.1f} times on average: training outruns the generator, and the "
+                         "spool's reuse feeds it (paper 3.3.2), not a faster generator; a larger cuboidgen --limit varies it")
         if skipped["other_size"]:
             notes.append(f"{skipped['other_size']} samples of another size skipped: run cuboidgen with --size {self.config.size}")
         if skipped["other_shape"]:

@@ -1,0 +1,95 @@
+"""Error bars of a fitted cuboid: the Laplace approximation of the solved least-squares problem.
+
+At the solution x of min 0.5 |r(x)|^2 (the mask fit's residuals, its corner pull, ratio anchor
+and camera rows included), the parameters' covariance is approximated by
+
+    Sigma = sigma^2 (J^T J)^-1,   sigma^2 = |r|^2 / (M - P)   (the residuals' own variance)
+
+and each reported quantity's standard deviation follows by the delta method: the ratios through
+`camera.log_ratio_jacobian` (sd of a ratio = ratio x sd of its log), the focal length through
+log f = log s - log k, the yaw by a central difference of the pose's yaw. A given intrinsic is
+held by a stiff row, so its sd comes out near 0 and the others grow where it no longer trades.
+
+The raw Laplace sd is 3-6 times too small, and its tails too light, where the error is the
+networks' (corners placed wrong with confidence, an occluded part guessed), not the outline's
+noise: each quantity's sd is scaled, and a floor added in quadrature, sd = sqrt((a sd)^2 + b^2),
+calibrated on 30 generated masks a scene and shape (paper-clean, paper, street; box, twobox;
+camera free and given) so that the truth lies within one sd for 60-80% of the values and within
+two for at least 90%, per scene (BENCHMARKS.md, "Error bars", with the held-out check).
+"""
+from __future__ import annotations
+
+import math
+import numpy as np
+
+from cuboidtrain.geometry.camera import (CameraParams, Spread, canonical, euler_angles, log_ratio_jacobian, ratios,
+                                         rotation_matrices)
+
+RATIO_SCALE, RATIO_FLOOR = 7.1, 0.0  # the ratios: a, and b relative to the ratio
+YAW_SCALE, YAW_FLOOR_DEG = 2.5, 3.4  # the yaw: a, and b in degrees
+FOCAL_SCALE, FOCAL_FLOOR = 3.6, 0.36  # the focal length: a, and b relative to it
+YAW_STEP = 1e-5  # rad, the central difference of the yaw
+
+
+def spread(camera: CameraParams, residuals: np.ndarray, jacobian: np.ndarray, focal_given: bool) -> Spread | None:
+    """The standard deviations of `camera`'s ratios, yaw and focal length, from the residuals (M,)
+    and their Jacobian (M, P) at the solution; None where they are not finite (a degenerate fit)."""
+    if not (np.isfinite(residuals).all() and np.isfinite(jacobian).all()):
+        return None
+    covariance = laplace(residuals, jacobian)
+    vector = camera.vector
+    log_ratios = log_ratio_jacobian(vector[None], camera.shape)[0]  # (R, P)
+    values = ratios(vector[None], camera.shape)[0]
+    ratio_sd = values * np.sqrt(np.maximum(np.einsum("rp,pq,rq->r", log_ratios, covariance, log_ratios), 0.0))
+    yaw_gradient = _yaw_gradient(camera)
+    yaw_sd = math.sqrt(max(yaw_gradient @ covariance @ yaw_gradient, 0.0))
+    bars = Spread(calibrated(ratio_sd, RATIO_SCALE, RATIO_FLOOR * values),
+                  float(calibrated(yaw_sd, YAW_SCALE, YAW_FLOOR_DEG)), None if focal_given else _focal_sd(camera, covariance))
+    finite = np.isfinite(bars.ratios).all() and math.isfinite(bars.yaw_deg) and (bars.focal_px is None
+                                                                                or math.isfinite(bars.focal_px))
+    return bars if finite else None
+
+
+def calibrated(raw, scale: float, floor):
+    """sqrt((scale raw)^2 + floor^2): the Laplace sd scaled, with a floor for what it does not see."""
+    return np.sqrt((scale * np.asarray(raw)) ** 2 + np.asarray(floor) ** 2)
+
+
+def laplace(residuals: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
+    """(P, P): sigma^2 (J^T J)^-1, sigma^2 the residuals' variance; a direction the problem does not
+    fix at all (a zero column, the twobox's unused parameters) gets no variance, not infinity."""
+    m, p = jacobian.shape
+    normal = jacobian.T @ jacobian
+    sigma2 = float(residuals @ residuals) / max(m - p, 1)
+    scale = np.sqrt(np.maximum(np.diag(normal), 1e-300))
+    inverse = np.linalg.pinv(normal / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+    return sigma2 * inverse
+
+
+def _focal_sd(camera: CameraParams, covariance: np.ndarray) -> float | None:
+    vector, _ = canonical(camera.vector, camera.mirror)
+    focal = camera.focal_px()
+    if not math.isfinite(focal):
+        return None
+    gradient = np.zeros(len(vector))
+    gradient[7], gradient[8] = 1.0, -1.0 / camera.vector[8]  # log f = log s - log |k|
+    raw = focal * math.sqrt(max(gradient @ covariance @ gradient, 0.0))
+    return float(calibrated(raw, FOCAL_SCALE, FOCAL_FLOOR * focal))
+
+
+def _yaw_gradient(camera: CameraParams) -> np.ndarray:
+    """d yaw_deg / d params by central differences on the rotation vector (the yaw depends on no other)."""
+    gradient = np.zeros(len(camera.vector))
+    for index in (2, 3, 4):
+        step = np.zeros(len(camera.vector))
+        step[index] = YAW_STEP
+        ahead, behind = (_yaw(CameraParams(camera.shape, camera.vector + sign * step, camera.mirror)) for sign in (1, -1))
+        gradient[index] = ((ahead - behind + 180.0) % 360.0 - 180.0) / (2 * YAW_STEP)
+    return gradient
+
+
+def _yaw(camera: CameraParams) -> float:
+    pinhole = CameraParams(camera.shape, *canonical(camera.vector, camera.mirror)).pinhole()
+    if pinhole is None:  # weak perspective: the rotation's own yaw
+        return euler_angles(rotation_matrices(camera.vector[None, 2:5])[0])[1]
+    return pinhole[0].pose.yaw_deg

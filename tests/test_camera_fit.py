@@ -1,0 +1,176 @@
+"""The 3D answer (issue "3D you can trust"): a given camera is held and helps, a fitted one is kept
+plausible, the record does not depend on torch's threads, the workers or the input order, and the
+error bars are there and honest on exact data."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from cuboidgen.config import PAPER, STREET
+from cuboidtrain.cli import app
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
+from cuboidtrain.geometry.lift import lift
+from cuboidtrain.geometry.scoring import Truth
+from cuboidtrain.infer.records import to_record
+from shared.errors import UsageError
+from shared.shapes import get_shape
+from tests.conftest import build_sample
+
+SIZE = 256
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory):
+    """Noisy 256 px street masks (box and twobox) as PNGs, with their truths."""
+    folder = tmp_path_factory.mktemp("street")
+    paths, truths = [], []
+    for seed, shape in enumerate(("box", "twobox", "box", "twobox")):
+        sample = build_sample(seed, shape, size=SIZE, scene=STREET)
+        path = folder / f"{shape}-{seed}.png"
+        cv2.imwrite(str(path), sample.noisy.astype(np.uint8) * 255)
+        paths.append(str(path))
+        truths.append(Truth.of_sample(sample))
+    return paths, truths
+
+
+@pytest.fixture(scope="module")
+def fitter():
+    return Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+
+
+def test_the_camera_rows_have_their_analytic_jacobian():
+    terms = CameraTerms.of(get_shape("twobox"), [None, KnownCamera(300.0, (10.0, 20.0))], [(256, 256), (200, 100)])
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(2, 13)) * 0.3
+    x[:, 7] += 5.0
+    x[:, 8] = [0.4, -0.3]  # one hypothesis in its depth-reversed twin
+    x[:, 9:11] += [[900.0, -700.0], [50.0, 40.0]]  # the first one's principal point far outside its frame
+    owner, mirrors = np.array([0, 1]), np.array([False, True])
+    values, jacobian = terms.terms(x, owner, mirrors)
+    assert np.abs(values).max() > 1  # some rows are active: the test can tell
+    step = 1e-7
+    numeric = np.stack([(terms.terms(x + step * np.eye(13)[p], owner, mirrors, False)[0] - values) / step
+                        for p in range(13)], axis=-1)
+    # the in-front rows follow k only (documented): compare the columns they are exact in
+    np.testing.assert_allclose(jacobian[..., 7:11], numeric[..., 7:11], atol=1e-4 * np.abs(values).max())
+
+
+def test_a_given_camera_is_held_and_fixes_the_depth_of_a_lift():
+    """Exact corners plus 1 px of noise on `paper` views: free, depth trades against focal length;
+    given, the lift lands on the true camera and near the true depth."""
+    rng = np.random.default_rng(0)
+    free, given = [], []
+    for seed in range(8):
+        truth = Truth.of_sample(build_sample(seed, "box", size=SIZE, scene=PAPER))
+        corners = truth.keypoints + rng.normal(0.0, 1.0, truth.keypoints.shape)
+        known = truth.known_camera()
+        held = lift(corners, truth.shape, known=known).camera
+        assert held.focal_px() == pytest.approx(known.focal_px, rel=1e-3)
+        np.testing.assert_allclose(held.vector[9:11], known.principal_px, atol=0.05)
+        true_dh = truth.shape.ratio_vector(truth.ratios)[0]
+        given.append(abs(held.ratios()[0] / true_dh - 1))
+        free.append(abs(lift(corners, truth.shape).camera.ratios()[0] / true_dh - 1))
+    assert np.median(given) < 0.1 and np.median(given) < np.median(free) / 3
+
+
+def test_a_plausible_camera_has_no_corner_behind_it_and_no_fisheye(street, fitter):
+    paths, _ = street
+    for path in paths:
+        fit = fitter.fit(path).cuboid.fit
+        assert fit.focal_px >= 0.25 * SIZE * 0.999  # the frame's field of view is at most ~127 degrees
+        depths = fit.camera.camera_points()[:, 2]
+        assert (depths > 0).all()  # the camera is outside the building, in front of every corner
+
+
+def test_the_record_is_the_same_with_one_torch_thread_or_two(street, fitter):
+    paths, _ = street
+    before = torch.get_num_threads()
+    records = {}
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            records[threads] = [fitter.fit(p).record() for p in paths]
+    finally:
+        torch.set_num_threads(before)
+    assert records[1] == records[2]
+    assert torch.get_num_threads() == before
+
+
+def test_the_record_is_the_same_in_any_input_order_and_with_workers(street, tmp_path):
+    paths, _ = street
+    runs = {}
+    for name, order, extra in (("one", paths, []), ("reversed", paths[::-1], []), ("workers", paths, ["--workers", "2"])):
+        out = tmp_path / f"{name}.json"
+        result = CliRunner().invoke(app, ["infer", *order, "--device", "cpu", "--json", str(out), *extra])
+        assert result.exit_code == 0, result.output
+        runs[name] = {r["input"]: r for r in json.loads(out.read_text())}
+    assert runs["one"] == runs["reversed"] == runs["workers"]
+
+
+def test_the_command_holds_a_given_camera_and_says_so(street, tmp_path):
+    paths, truths = street
+    cameras = {p.rsplit("/", 1)[-1]: {"focal_px": t.known_camera().focal_px,
+                                       "principal_px": list(t.known_camera().principal_px)} for p, t in zip(paths, truths)}
+    (tmp_path / "cameras.json").write_text(json.dumps(cameras))
+    out = tmp_path / "given.json"
+    result = CliRunner().invoke(app, ["infer", *paths, "--device", "cpu", "--camera", str(tmp_path / "cameras.json"),
+                                      "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    for record, truth in zip(json.loads(out.read_text()), truths):
+        cuboid = record["cuboid"]
+        assert cuboid["intrinsics"] == {"focal_px": "given", "principal_px": "given"}
+        assert cuboid["focal_px"] == pytest.approx(truth.known_camera().focal_px, rel=1e-3)
+        assert cuboid["focal_sd_px"] is None  # given: no error bar of its own
+        assert set(record["ratios_sd"]) == set(record["ratios"])
+
+
+def test_focal_px_for_every_input_and_a_full_frame_keeps_its_centre(fitter):
+    mask = np.zeros((120, 200), np.uint8)
+    cv2.fillConvexPoly(mask, np.array([[40, 30], [150, 20], [160, 100], [50, 105]]), 255)
+    options = FitOptions(device="cpu", cuboid=True, focal_px=300.0, label_id=255).validate()
+    known = options.camera_for(None, mask.shape)
+    assert known == KnownCamera(300.0, (99.5, 59.5))  # a label map is a whole photo: its centre
+    fit = Fitter(fitter.models, options).fit(mask)
+    assert fit.cuboid.given == ("focal_px", "principal_px")
+    assert fit.cuboid.fit.principal_px == pytest.approx((99.5, 59.5), abs=0.05)
+
+
+@pytest.mark.parametrize("options, says", [
+    (dict(cuboid=True, focal_px=-5.0), "--focal-px -5.0"),
+    (dict(cuboid=True, principal_px=(1.0, float("nan"))), "--principal-px"),
+    (dict(cuboid=False, focal_px=500.0), "--focal-px with --networks-only"),
+    (dict(cuboid=True, principal_px=(3.0, 4.0), optimizer="soft"), "--principal-px with --optimizer soft"),
+])
+def test_a_bad_camera_is_one_line_naming_it(options, says):
+    with pytest.raises(UsageError, match=says.replace("(", r"\(")):
+        FitOptions(**options).validate()
+
+
+def test_a_bad_camera_file_is_one_line_naming_the_entry(street, tmp_path):
+    paths, _ = street
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"a.png": {"focal_px": "wide"}}))
+    result = CliRunner().invoke(app, ["infer", paths[0], "--camera", str(bad)])
+    assert result.exit_code == 2 and "'a.png'" in result.output and "focal_px" in result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+def test_error_bars_are_positive_finite_and_shrink_with_the_camera_given(street, fitter):
+    paths, truths = street
+    relative = {"free": [], "given": []}
+    for path, truth in zip(paths, truths):
+        fits = {"free": fitter.fit(path), "given": fitter.fit(path, camera=truth.known_camera())}
+        for name, fit in fits.items():
+            record = to_record(fit, cuboid=True)
+            shape = get_shape(record["shape"])
+            sd = shape.ratio_vector(record["ratios_sd"])  # a twobox's two parts, flattened
+            assert np.isfinite(sd).all() and (sd > 0).all() and record["cuboid"]["yaw_sd_deg"] > 0
+            relative[name].append(sd[0] / shape.ratio_vector(record["ratios"])[0])
+    assert np.median(relative["given"]) < np.median(relative["free"])  # the camera fixes what the depth traded with
