@@ -310,14 +310,16 @@ def _box3d_tile(ax, fit: Fit) -> None:
         where = f"focal {f:.0f} px; the box {distance:.1f} box heights away"
     given = fit.cuboid.given
     said = ", ".join(f"{name.split('_')[0]} {'given' if name in given else 'fitted'}" for name in ("focal_px", "principal_px"))
-    spread = "" if depth_sd is None else f"; depth +-1 sd ({100 * depth_sd:.0f}%) dashed"
+    spread = "" if depth_sd is None else f"; depth x/ {math.exp(depth_sd):.2f} (1 sd) dashed"
     ax.set_title(f"the fitted box in 3D and its camera (oblique view): {said}\n{where}; units: box height{spread}",
                  fontsize=9)
 
 
 def _depth_bounds(ax, fit: Fit, geometry: Shape, corners: np.ndarray) -> float | None:
-    """The box at plus and minus one sd of its depth (scaled about its centre along its depth axis),
-    dashed; the relative sd drawn, None without error bars."""
+    """The box at plus and minus one sd of its depth, dashed: scaled about its centre along its depth
+    axis by exp(+-s), s the sd of log depth (the error bars' own scale: `uncertainty.spread`), so a
+    wide one stays a box (times and over exp(s), never a negative depth); s returned, None
+    without error bars."""
     spread = fit.cuboid.fit.spread
     if spread is None:
         return None
@@ -327,7 +329,7 @@ def _depth_bounds(ax, fit: Fit, geometry: Shape, corners: np.ndarray) -> float |
     side = np.zeros(len(corners))
     side[back], side[front] = 0.5, -0.5
     for sign in (-1.0, 1.0):
-        moved = (corners + sign * relative * side[:, None] * axis) @ DISPLAY.T
+        moved = (corners + (math.exp(sign * relative) - 1.0) * side[:, None] * axis) @ DISPLAY.T
         for a, b in geometry.edges:
             ax.plot(*moved[[a, b]].T, color="#444444", linewidth=0.8, linestyle=(0, (3, 2)), zorder=3)
     return relative
