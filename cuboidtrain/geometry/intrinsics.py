@@ -117,8 +117,9 @@ PLAUSIBLE = 30.0  # the stiffness of the bounds: a hinge, 0 inside them
 # Within the bounds, the typical camera: a Gaussian on kappa = side / f and on the principal point's
 # offset from the frame's centre (in sides), fitted to the same views (paper and street pooled:
 # kappa 0.50 +- 0.36 and 0.87 +- 0.54; cx 0.0 +- 0.6 and 0.0 +- 0.3; cy -0.5 +- 0.3 and -0.1 +- 0.3).
-TYPICAL = (0.6, 0.0, -0.3)  # kappa, cx, cy
-TYPICAL_SD = (0.5, 0.5, 0.45)
+TYPICAL = np.array([0.6, 0.0, -0.3])  # kappa, cx, cy
+TYPICAL_SD = np.array([0.5, 0.5, 0.45])
+TYPICAL_PULL = 1.0 / TYPICAL_SD
 TYPICAL_WEIGHT = 1.0  # one sd costs as much as one corner 1 px off
 
 
@@ -152,33 +153,34 @@ class PlausibleRows:
         their Jacobian. The in-front row is the nearest corner's; its derivative follows k only
         (the corners' depths held): enough to push a camera out of the building, and LM takes no
         step that raises the cost."""
-        w, side, centre = self.stiffness, self.side[owner], self.centre[owner]
-        free_focal, free_principal = self.free_focal[owner], self.free_principal[owner]  # float 0/1
+        w, side, free_focal, free_principal = self.stiffness, self.side[owner], self.free_focal[owner], self.free_principal[owner]
         # |k|: a hypothesis with k < 0 is the depth-reversed twin of one with k > 0 (`camera.canonical`).
-        s, sign = np.exp(x[:, 7]), np.sign(x[:, 8])
-        kappa = side * np.abs(x[:, 8]) / s  # the frame's side over the focal length
-        offset = (x[:, 9:11] - centre) / side[:, None]
-        short = free_focal * (MIN_FOCAL_SIDES * kappa > 1)
+        per_k = side / np.exp(x[:, 7])  # d kappa / d |k|
+        kappa = per_k * np.abs(x[:, 8])  # the frame's side over the focal length
+        offset = (x[:, 9:11] - self.centre[owner]) / side[:, None]
+        front = rotated_z is not None
+        values = np.empty((len(x), 6 + front))
+        short = free_focal * (kappa > 1 / MIN_FOCAL_SIDES)
+        values[:, 0] = w * short * (MIN_FOCAL_SIDES * kappa - 1)
         outside = free_principal[:, None] * (np.abs(offset) > PRINCIPAL_SIDES)
-        pull = self.typical / np.array(TYPICAL_SD)
-        columns = [w * short * (MIN_FOCAL_SIDES * kappa - 1), *(w * outside * (np.abs(offset) - PRINCIPAL_SIDES)).T]
-        if rotated_z is not None:
-            nearest = np.take_along_axis(rotated_z, (x[:, 8, None] * rotated_z).argmin(1)[:, None], axis=1)[:, 0]
-            share = 1.0 + x[:, 8] * nearest  # the same for both twins: each has z and k negated
+        values[:, 1:3] = w * outside * (np.abs(offset) - PRINCIPAL_SIDES)
+        if front:  # the nearest corner: 1 + k z is the same for both twins (each has z and k negated)
+            share = 1.0 + (x[:, 8, None] * rotated_z).min(1)
             behind = share < MIN_DEPTH_SHARE
-            columns.append(w * behind * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE)
-        columns += [pull[0] * free_focal * (kappa - TYPICAL[0]),
-                    *(pull[1:] * free_principal[:, None] * (offset - np.array(TYPICAL[1:]))).T]
-        values = np.stack(columns, axis=1)
+            values[:, 3] = w * behind * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE
+        values[:, -3] = TYPICAL_PULL[0] * self.typical * free_focal * (kappa - TYPICAL[0])
+        values[:, -2:] = TYPICAL_PULL[1:] * self.typical * free_principal[:, None] * (offset - TYPICAL[1:])
         if not derivatives:
             return values, None
         jac = np.zeros((len(x), values.shape[1], x.shape[1]))
-        jac[:, 0, 7], jac[:, 0, 8] = -w * short * MIN_FOCAL_SIDES * kappa, w * short * MIN_FOCAL_SIDES * side * sign / s
-        jac[:, 1, 9], jac[:, 2, 10] = (w * outside[:, a] * np.sign(offset[:, a]) / side for a in (0, 1))
-        if rotated_z is not None:
-            jac[:, 3, 8] = -w * behind * nearest / MIN_DEPTH_SHARE
-        jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * side * sign / s
-        jac[:, -2, 9], jac[:, -1, 10] = pull[1] * free_principal / side, pull[2] * free_principal / side
+        d_kappa = per_k * np.sign(x[:, 8])
+        jac[:, 0, 7], jac[:, 0, 8] = -w * MIN_FOCAL_SIDES * short * kappa, w * MIN_FOCAL_SIDES * short * d_kappa
+        jac[:, 1, 9], jac[:, 2, 10] = (w * outside * np.sign(offset) / side[:, None]).T
+        if front:  # the nearest corner's z is (share - 1) / k where it is behind (k is then not 0)
+            jac[:, 3, 8] = -w * behind * np.where(behind, (share - 1) / np.where(behind, x[:, 8], 1.0), 0.0) / MIN_DEPTH_SHARE
+        pull = TYPICAL_PULL * self.typical
+        jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * d_kappa
+        jac[:, -2, 9], jac[:, -1, 10] = (pull[1:] * free_principal[:, None] / side[:, None]).T
         return values, jac
 
     def subset(self, rows: np.ndarray) -> "PlausibleRows":
