@@ -48,7 +48,9 @@ The JSON (--json; also printed on one line after the tables):
   the perspective fits); networks rows without --no-eval add `eval_mean_256`,
   `refiner_iou`, `s_peaks_dark_256`, `t_alone_256` and `skipped` (eval's);
 * `selection` (networks; set -> share of masks given their true shape), `cuboid_selection`
-  (--cuboid); `mask_ms` (path -> set -> median ms a mask of the selection run);
+  (--cuboid: path -> set, for `cuboid` and `cuboid_camera_given`, each mask's true camera held);
+  `mask_ms` (path -> set -> median ms a mask of the selection run); the rows' `within_1sd` /
+  `within_2sd`: how often the truth lies within the cuboid fit's error bars;
 * `latency`: `shipped_ms`, `paper_arch_ms`, `ratio`, and `cuboid_ms` with --cuboid.
 """
 from __future__ import annotations
@@ -139,8 +141,16 @@ def corner_errors(records: list[dict], truths: list[Truth]) -> list[float]:
 def where_figures(records: list[dict], fits: list, truths: list[Truth]) -> dict:
     """Hull / interior corner error, NME, ratio, yaw and 3D IoU errors of the records that did not
     fail: a cuboid record's 3D box is its fit's, a networks-only record's its keypoints lifted."""
-    return summarise([score(np.asarray(r["keypoints"]), r["ratios"], t, None if f.cuboid is None else f.cuboid.fit.camera)
+    return summarise([score(np.asarray(r["keypoints"]), r["ratios"], t, None if f.cuboid is None else f.cuboid.fit.camera,
+                            None if f.cuboid is None else f.cuboid.fit.spread)
                       for r, f, t in zip(records, fits, truths) if r["error"] is None])
+
+
+def with_cameras(options: FitOptions, variant: str, files: list[str], truths: list[Truth]) -> FitOptions:
+    """The variant's options for these masks: `cuboid_camera_given` holds each mask's true camera."""
+    if variant != "cuboid_camera_given":
+        return options
+    return replace(options, cameras=tuple((f, t.known_camera()) for f, t in zip(files, truths)))
 
 
 def eval_figures(model, spool: Path, samples: int) -> dict:
@@ -179,7 +189,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     paths = default_checkpoints(args.checkpoint)
     models = {m.shape: m for m in (load_model(p)[0] for p in paths)}
-    variants = {"networks": FitOptions(device="cpu")} | ({"cuboid": FitOptions(device="cpu", cuboid=True)}
+    cuboid = FitOptions(device="cpu", cuboid=True)
+    variants = {"networks": FitOptions(device="cpu")} | ({"cuboid": cuboid, "cuboid_camera_given": cuboid}
                                                          if args.cuboid else {})
     # `rows` and `selection` keep their old form (cuboidtrain models pack --validation reads them): networks only.
     rows, selection, cuboid_selection, mask_ms = [], {}, {}, {}
@@ -190,7 +201,8 @@ def main() -> None:
                 for shape, model in models.items():
                     spool = spool_for(args.spools, shape, scene, args.samples)
                     files, truths = write_masks(spool, args.samples, Path(tmp))
-                    records, fits = fit_records(Fitter([model], replace(options, shape=shape)), files)
+                    given = with_cameras(options, variant, files, truths)
+                    records, fits = fit_records(Fitter([model], replace(given, shape=shape)), files)
                     errors = corner_errors(records, truths)
                     row = {"set": scene, "shape": shape, "path": variant, "samples": len(files), "size": model.size,
                            "infer_mean_256": float(np.nanmean(errors)), "infer_median_256": float(np.nanmedian(errors)),
@@ -199,14 +211,14 @@ def main() -> None:
                         row |= eval_figures(model, spool, args.samples)
                     rows.append(row)
                     if (scene in NOISY_SETS or args.cuboid) and len(models) > 1:
-                        fitter = Fitter(list(models.values()), options)
+                        fitter = Fitter(list(models.values()), given)
                         for file in files:  # one call a mask: its time is the whole infer path's
                             start = time.perf_counter()
                             chosen += to_record(fitter.records([file])[0])["shape"] == shape
                             times.append(1000 * (time.perf_counter() - start))
                         total += len(files)
                 if total:
-                    (selection if variant == "networks" else cuboid_selection)[scene] = chosen / total
+                    (selection if variant == "networks" else cuboid_selection.setdefault(variant, {}))[scene] = chosen / total
                     mask_ms.setdefault(variant, {})[scene] = statistics.median(times)
         example = write_masks(spool_for(args.spools, "box", "paper", 1), 1, Path(tmp))[0][0]
         size = next(iter(models.values())).size
@@ -220,7 +232,7 @@ def main() -> None:
               "threads": args.threads, "rows": [r for r in rows if r["path"] == "networks"], "selection": selection,
               "mask_ms": mask_ms, "latency": latency, "targets": TARGETS}
     if args.cuboid:
-        result |= {"cuboid_rows": [r for r in rows if r["path"] == "cuboid"], "cuboid_selection": cuboid_selection}
+        result |= {"cuboid_rows": [r for r in rows if r["path"].startswith("cuboid")], "cuboid_selection": cuboid_selection}
     show(result)
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
@@ -241,8 +253,9 @@ def show(result: dict) -> None:
     console = Console()
     console.print(table)
     console.print(where_table(rows))
-    for variant, key in (("networks", "selection"), ("cuboid", "cuboid_selection")):
-        for scene, accuracy in result.get(key, {}).items():
+    selections = {"networks": result["selection"]} | result.get("cuboid_selection", {})
+    for variant, by_scene in selections.items():
+        for scene, accuracy in by_scene.items():
             console.print(f"{variant}: shape selection on {scene}: {100 * accuracy:.1f}% (target >= 95%), "
                           f"median {result['mask_ms'][variant][scene]:.1f} ms a mask")
     lat = result["latency"]
@@ -257,7 +270,7 @@ def where_table(rows: list[dict]) -> Table:
     table = Table(title="Where the error is (256 px units; ratios: relative error; yaw: degrees modulo a half turn; "
                         "3D IoU up to scale; mean / median; networks' yaw and 3D IoU: its keypoints lifted)")
     for column in ("set", "shape", "path", "all px", "hull px", "interior px", "interior share", "NME % span",
-                   "depth/height", "width/height", "yaw deg", "3D IoU", "focal"):
+                   "depth/height", "width/height", "yaw deg", "3D IoU", "focal", "truth in 1 / 2 sd"):
         table.add_column(column)
     for r in rows:
         table.add_row(r["set"], r["shape"], r["path"], f"{r['infer_mean_256']:.2f} / {r['infer_median_256']:.2f}",
@@ -268,7 +281,8 @@ def where_table(rows: list[dict]) -> Table:
                       f"{100 * r['width_height_mean_rel']:.1f}% / {100 * r['width_height_median_rel']:.1f}%",
                       f"{r['yaw_mean_deg']:.1f} / {r['yaw_median_deg']:.1f}",
                       f"{r['iou3d_mean']:.3f} / {r['iou3d_median']:.3f}",
-                      f"{100 * r['focal_mean_rel']:.0f}% / {100 * r['focal_median_rel']:.0f}%")
+                      f"{100 * r['focal_mean_rel']:.0f}% / {100 * r['focal_median_rel']:.0f}%",
+                      "-" if not np.isfinite(r["within_1sd"]) else f"{100 * r['within_1sd']:.0f}% / {100 * r['within_2sd']:.0f}%")
     return table
 
 
