@@ -33,7 +33,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_accuracy import spool_for  # noqa: E402
 from cuboidtrain.fit.fitter import Fitter  # noqa: E402
 from cuboidtrain.fit.options import FitOptions  # noqa: E402
-from cuboidtrain.geometry.intrinsics import KnownCamera  # noqa: E402
 from cuboidtrain.geometry.lift import lift  # noqa: E402
 from cuboidtrain.geometry.scoring import Truth, score, yaw_error_deg  # noqa: E402
 from shared.sample import decode  # noqa: E402
@@ -43,11 +42,6 @@ SETS = [(scene, shape) for scene in ("paper-clean", "paper", "street") for shape
 NOISE_PX = (0.5, 1.0, 2.0)
 FRAME = 256  # px: the spools' masks
 CAMERAS = ("free", "plausible", "given")  # fitted unbounded, fitted within plausible bounds, given
-
-
-def true_camera(truth: Truth) -> KnownCamera:
-    """The focal length and principal point the generator framed the sample with, in its px."""
-    return truth.known_camera()
 
 
 def figures(scored: list) -> dict:
@@ -71,7 +65,7 @@ def lift_rows(truths: list[Truth], rng: np.random.Generator) -> dict:
         for camera in CAMERAS:
             scored = []
             for truth, corners in zip(truths, noisy):
-                known = true_camera(truth) if camera == "given" else None
+                known = truth.known_camera() if camera == "given" else None
                 frame = None if camera == "free" else (FRAME, FRAME)
                 lifted = lift(corners, truth.shape, known=known, frame=frame).camera
                 scored.append(score(lifted.named_keypoints(), truth.shape.ratio_dict(lifted.ratios()), truth, lifted))
@@ -84,7 +78,7 @@ def infer_rows(fitters: dict[str, Fitter], samples: list, truths: list[Truth]) -
     among them), the camera fitted unbounded, fitted within plausible bounds, and given."""
     rows = {}
     for camera, fitter in fitters.items():
-        fits = [fitter.fit(s.noisy.astype(np.uint8) * 255, camera=true_camera(t) if camera == "given" else None)
+        fits = [fitter.fit(s.noisy.astype(np.uint8) * 255, camera=t.known_camera() if camera == "given" else None)
                 for s, t in zip(samples, truths)]
         right = [f.shape == t.shape.name for f, t in zip(fits, truths)]
         scored = [score(f.keypoints, f.ratios, t, f.cuboid.fit.camera) if ok else None

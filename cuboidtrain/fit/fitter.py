@@ -67,21 +67,14 @@ class Fit:
 
     def record(self, with_component: bool = False) -> dict:
         """The JSON record `cuboidtrain infer` writes."""
+        spread = {"ratios_sd": self.cuboid.ratios_sd()} if self.cuboid is not None else {}
         record = {"input": self.input, "shape": self.shape, "confidence": self.confidence,
-                  "keypoints": np.asarray(self.keypoints).tolist(), "ratios": self.ratios,
+                  "keypoints": np.asarray(self.keypoints).tolist(), "ratios": self.ratios, **spread,
                   "refine_steps": self.refine_steps, "refine_converged": self.refine_converged, "error": None,
                   "warnings": list(self.warnings), "candidates": self.candidates}
         if self.cuboid is not None:
-            record = _after(record, "ratios", {"ratios_sd": self.cuboid.ratios_sd()})
             record["cuboid"] = self.cuboid.record()
         return record | ({"component": self.component} if with_component else {})
-
-
-def _after(record: dict, key: str, added: dict) -> dict:
-    """`record` with `added` right after `key` (the contract's order)."""
-    keys = list(record)
-    at = keys.index(key) + 1
-    return {k: record[k] for k in keys[:at]} | added | {k: record[k] for k in keys[at:]}
 
 
 @dataclass(frozen=True)

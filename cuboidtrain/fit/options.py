@@ -7,9 +7,9 @@ builds its choices from these lists, and `--help` must not wait for torch.
 """
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import PurePath
 
 from cuboidtrain.geometry.intrinsics import KnownCamera
@@ -85,9 +85,10 @@ class FitOptions:
 
     def _check_camera(self) -> None:
         principal = self.principal_px
-        if principal is not None and (not isinstance(principal, (tuple, list)) or len(principal) != 2
-                                      or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in principal)):
-            raise UsageError(f"--principal-px {principal!r}: expected two finite numbers X Y (px)")
+        try:
+            KnownCamera(principal_px=principal)
+        except ValueError:
+            raise UsageError(f"--principal-px {principal!r}: expected two finite numbers X Y (px)") from None
         given = ("--focal-px" if self.focal_px is not None else "--principal-px" if principal is not None
                  else "--camera" if self.cameras else None)
         if given is not None and self.optimizer != "lm":
@@ -100,15 +101,20 @@ class FitOptions:
         """What is known of the camera of input `name` (its entry in `cameras`, by the path as given or
         its file name, over `focal_px` / `principal_px`), None if nothing. A full frame (`label_id` or
         `all_components`: the whole photo) has its principal point at the frame's centre unless given."""
-        entry = dict(self.cameras).get(name) or dict(self.cameras).get(PurePath(name).name if name else None)
+        table = self._camera_table
+        entry = table.get(name) or table.get(PurePath(name).name if name else None)
         focal = entry.focal_px if entry is not None and entry.focal_px is not None else self.focal_px
         principal = entry.principal_px if entry is not None and entry.principal_px is not None else self.principal_px
         if principal is None and (self.label_id is not None or self.all_components):
             principal = ((frame[1] - 1) / 2, (frame[0] - 1) / 2)
         if focal is None and principal is None:
             return None
-        return KnownCamera(None if focal is None else float(focal),
-                           None if principal is None else (float(principal[0]), float(principal[1])))
+        return KnownCamera.of(focal, principal)
+
+    @cached_property
+    def _camera_table(self) -> dict[str, KnownCamera]:
+        """`cameras` as a lookup: built once, not once an input (a city's file maps thousands)."""
+        return dict(self.cameras)
 
     @property
     def shapes(self) -> tuple[str, ...]:

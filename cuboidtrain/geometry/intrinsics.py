@@ -36,16 +36,31 @@ class KnownCamera:
     stiffness: float = HELD
 
     def __post_init__(self):
-        if self.focal_px is not None and not (math.isfinite(self.focal_px) and self.focal_px > 0):
-            raise ValueError(f"focal length {self.focal_px!r} px: expected a positive, finite number")
-        if self.principal_px is not None and not all(math.isfinite(v) for v in self.principal_px):
-            raise ValueError(f"principal point {self.principal_px!r} px: expected two finite numbers")
+        if self.focal_px is not None and not (_finite(self.focal_px) and self.focal_px > 0):
+            raise ValueError(f"focal_px {self.focal_px!r}: expected a positive, finite number (px)")
+        principal = self.principal_px
+        if principal is not None and not (isinstance(principal, (tuple, list)) and len(principal) == 2
+                                          and all(_finite(v) for v in principal)):
+            raise ValueError(f"principal_px {principal!r}: expected two finite numbers X Y (px)")
+
+    @classmethod
+    def of(cls, focal_px=None, principal_px=None) -> "KnownCamera":
+        """From what a user wrote (JSON numbers, a list), checked (ValueError naming the value and what
+        was expected), as floats."""
+        checked = cls(focal_px, principal_px)
+        return cls(None if focal_px is None else float(focal_px),
+                   None if principal_px is None else (float(checked.principal_px[0]), float(checked.principal_px[1])))
 
     @property
     def given(self) -> tuple[str, ...]:
         """The record's names of what was given: focal_px, principal_px."""
         return tuple(name for name, value in (("focal_px", self.focal_px), ("principal_px", self.principal_px))
                      if value is not None)
+
+
+def _finite(value) -> bool:
+    """A real number, not a bool, finite."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @dataclass(frozen=True)
@@ -177,7 +192,7 @@ class PlausibleRows:
         jac[:, 0, 7], jac[:, 0, 8] = -w * MIN_FOCAL_SIDES * short * kappa, w * MIN_FOCAL_SIDES * short * d_kappa
         jac[:, 1, 9], jac[:, 2, 10] = (w * outside * np.sign(offset) / side[:, None]).T
         if front:  # the nearest corner's z is (share - 1) / k where it is behind (k is then not 0)
-            jac[:, 3, 8] = -w * behind * np.where(behind, (share - 1) / np.where(behind, x[:, 8], 1.0), 0.0) / MIN_DEPTH_SHARE
+            jac[:, 3, 8] = np.where(behind, -w * (share - 1) / np.where(behind, x[:, 8], 1.0) / MIN_DEPTH_SHARE, 0.0)
         pull = TYPICAL_PULL * self.typical
         jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * d_kappa
         jac[:, -2, 9], jac[:, -1, 10] = (pull[1:] * free_principal[:, None] / side[:, None]).T

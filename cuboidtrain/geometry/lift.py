@@ -36,10 +36,14 @@ POLISH_ITERATIONS = 1000
 
 @dataclass(frozen=True)
 class Solved:
-    """LM result per hypothesis: params (B, P) and final cost (B,) = 0.5 * sum of squares."""
+    """LM result per hypothesis: params (B, P) and final cost (B,) = 0.5 * sum of squares; and, at
+    those params, the normal equations' J^T J (B, P, P) of the M residuals a row has (what the
+    Laplace approximation of the solution reads: `uncertainty.spread`)."""
 
     params: np.ndarray
     cost: np.ndarray
+    normal: np.ndarray
+    residuals: int
 
 
 def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: float = 1e-7,
@@ -89,9 +93,9 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
     if trial_jacobian:
         r, jac = jacobian(x, rows)
         normal_equations(rows, r, jac)
-        cost = 0.5 * (r**2).sum(1)
     else:
-        cost = 0.5 * (residual(x, rows) ** 2).sum(1)
+        r = residual(x, rows)
+    cost, count = 0.5 * (r**2).sum(1), r.shape[1]
     stale = np.full(b, not trial_jacobian)  # x moved since its normal equations were formed
     eye = np.eye(p)
     for _ in range(iterations):
@@ -130,7 +134,10 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
             _stop_groups_that_reached(active, cost, enough, groups)
         if not active.any():
             break
-    return Solved(x, cost)
+    if stale.any():  # forward differences: the last taken steps' normal equations, at the params returned
+        redo = np.flatnonzero(stale)
+        normal_equations(redo, *jacobian(x[redo], redo))
+    return Solved(x, cost, jtj, count)
 
 
 def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: float, groups: np.ndarray | None) -> None:

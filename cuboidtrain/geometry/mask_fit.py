@@ -68,9 +68,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
         first += len(mine)
         camera = CameraParams(shape, solved.params[best], bool(mirrors[best]))
         focal_given = known is not None and known[k] is not None and known[k].focal_px is not None
-        with np.errstate(all="ignore"):  # a degenerate fit (random weights' corners) has no error bars: None
-            values, derivatives = jacobian(solved.params[best][None], np.array([best]))
-            bars = spread(camera, values[0], derivatives[0], focal_given)
+        bars = spread(camera, 2 * solved.cost[best], solved.normal[best], solved.residuals, focal_given)
         fits.append(replace(described(target, shape, camera, weights), spread=bars))
     return fits
 

@@ -93,8 +93,7 @@ class Truth:
         """The focal length and principal point the generator framed the sample with, in its px."""
         if self.camera is None:
             return None
-        vector = self.camera.vector
-        return KnownCamera(float(np.exp(vector[7]) / vector[8]), (float(vector[9]), float(vector[10])))
+        return KnownCamera(self.camera.focal_px(), (float(self.camera.vector[9]), float(self.camera.vector[10])))
 
 
 def corner_errors(shape: Shape, keypoints: np.ndarray, truth: np.ndarray, ratios: dict, true_ratios: dict) -> CornerErrors:

@@ -31,12 +31,14 @@ FOCAL_SCALE, FOCAL_FLOOR = 3.6, 0.36  # the focal length: a, and b relative to i
 YAW_STEP = 1e-5  # rad, the central difference of the yaw
 
 
-def spread(camera: CameraParams, residuals: np.ndarray, jacobian: np.ndarray, focal_given: bool) -> Spread | None:
-    """The standard deviations of `camera`'s ratios, yaw and focal length, from the residuals (M,)
-    and their Jacobian (M, P) at the solution; None where they are not finite (a degenerate fit)."""
-    if not (np.isfinite(residuals).all() and np.isfinite(jacobian).all()):
+def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: int,
+           focal_given: bool) -> Spread | None:
+    """The standard deviations of `camera`'s ratios, yaw and focal length, from the solution's sum
+    of squared residuals, its J^T J (P, P) and how many residuals there are (`lift.Solved`); None
+    where they are not finite (a degenerate fit)."""
+    if not (math.isfinite(squares) and np.isfinite(normal).all()):
         return None
-    covariance = laplace(residuals, jacobian)
+    covariance = laplace(normal, squares, residuals)
     vector = camera.vector
     log_ratios = log_ratio_jacobian(vector[None], camera.shape)[0]  # (R, P)
     values = ratios(vector[None], camera.shape)[0]
@@ -55,23 +57,20 @@ def calibrated(raw, scale: float, floor):
     return np.sqrt((scale * np.asarray(raw)) ** 2 + np.asarray(floor) ** 2)
 
 
-def laplace(residuals: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
-    """(P, P): sigma^2 (J^T J)^-1, sigma^2 the residuals' variance; a direction the problem does not
-    fix at all (a zero column, the twobox's unused parameters) gets no variance, not infinity."""
-    m, p = jacobian.shape
-    normal = jacobian.T @ jacobian
-    sigma2 = float(residuals @ residuals) / max(m - p, 1)
+def laplace(normal: np.ndarray, squares: float, residuals: int) -> np.ndarray:
+    """(P, P): sigma^2 (J^T J)^-1, sigma^2 = squares / (M - P) the residuals' variance; a direction the
+    problem does not fix at all (a zero column, the twobox's unused parameters) gets no variance, not infinity."""
+    sigma2 = squares / max(residuals - len(normal), 1)
     scale = np.sqrt(np.maximum(np.diag(normal), 1e-300))
     inverse = np.linalg.pinv(normal / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
     return sigma2 * inverse
 
 
 def _focal_sd(camera: CameraParams, covariance: np.ndarray) -> float | None:
-    vector, _ = canonical(camera.vector, camera.mirror)
     focal = camera.focal_px()
     if not math.isfinite(focal):
         return None
-    gradient = np.zeros(len(vector))
+    gradient = np.zeros(len(camera.vector))
     gradient[7], gradient[8] = 1.0, -1.0 / camera.vector[8]  # log f = log s - log |k|
     raw = focal * math.sqrt(max(gradient @ covariance @ gradient, 0.0))
     return float(calibrated(raw, FOCAL_SCALE, FOCAL_FLOOR * focal))

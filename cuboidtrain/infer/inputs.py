@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path, PurePath, PurePosixPath
@@ -179,15 +178,10 @@ def read_cameras(path: Path) -> tuple[tuple[str, KnownCamera], ...]:
 
 
 def _camera_entry(path: Path, name: str, entry) -> KnownCamera:
-    expected = '{"focal_px": F, "principal_px": [X, Y]} (px; either may be left out)'
     if not isinstance(entry, dict) or not set(entry) <= {"focal_px", "principal_px"}:
-        raise UsageError(f"--camera {path}: {name!r}: {entry!r}: expected {expected}")
-    focal, principal = entry.get("focal_px"), entry.get("principal_px")
-    numeric = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
-    if (focal is not None and not (numeric(focal) and focal > 0)) or (
-            principal is not None and not (isinstance(principal, list) and len(principal) == 2
-                                           and all(numeric(v) for v in principal))):
-        raise UsageError(f"--camera {path}: {name!r}: {entry!r}: expected {expected}, the focal "
-                         f"length > 0")
-    return KnownCamera(None if focal is None else float(focal),
-                       None if principal is None else (float(principal[0]), float(principal[1])))
+        raise UsageError(f"--camera {path}: {name!r}: {entry!r}: expected "
+                         f'{{"focal_px": F, "principal_px": [X, Y]}} (px; either may be left out)')
+    try:
+        return KnownCamera.of(entry.get("focal_px"), entry.get("principal_px"))
+    except ValueError as exc:
+        raise UsageError(f"--camera {path}: {name!r}: {exc}") from None
