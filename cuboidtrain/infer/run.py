@@ -114,8 +114,7 @@ def make_explainer(folder: Path | None, photos: list[Path], inputs: int, names: 
         raise UsageError(f"--overlay given {len(photos)} times for {inputs} inputs: expected one photo per input, "
                          f"in the same order")
     if folder is None:
-        return None
-    check_writable("--explain", folder, folder=True)
+        return None  # a folder given was checked with the other outputs (`check_request`)
     from cuboidtrain.infer.explain import Explainer  # matplotlib: only when pictures are wanted
 
     return Explainer(folder, photos, names)
