@@ -11,8 +11,8 @@ over the same spool, interleaved and repeated (medians: this machine is shared):
 Without reframing the spool is generated at the model's size (the spool's own framing);
 with reframing it is a 256 px spool, framed at the model's size as `infer` frames a mask.
 The process is pinned to one core (`--core`) with torch and OpenCV on one thread.
-`--equivalence SPOOL...` instead compares the reframed batches of those spools with the framing
-before issue 29 (`cuboidtrain.fit.masks`' frame of the silhouette, warp of the clean mask): the
+`--equivalence SPOOL...` instead compares the reframed batches of those spools, framed on
+`--device`, with the framing before issue 29 (`cuboidtrain.fit.masks`' frame of the silhouette, warp of the clean mask): the
 pixels that differ and the keypoints' largest difference, at each size.
 
     .venv/bin/python benchmarks/bench_input.py --json bench-input.json
@@ -82,24 +82,25 @@ def bench_size(size: int, reframe: bool, spool: Path, batch: int, repeats: int, 
             "loader_runs": loader_rates, "whole_runs": whole_rates}
 
 
-def equivalence(spool: Path, size: int) -> dict:
-    """How far the batch `prepare_batch` frames on the CPU lies from the framing before issue 29."""
+def equivalence(spool: Path, size: int, device: torch.device) -> dict:
+    """How far the batch `prepare_batch` frames on `device` lies from the framing before issue 29."""
     from cuboidtrain.fit.masks import frame, silhouette, warp
     from shared.sample import decode_record, from_record
     from shared.spool import enumerate_spool, read_sample_bytes
 
     shape = "twobox" if "twobox" in spool.name else "box"
     batch = SpoolBatches(spool, shape, size, reframe="always")[enumerate_spool(spool)]
-    x = prepare_batch(batch, torch.device("cpu"), default_sigma(size), size)
+    x = prepare_batch(batch, device, default_sigma(size), size)
+    x1, x2, x4 = x.x1.cpu(), x.x2.cpu(), x.x4.cpu()
     pixels, worst, keypoints = 0, 0.0, 0.0
     for row, name in enumerate(batch["names"]):
         sample = from_record(decode_record(read_sample_bytes(spool, name)))
         noisy, framing = frame(silhouette(sample.noisy), size)
-        for prepared, mask in ((x.x1[row, 0], noisy), (x.x2[row, 0], warp(sample.clean, framing))):
+        for prepared, mask in ((x1[row, 0], noisy), (x2[row, 0], warp(sample.clean, framing))):
             differing = int(((prepared > 0).numpy() != mask).sum())
             pixels, worst = pixels + differing, max(worst, differing / size**2)
-        keypoints = max(keypoints, float(abs(x.x4[row].numpy() - framing.to_model(sample.keypoints)).max()))
-    return {"spool": str(spool), "size": size, "samples": len(batch["names"]), "differing_pixels": pixels,
+        keypoints = max(keypoints, float(abs(x4[row].numpy() - framing.to_model(sample.keypoints)).max()))
+    return {"spool": str(spool), "size": size, "device": str(device), "samples": len(batch["names"]), "differing_pixels": pixels,
             "worst_mask_share": worst, "keypoints_max_px": keypoints}
 
 
@@ -116,7 +117,8 @@ def main() -> None:
                         help="Instead: compare these spools' reframed batches with the framing before issue 29.")
     args = parser.parse_args()
     if args.equivalence:
-        rows = [equivalence(spool, size) for spool in args.equivalence for size in args.sizes]
+        device = resolve_device(args.device)
+        rows = [equivalence(spool, size, device) for spool in args.equivalence for size in args.sizes]
         for r in rows:
             print(f"{r['spool']:36} {r['size']:4d} px  {r['samples']:4d} samples  {r['differing_pixels']:6d} px differ "
                   f"(worst mask {r['worst_mask_share']:.3%})  keypoints within {r['keypoints_max_px']:.1e} px")

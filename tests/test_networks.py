@@ -66,7 +66,7 @@ def test_the_registry_holds_the_papers_arch_and_a_compact_one():
 
 
 def test_an_unknown_arch_is_a_value_error_naming_the_choices():
-    with pytest.raises(ValueError, match=r"arch 'resnet50': expected one of paper, compact, tiny"):
+    with pytest.raises(ValueError, match=r"arch 'resnet50': expected one of paper, compact, slim, tiny"):
         check_arch("resnet50")
     with pytest.raises(ValueError, match="arch 'resnet50'"):
         TrainConfig(arch="resnet50").validate()
@@ -240,7 +240,7 @@ def test_fcns_keep_full_resolution_and_tabulator_takes_the_size(size):
     ({"batch_size": 0}, "--batch-size 0"),
     ({"steps": -3}, "--steps -3"),
     ({"lr_schedule": "step"}, "--lr-schedule 'step'"),
-    ({"lr_schedule": "cosine"}, "--lr-schedule cosine needs --steps"),
+    ({"lr_schedule": "cosine"}, "--lr-schedule cosine needs --steps N or --max-minutes"),
     ({"sigma": -1.0}, "--sigma -1.0"),
     ({"lr": 0.0}, "--lr 0.0"),
     ({"weight_decay": -1e-3}, "--weight-decay -0.001"),

@@ -209,6 +209,15 @@ def test_cosine_schedule_falls_from_lr_to_a_hundredth():
     assert learning_rate(TrainConfig(steps=100), 50) == 1e-3
 
 
+def test_cosine_schedule_without_steps_runs_out_with_max_minutes():
+    cfg = TrainConfig(max_minutes=10, lr=1e-3, lr_schedule="cosine").validate()
+    rates = [learning_rate(cfg, 0, elapsed) for elapsed in range(0, 700, 30)]  # the step count plays no part
+    assert rates[0] == pytest.approx(1e-3)
+    assert learning_rate(cfg, 0, 300) == pytest.approx((1e-3 + 1e-5) / 2)  # half the minutes: half way
+    assert rates[-1] == pytest.approx(1e-5)  # past --max-minutes it stays at the floor
+    assert all(a >= b for a, b in zip(rates, rates[1:]))
+
+
 # ---- what --out holds, the path options, the smallest batch (issue 22) --------------------
 
 runner = CliRunner()

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 WIDTHS = (24, 48, 96, 128)  # channels at strides 2, 4, 8, 16
+SLIM_WIDTHS = (16, 32, 64, 128)  # the `slim` arch's: for inputs of twice the side (128 px)
 FULL_WIDTH = 8  # channels of the full-resolution stage
 
 

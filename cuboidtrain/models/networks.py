@@ -176,6 +176,14 @@ def compact_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
     return _compact(num_keypoints, num_ratios, size, compact.WIDTHS)
 
 
+@register_arch("slim")
+def slim_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
+    """The compact design narrower (16, 32, 64, 128 channels): a 128 px input, twice the side of
+    the shipped 64 px, at 1.6x their CPU time where compact would take 2.9x (BENCHMARKS.md,
+    "A larger input")."""
+    return _compact(num_keypoints, num_ratios, size, compact.SLIM_WIDTHS)
+
+
 @register_arch("tiny")
 def tiny_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
     """The compact design at a few channels: for tests and smoke runs, not for fitting."""

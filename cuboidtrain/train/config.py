@@ -21,7 +21,7 @@ PHASES = {
     "e2e": "ablation: R, S, T chained from scratch, final loss D_T only",
     "finetune": "ablation: a trained model fine-tuned chained, final loss D_T only",
 }
-LR_SCHEDULES = ("constant", "cosine")  # cosine decays to lr/100 at --steps
+LR_SCHEDULES = ("constant", "cosine")  # cosine decays to lr/100 at --steps, or at --max-minutes
 MAX_SIZE = 2048  # px: a batch of heat maps grows with size squared (2048 px: 16 MiB per map)
 MAX_BATCH = 4096  # samples per step
 LOADER_WORKERS_MOST = 6  # loader workers a CUDA run starts by default (`TrainConfig.workers_on`)
@@ -39,7 +39,7 @@ class TrainConfig:
     epochs: int | None = number(None, lo=1, integer=True, optional=True)  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
     batch_size: int = number(32, lo=1, hi=MAX_BATCH, integer=True)
     lr: float = number(1e-3, lo=0, lo_open=True, hi=1)  # Adam
-    lr_schedule: str = "constant"  # or "cosine": decays to lr/100 at --steps (needs --steps)
+    lr_schedule: str = "constant"  # or "cosine": decays to lr/100 at --steps (or at --max-minutes without --steps)
     max_minutes: float | None = number(None, lo=0, lo_open=True, optional=True)  # stop (with a checkpoint) after this much wall time
     max_wait: float | None = number(None, lo=0, lo_open=True, optional=True)  # s: give up (exit 1) after waiting this long for a usable sample; None: wait on
     weight_decay: float = number(1e-5, lo=0, hi=1)  # Adam's L2 penalty (paper 3.2)
@@ -76,8 +76,8 @@ class TrainConfig:
         if self.steps is not None and self.epochs is not None:
             raise UsageError("give --steps or --epochs, not both")
         check_choice("--lr-schedule", self.lr_schedule, LR_SCHEDULES)
-        if self.lr_schedule == "cosine" and self.steps is None:
-            raise UsageError("--lr-schedule cosine needs --steps N: the step it decays to")
+        if self.lr_schedule == "cosine" and self.steps is None and self.max_minutes is None:
+            raise UsageError("--lr-schedule cosine needs --steps N or --max-minutes M: where it decays to lr/100")
         if self.sigma is not None and self.sigma > self.size / 4:
             raise UsageError(f"--sigma {self.sigma}: expected at most a quarter of --size ({self.size / 4:g} px)")
         if self.phase in ("1", "2") and not any(self.loss_weights):

@@ -129,11 +129,16 @@ def train_step(model: CuboidNet, optimizer: torch.optim.Optimizer, x: dict, conf
     return {"D_R": losses["D_R"].item(), "D_S": losses["D_S"].item(), "D_T": losses["D_T"].item(), "total": total.item()}
 
 
-def learning_rate(config: TrainConfig, step: int) -> float:
-    """The rate for the step after `step`: constant, or cosine from lr down to lr/100 at --steps."""
+def learning_rate(config: TrainConfig, step: int, elapsed_s: float = 0.0) -> float:
+    """The rate for the step after `step`: constant, or cosine from lr down to lr/100 at --steps,
+    or, without --steps, at --max-minutes of this run's wall time (`elapsed_s`): a lease of a
+    GPU is counted in minutes, and how many steps fit in them is only known on the machine."""
     if config.lr_schedule == "constant":
         return config.lr
-    progress = min(step / config.steps, 1.0)
+    if config.steps is not None:
+        progress = min(step / config.steps, 1.0)
+    else:
+        progress = min(elapsed_s / (config.max_minutes * 60), 1.0)
     floor = config.lr / 100
     return floor + (config.lr - floor) * 0.5 * (1 + math.cos(math.pi * progress))
 
@@ -245,7 +250,7 @@ def train_one_step(s: Session, position: Position, batch: dict, waited: float, s
     # 2. targets rendered on the device; forward, backward, step
     x = prepare_batch(batch, s.device, config.heatmap_sigma, config.size)
     for group in setup.optimizer.param_groups:
-        group["lr"] = learning_rate(config, position.step)
+        group["lr"] = learning_rate(config, position.step, time.monotonic() - s.started)
     losses = train_step(setup.model, setup.optimizer, x, config, s.device, setup.losses_of)
     step = position.step + 1
     # 3. account and report
