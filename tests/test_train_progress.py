@@ -42,6 +42,27 @@ def test_rates_measure_samples_step_time_and_data_wait(monkeypatch):
     assert not figures.window_full()
 
 
+def test_rates_span_the_last_half_minute_when_steps_are_short(monkeypatch):
+    # A GPU's steps: 0.1 s each, and every 50th waits 0.5 s more for an epoch's first batch.
+    clock = Clock()
+    monkeypatch.setattr(stats.time, "perf_counter", clock)
+    figures, fractions = RunningStats(), []
+    for step in range(1, 2001):
+        waited = 0.5 if step % 50 == 0 else 0.0
+        clock.now += 0.1 + waited
+        figures.stepped(LOSSES, 256, waited, 0.0, 0.0, {})
+        if step > 1000:
+            fractions.append(figures.rates().data_wait_fraction)
+    mean = 0.5 / (50 * 0.1 + 0.5)  # 9.1%: one epoch's start in 50 steps
+    assert figures.window_full() and stats.WINDOW_S <= sum(r[2] for r in figures.recent) < stats.WINDOW_S + 1
+    assert all(abs(f - mean) < 0.02 for f in fractions)  # steady, where 20 steps swung between 0% and 20%
+    assert figures.rates().samples_per_s == pytest.approx(256 * 50 / 5.5, rel=0.05)
+    for _ in range(stats.WINDOW + 5):  # slow steps: the window keeps WINDOW of them, whatever their span
+        clock.now += 10.0
+        figures.stepped(LOSSES, 8, 1.0, 0.0, 0.0, {})
+    assert len(figures.recent) == stats.WINDOW and figures.rates().data_wait_fraction == pytest.approx(0.1)
+
+
 def test_losses_are_smoothed_kept_for_the_trend_and_averaged_per_record():
     figures = RunningStats()
     figures.stepped(LOSSES, 2, 0.0, 0.0, 0.0, {})

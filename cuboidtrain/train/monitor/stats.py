@@ -12,7 +12,11 @@ from dataclasses import dataclass
 from cuboidtrain.train.data import SKIP_REASONS
 from cuboidtrain.train.monitor.status import BatchFreshness
 
-WINDOW = 20  # steps over which rates and the data-wait fraction are measured
+WINDOW = 20  # steps: the fewest that rates and the data-wait fraction are measured over
+# s: and at least this long. A GPU takes 20 steps in a second or two, and each epoch's first
+# batch is waited for (the listing, the loader's queue filled afresh): over 20 steps the data
+# wait swung between 0.4% and 26% on an H100 whose mean was 4-6.5% (BENCHMARKS.md, "On a GPU").
+WINDOW_S = 30.0
 HISTORY = 120  # loss values kept for the dashboard's trend
 EMA = 0.1  # weight of the newest loss in the smoothed value
 LOSSES = ("D_R", "D_S", "D_T", "total")
@@ -33,7 +37,8 @@ class RunningStats:
     def __init__(self):
         self.smoothed: dict[str, float] = {}  # exponentially smoothed losses (EMA)
         self.history = {k: deque(maxlen=HISTORY) for k in LOSSES}
-        self.recent = deque(maxlen=WINDOW)  # (samples, waited s, step s) per step
+        self.recent: deque[tuple[int, float, float, float]] = deque()  # (samples, waited s, step s, end) per step
+        self._window = [0, 0.0, 0.0]  # samples, waited s and step s summed over `recent`
         self._summed = Counter()  # losses summed since the last metrics record
         self._summed_steps = 0
         self.skipped = Counter(dict.fromkeys(SKIP_REASONS, 0))
@@ -52,7 +57,9 @@ class RunningStats:
                 skipped: dict) -> None:
         """A step was taken on `samples` samples after `waited` s of data wait."""
         now = time.perf_counter()
-        self.recent.append((samples, waited, now - self.last_end))
+        self._enter((samples, waited, now - self.last_end, now))
+        while len(self.recent) > WINDOW and now - self.recent[0][3] > WINDOW_S:
+            self._leave(self.recent.popleft())
         self.last_end = now
         self.skipped.update(skipped)
         self.freshness = BatchFreshness(age, reuse)
@@ -63,14 +70,20 @@ class RunningStats:
         self._summed.update(losses)
         self._summed_steps += 1
 
+    def _enter(self, step: tuple[int, float, float, float]) -> None:
+        self.recent.append(step)
+        self._window = [total + part for total, part in zip(self._window, step[:3])]
+
+    def _leave(self, step: tuple[int, float, float, float]) -> None:
+        self._window = [total - part for total, part in zip(self._window, step[:3])]
+
     def window_full(self) -> bool:
         """Whether the rates cover a whole WINDOW of steps (a start-up wait is no trend)."""
-        return len(self.recent) == WINDOW
+        return len(self.recent) >= WINDOW
 
     def rates(self) -> Rates:
-        samples = sum(r[0] for r in self.recent)
-        total = sum(r[2] for r in self.recent)
-        waited = sum(r[1] for r in self.recent)
+        """Over the last WINDOW steps, or the last WINDOW_S seconds where those hold more."""
+        samples, waited, total = self._window
         return Rates(
             samples_per_s=samples / total if total else None,
             step_time_s=total / len(self.recent) if self.recent else None,
