@@ -2,7 +2,7 @@
 
 Writes the first --samples noisy masks of bench_accuracy's seeded 256 px `street` and `paper`
 spools (box and twobox) as PNGs, runs `cuboidtrain infer` on them with one torch thread and
-with two, and reports how many records differ and by how much (the largest corner distance).
+with two (and, asked, with `--workers 2` and pinned to one core), and reports how many records differ and by how much (the largest corner distance).
 
     .venv/bin/python benchmarks/bench_threads.py --samples 50
 """
@@ -22,11 +22,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_accuracy import spool_for, write_masks  # noqa: E402
 
 
-def infer(files: list[str], threads: int, out: Path, extra: list[str]) -> list[dict]:
+def infer(files: list[str], threads: int, out: Path, extra: list[str], one_core: bool = False) -> list[dict]:
     env = os.environ | {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     tool = Path(sys.executable).parent / "cuboidtrain"
+    core = min(os.sched_getaffinity(0))
     subprocess.run([str(tool), "infer", *files, "--device", "cpu", "--json", str(out), *extra], env=env,
-                   check=False, capture_output=True)
+                   check=False, capture_output=True,
+                   preexec_fn=(lambda: os.sched_setaffinity(0, {core})) if one_core else None)
     return json.loads(out.read_text())
 
 
@@ -35,6 +37,8 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=50, help="Masks a set (scene and shape).")
     parser.add_argument("--spools", type=Path, default=Path("bench-spools"))
     parser.add_argument("--workers", action="store_true", help="Also compare --workers 2 with one process.")
+    parser.add_argument("--one-core", action="store_true",
+                        help="Also compare a process pinned to one core (a 1-core machine: OpenCV on one thread).")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         files = []
@@ -45,6 +49,8 @@ def main() -> None:
                 "2 threads": infer(files, 2, Path(folder) / "two.json", [])}
         if args.workers:
             runs["--workers 2"] = infer(files, 1, Path(folder) / "workers.json", ["--workers", "2"])
+        if args.one_core:
+            runs["one core"] = infer(files, 1, Path(folder) / "one-core.json", [], one_core=True)
     base = runs["1 thread"]
     for name, records in runs.items():
         if name == "1 thread":

@@ -167,3 +167,25 @@ def test_silhouette_derivatives_match_central_differences(shape):
                 numeric = (silhouette_terms(image + step, geometry, outline, sdf, weights)[0]
                            - silhouette_terms(image - step, geometry, outline, sdf, weights)[0]) / 2e-5
                 assert np.abs(analytic[0, :, corner, axis] - numeric[0]).max() < 1e-3 * (1 + np.abs(numeric).max())
+
+
+def test_the_distance_field_is_the_same_whatever_opencvs_thread_count():
+    """OpenCV's precise distance transform on one thread moves by up to 4e-6 px from call to call
+    (a 1-core machine): the field is computed on two threads, so every machine gets one field."""
+    import cv2
+
+    from cuboidtrain.geometry.outline import signed_distance_field
+
+    mask = np.zeros((256, 256), bool)
+    cv2.fillConvexPoly(mask.view(np.uint8), np.array([[40, 30], [200, 20], [220, 200], [50, 230]]), 1)
+    before = cv2.getNumThreads()
+    try:
+        fields = []
+        for threads in (4, 1, 1, 2, 1):
+            cv2.setNumThreads(threads)
+            fields.append(signed_distance_field(mask))
+            assert cv2.getNumThreads() == threads  # the caller's count, restored
+    finally:
+        cv2.setNumThreads(before)
+    assert all(np.array_equal(field, fields[0]) for field in fields)
+    assert fields[0][0, 0] > 0 > fields[0][128, 128]  # positive outside, negative inside

@@ -135,7 +135,7 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     # Object coordinates: every x scales with w (log w), every z with d (log d).
     jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
     jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
-    jac[..., 2:5] = d_rotated @ _rotation_derivative(params[:, 2:5], objects, rot)
+    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot)
     jac[..., 0, 5] = jac[..., 1, 6] = (s / den)
     jac[..., 7] = offset
     jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
@@ -163,18 +163,20 @@ def _split_corners(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     return middle, top_left
 
 
-def _rotation_derivative(rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """(B, N, 3, 3): d (R(w) X) / d w for rotation vectors (B, 3) and points X (B, N, 3).
+def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """(B, N, 2, 3): d u / d w, the image points' derivatives by the rotation vectors (B, 3), from
+    their derivatives by the object points (B, N, 2, 3) (d u / d (R X) @ R) at points X (B, N, 3).
 
-    Gallego & Yezzi (2015): d(R v)/dw = -R [v]x (w w^T + (R^T - I)[w]x) / |w|^2, and -[v]x at w = 0."""
+    Gallego & Yezzi (2015): d(R v)/dw = -R [v]x (w w^T + (R^T - I)[w]x) / |w|^2, and -[v]x at w = 0
+    (where R is I): d u / d w = -(d u / d X) [X]x M, M the bracket over |w|^2 (I at w = 0), two
+    small products a point instead of three."""
     theta2 = (rotvec**2).sum(1)
-    skew_v = _skew(objects)  # (B, N, 3, 3)
     small = theta2 < 1e-16
     safe = np.where(small, 1.0, theta2)
     skew_w = _skew(rotvec)  # (B, 3, 3)
     inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - np.eye(3)) @ skew_w) / safe[:, None, None]
-    general = -rot[:, None] @ skew_v @ inner[:, None]
-    return np.where(small[:, None, None, None], -skew_v, general)
+    inner[small] = np.eye(3)
+    return -(d_object @ _skew(objects)) @ inner[:, None]
 
 
 def _skew(v: np.ndarray) -> np.ndarray:

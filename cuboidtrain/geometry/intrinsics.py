@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -168,11 +169,12 @@ class PlausibleRows:
         their Jacobian. The in-front row is the nearest corner's; its derivative follows k only
         (the corners' depths held): enough to push a camera out of the building, and LM takes no
         step that raises the cost."""
-        w, side, free_focal, free_principal = self.stiffness, self.side[owner], self.free_focal[owner], self.free_principal[owner]
+        w, table = self.stiffness, self._table[owner]
+        side, centre, free_focal, free_principal = table[:, 0], table[:, 1:3], table[:, 3], table[:, 4]
         # |k|: a hypothesis with k < 0 is the depth-reversed twin of one with k > 0 (`camera.canonical`).
         per_k = side / np.exp(x[:, 7])  # d kappa / d |k|
         kappa = per_k * np.abs(x[:, 8])  # the frame's side over the focal length
-        offset = (x[:, 9:11] - self.centre[owner]) / side[:, None]
+        offset = (x[:, 9:11] - centre) / side[:, None]
         front = rotated_z is not None
         values = np.empty((len(x), 6 + front))
         short = free_focal * (kappa > 1 / MIN_FOCAL_SIDES)
@@ -197,6 +199,12 @@ class PlausibleRows:
         jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * d_kappa
         jac[:, -2, 9], jac[:, -1, 10] = (pull[1:] * free_principal[:, None] / side[:, None]).T
         return values, jac
+
+    @cached_property
+    def _table(self) -> np.ndarray:
+        """(K, 5): side, centre x, centre y, free focal, free principal: what `terms` reads of its
+        rows' inputs, in one lookup (it runs at every step of every solver)."""
+        return np.column_stack([self.side, self.centre, self.free_focal, self.free_principal])
 
     def subset(self, rows: np.ndarray) -> "PlausibleRows":
         return PlausibleRows(self.side[rows], self.centre[rows], self.free_focal[rows], self.free_principal[rows],

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from shared.shapes import Shape
+from shared.threads import threads_held
 
 @dataclass(frozen=True)
 class MaskFitWeights:
@@ -52,11 +53,20 @@ def boundary_points(mask: np.ndarray, limit: int) -> np.ndarray:
     return points
 
 
+# OpenCV's precise distance transform on one thread (a 1-core machine, or cv2.setNumThreads(1))
+# differs from itself by up to 4e-6 px from call to call, and from its answer on two threads;
+# on two threads or more it gives one answer, the same for any count (OpenCV 5.0.0,
+# tests/test_geometry.py). The fit's flat valleys turn such bits into moves a user sees
+# (BENCHMARKS.md, "The same answer everywhere"), so it always runs on two.
+DISTANCE_THREADS = 2
+
+
 def signed_distance_field(mask: np.ndarray) -> np.ndarray:
     """Approximate distance to the mask's outline in px, positive outside the mask."""
     m = mask.astype(np.uint8)
-    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    with threads_held(cv2.getNumThreads, cv2.setNumThreads, DISTANCE_THREADS):
+        outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return np.where(m > 0, 0.5 - inside, outside - 0.5).astype(np.float64)
 
 
@@ -158,7 +168,7 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     direction = b - a
     normal = direction @ QUARTER_TURN.T
     normal /= np.sqrt((normal * normal).sum(-1, keepdims=True)) + 1e-12
-    side = np.einsum("bkd,bnd->bkn", normal, corners) - np.einsum("bkd,bkd->bk", normal, a)[..., None]
+    side = normal @ corners.transpose(0, 2, 1) - (normal * a).sum(-1)[..., None]  # matmul: numpy's einsum costs more a call
     flip = np.where(side.sum(-1) > 0, -1.0, 1.0)  # outward: away from the rest
     normal *= flip[..., None]
     side *= flip[..., None]
@@ -172,8 +182,8 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
 def polygon_offsets(points: np.ndarray, hull: HullEdges) -> np.ndarray:
     """(..., M, E): the outward offset of (..., M, 2) points (or (M, 2), the same for every hull)
     from each hull edge's line; -inf for unused slots."""
-    along = np.einsum("...md,...kd->...mk", points, hull.normal)
-    offset = along - np.einsum("...kd,...kd->...k", hull.start, hull.normal)[..., None, :]
+    along = points @ np.swapaxes(hull.normal, -1, -2)
+    offset = along - (hull.start * hull.normal).sum(-1)[..., None, :]
     return np.where(hull.valid[..., None, :], offset, -np.inf)
 
 
@@ -191,7 +201,7 @@ def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarra
     tangent = direction / length
     # With p - a = alpha t + beta n (t the unit direction), n's turn with the edge gives
     # d o / d end = -alpha n / L, and the start moves the line as well: -n - that.
-    along = np.einsum("...d,...d->...", points - start, tangent)[..., None]
+    along = ((points - start) * tangent).sum(-1, keepdims=True)
     d_end = -along * normal / length
     return -normal - d_end, d_end
 
