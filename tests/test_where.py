@@ -119,3 +119,17 @@ def test_the_networks_corners_are_lifted_for_their_3d_figures():
     summary = summarise([exact, unposed])
     assert summary["posed"] == 1 and summary["iou3d_mean"] == pytest.approx(1.0, abs=1e-4)
     assert np.isnan(summarise([unposed])["yaw_mean_deg"])
+
+
+def test_a_camera_inside_the_box_is_counted():
+    view = _views("box", "street", 1, seed=7)[0]
+    truth = _truth(view)
+    outside = score(view.keypoints, view.ratios, truth, truth.camera)
+    assert 0 < outside.nearest_depth < 1  # a real street view: every corner in front, the nearest nearer than the centre
+    inside = truth.camera.vector.copy()
+    inside[8] = 3.0 / np.exp(inside[:2]).max()  # the camera a third of the box's longer side from its centre
+    moved = score(view.keypoints, view.ratios, truth, replace(truth.camera, vector=inside))
+    assert moved.nearest_depth <= 0
+    summary = summarise([outside, moved])
+    assert summary["camera_inside"] == 1 and summary["nearest_depth_min"] == pytest.approx(moved.nearest_depth)
+    assert np.isnan(score(view.keypoints, view.ratios, replace(truth, camera=None)).nearest_depth)

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from cuboidtrain.geometry.camera import (CameraParams, Spread, canonical, euler_angles, from_sample_params,
-                                         rotation_matrices)
+                                         rotated_points, rotation_matrices)
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.iou3d import OrientedBox, union_iou
 from cuboidtrain.geometry.lift import lift
@@ -67,6 +67,10 @@ class CornerErrors:
     # |error| / sd of every value the fit gave an error bar for (ratios, yaw, the focal length where
     # fitted: `camera.Spread`), against the truth: calibrated error bars hold two thirds within 1
     z_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # The fitted box's nearest corner's depth over its centre's (`nearest_depth`): at or below 0 a
+    # corner is at or behind the camera, which then stands inside or behind the building; NaN
+    # without a true camera (as the 3D figures).
+    nearest_depth: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,14 @@ def score(keypoints: np.ndarray, ratios: dict, truth: Truth, camera: CameraParam
     yaw = yaw_error_deg(camera, truth.camera)
     z_scores = np.zeros(0) if spread is None else _z_scores(ratios, truth, camera, yaw, spread)
     return replace(errors, yaw_deg=yaw, iou3d=iou_up_to_scale(camera, truth.camera),
-                   focal=focal_error(camera, truth.camera), z_scores=z_scores)
+                   focal=focal_error(camera, truth.camera), z_scores=z_scores, nearest_depth=nearest_depth(camera))
+
+
+def nearest_depth(camera: CameraParams) -> float:
+    """The nearest corner's depth as a share of the box centre's (1 + k z, the projection's own
+    denominator): 1 for a far camera, at or below 0 where a corner is at or behind it."""
+    depths = 1.0 + camera.vector[8] * rotated_points(camera.vector[None], camera.shape, np.array([camera.mirror]))[0, :, 2]
+    return float(depths.min())
 
 
 def _z_scores(ratios: dict, truth: Truth, camera: CameraParams, yaw_deg: float, spread: Spread) -> np.ndarray:
@@ -211,6 +222,10 @@ def summarise(errors: list[CornerErrors]) -> dict[str, float]:
     z_scores = np.concatenate([e.z_scores for e in errors]) if errors else np.zeros(0)
     out["within_1sd"], out["within_2sd"] = ((float(np.mean(z_scores <= n)) if len(z_scores) else float("nan"))
                                             for n in (1, 2))
+    nearest = np.array([e.nearest_depth for e in errors])
+    nearest = nearest[np.isfinite(nearest)]
+    out["camera_inside"] = int((nearest <= 0).sum())  # fits with a corner at or behind the camera
+    out["nearest_depth_min"] = float(nearest.min()) if len(nearest) else float("nan")
     return out
 
 
