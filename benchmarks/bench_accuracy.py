@@ -50,7 +50,9 @@ The JSON (--json; also printed on one line after the tables):
 * `selection` (networks; set -> share of masks given their true shape), `cuboid_selection`
   (--cuboid: path -> set, for `cuboid` and `cuboid_camera_given`, each mask's true camera held);
   `mask_ms` (path -> set -> median ms a mask of the selection run); the rows' `within_1sd` /
-  `within_2sd`: how often the truth lies within the cuboid fit's error bars;
+  `within_2sd`: how often the truth lies within the cuboid fit's error bars; `camera_inside`
+  (fits with a corner at or behind the camera: it stands inside or behind the box) and
+  `nearest_depth_min` (the least nearest-corner depth over the box centre's);
 * `latency`: `shipped_ms`, `paper_arch_ms`, `ratio`, and `cuboid_ms` with --cuboid.
 """
 from __future__ import annotations
