@@ -181,6 +181,34 @@ def test_the_fitted_cuboids_choose_the_class_plausibly(box_iou, twobox_iou, left
             assert "twobox cuboid explained the input better" in warnings[0] and "box with a seam" in warnings[0]
 
 
+def runaway_twobox(iou: float, split: float = 1.1, k: float = 0.2) -> stage.FittedCuboid:
+    """A twobox fit gone wrong: its split outside its width (the LEFT part's width negative) or,
+    with a large `k`, its camera inside it."""
+    from cuboidtrain.geometry.camera import CameraParams, describe
+
+    vector = np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0, 0.0, np.log(100.0), k, 64.0, 64.0, split, np.log(0.6)])
+    return stage.FittedCuboid(describe(CameraParams(get_shape("twobox"), vector, False), 0.0, iou=iou),
+                              np.ones(get_shape("twobox").num_keypoints))
+
+
+def test_a_part_of_no_width_or_a_camera_inside_is_no_building():
+    assert stage.impossible(fitted_cuboid("twobox", 0.9).fit) is None
+    assert stage.impossible(fitted_cuboid("box", 0.9).fit) is None
+    assert "a part of no width or depth" in stage.impossible(runaway_twobox(0.9, split=1.1).fit)
+    assert "the camera is inside or behind it" in stage.impossible(runaway_twobox(0.9, split=0.5, k=3.0).fit)
+
+
+def test_a_twobox_that_is_no_building_is_set_aside_and_a_forced_one_is_said_so():
+    from tests.test_infer import candidate
+
+    cuboids = {"box": fitted_cuboid("box", 0.80), "twobox": runaway_twobox(0.95)}
+    best, warnings = stage.choose_cuboid([candidate("box", 0.5), candidate("twobox", 0.5)], cuboids)
+    assert best.shape == "box" and len(warnings) == 1 and "a part of no width or depth" in warnings[0]
+    best, warnings = stage.choose_cuboid([candidate("twobox", 0.5)], {"twobox": cuboids["twobox"]})
+    assert best.shape == "twobox" and warnings == [
+        f"the twobox cuboid is no building: {stage.impossible(cuboids['twobox'].fit)}; its 3D answer is not to be trusted"]
+
+
 def test_when_no_class_is_plausible_all_are_judged_alike():
     from tests.test_infer import candidate
 

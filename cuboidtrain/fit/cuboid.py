@@ -172,17 +172,35 @@ def implausible(fit: CuboidFit) -> str | None:
     return f"its two parts' heights differ by {100 * (1 - lower):.0f}% (< {100 * (1 - SEAM_HEIGHT_RATIO):.0f}%): a box with a seam"
 
 
+def impossible(fit: CuboidFit) -> str | None:
+    """Why a fitted cuboid is no building at all, or None: a part of no width or depth (a twobox's
+    split outside its width), or a corner at or behind the camera (the camera inside or behind
+    the box). The plausible camera's bounds keep a fit from these, but they are soft: a fit
+    that runs away on a mask it cannot explain can still end there (1 of 1,200 generated
+    masks, BENCHMARKS.md, "Targets")."""
+    ratios = get_shape(fit.shape).ratio_vector(fit.ratios)
+    if (ratios <= 0).any():
+        return f"a part's ratio is {ratios.min():.3g}: a part of no width or depth"
+    if (nearest := fit.camera.nearest_depth()) <= 0:
+        return f"a corner lies at or behind the camera (depth {nearest:.3g} of the centre's): the camera is inside or behind it"
+    return None
+
+
 def choose_cuboid(candidates: list[Candidate], cuboids: dict[str, FittedCuboid]) -> tuple[Candidate, list[str]]:
     """The candidate whose fitted cuboid explains the input best (its IoU, richer classes by
-    CUBOID_MARGIN) among the plausible ones, and a warning for each better-explaining class set
-    aside as implausible."""
+    CUBOID_MARGIN) among the plausible ones, a warning for each better-explaining class set aside
+    as implausible or impossible, and one where even the chosen one is impossible (a forced shape)."""
     judged = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
-    reasons = {c.shape: implausible(cuboids[c.shape].fit) for c in judged}
-    plausible = [c for c in judged if reasons[c.shape] is None] or judged  # none plausible: judge all alike
+    broken = {c.shape: impossible(cuboids[c.shape].fit) for c in judged}
+    reasons = {c.shape: broken[c.shape] or implausible(cuboids[c.shape].fit) for c in judged}
+    possible = [c for c in judged if broken[c.shape] is None] or judged
+    plausible = [c for c in possible if reasons[c.shape] is None] or possible  # none plausible: judge all alike
     best = choose(plausible, margin=CUBOID_MARGIN)
     warnings = [f"the {c.shape} cuboid explained the input better (IoU {c.confidence:.3f} against {best.confidence:.3f}) "
                 f"but was set aside: {reasons[c.shape]}"
                 for c in judged if c not in plausible and c.confidence > best.confidence + CUBOID_MARGIN]
+    if broken[best.shape] is not None:
+        warnings.append(f"the {best.shape} cuboid is no building: {broken[best.shape]}; its 3D answer is not to be trusted")
     return best, warnings
 
 

@@ -238,6 +238,13 @@ class CameraParams:
         """(N, 2) px in the model's corner labels (what the solver matched)."""
         return project(self.vector, self.shape, self.mirror)
 
+    def nearest_depth(self) -> float:
+        """The nearest corner's depth as a share of the box centre's (1 + k z, the projection's own
+        denominator): 1 for a far camera, at or below 0 where a corner is at or behind it (the
+        camera inside or behind the box)."""
+        rotated = rotated_points(self.vector[None], self.shape, np.array([self.mirror]))[0]
+        return float((1.0 + self.vector[8] * rotated[:, 2]).min())
+
     def naming(self) -> np.ndarray:
         """The index order that renames the model's corners by shared.camera's viewer rules
         (a fit may have drifted past a side): `keypoints()[naming()]` are viewer-named."""

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from cuboidtrain.geometry.camera import (CameraParams, Spread, canonical, euler_angles, from_sample_params,
-                                         rotated_points, rotation_matrices)
+                                         rotation_matrices)
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.iou3d import OrientedBox, union_iou
 from cuboidtrain.geometry.lift import lift
@@ -67,7 +67,7 @@ class CornerErrors:
     # |error| / sd of every value the fit gave an error bar for (ratios, yaw, the focal length where
     # fitted: `camera.Spread`), against the truth: calibrated error bars hold two thirds within 1
     z_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    # The fitted box's nearest corner's depth over its centre's (`nearest_depth`): at or below 0 a
+    # The fitted box's nearest corner's depth over its centre's (`CameraParams.nearest_depth`): at or below 0 a
     # corner is at or behind the camera, which then stands inside or behind the building; NaN
     # without a true camera (as the 3D figures).
     nearest_depth: float = math.nan
@@ -122,14 +122,7 @@ def score(keypoints: np.ndarray, ratios: dict, truth: Truth, camera: CameraParam
     yaw = yaw_error_deg(camera, truth.camera)
     z_scores = np.zeros(0) if spread is None else _z_scores(ratios, truth, camera, yaw, spread)
     return replace(errors, yaw_deg=yaw, iou3d=iou_up_to_scale(camera, truth.camera),
-                   focal=focal_error(camera, truth.camera), z_scores=z_scores, nearest_depth=nearest_depth(camera))
-
-
-def nearest_depth(camera: CameraParams) -> float:
-    """The nearest corner's depth as a share of the box centre's (1 + k z, the projection's own
-    denominator): 1 for a far camera, at or below 0 where a corner is at or behind it."""
-    depths = 1.0 + camera.vector[8] * rotated_points(camera.vector[None], camera.shape, np.array([camera.mirror]))[0, :, 2]
-    return float(depths.min())
+                   focal=focal_error(camera, truth.camera), z_scores=z_scores, nearest_depth=camera.nearest_depth())
 
 
 def _z_scores(ratios: dict, truth: Truth, camera: CameraParams, yaw_deg: float, spread: Spread) -> np.ndarray:
