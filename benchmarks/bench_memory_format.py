@@ -71,8 +71,8 @@ def bench_one(arch: str, size: int, phase: str, batch: int, repeats: int, spool:
     config = TrainConfig(phase=phase, size=size, arch=arch, batch_size=batch, amp=True)
     x = one_batch(spool, size, batch, device)
     base = build_model("box", size, arch=arch).to(device)
-    models = {"contiguous": base, "model_cl": copy.deepcopy(base).to(memory_format=torch.channels_last)}
-    models["both_cl"] = models["model_cl"]
+    models = {"contiguous": base, "model_cl": copy.deepcopy(base).to(memory_format=torch.channels_last),
+              "both_cl": copy.deepcopy(base).to(memory_format=torch.channels_last)}  # each stepped by its own optimizer
     batches = {"contiguous": x, "model_cl": x, "both_cl": channels_last(x)}
     optimizers = {name: torch.optim.Adam(models[name].parameters(), lr=1e-6) for name in LAYOUTS}
     times = {name: [] for name in LAYOUTS}

@@ -48,6 +48,14 @@ export PYTHONUNBUFFERED=1
 say "machine: $(nproc) cores; $(nvidia-smi -L 2>/dev/null || echo no GPU)"
 "$PY" -c 'import torch, sys; print("python", sys.version.split()[0], "torch", torch.__version__, "cuda", torch.cuda.is_available())'
 
+# Every background job (spool drawers, generators, trainers) is stopped on the way out, however
+# the script ends: a TERM or Ctrl-C runs the EXIT trap once the foreground command returns.
+children=()
+stop_children() { kill -TERM "${children[@]}" 2>/dev/null; wait "${children[@]}" 2>/dev/null; }
+trap stop_children EXIT
+trap 'exit 143' TERM
+trap 'exit 130' INT
+
 # 1. the spools (each wait names its jobs: a bare one would wait for the tee above too)
 drawing=()
 for shape in $SHAPES; do
@@ -55,6 +63,7 @@ for shape in $SHAPES; do
     "$PY" "${CUBOIDGEN[@]}" run --spool "$WORK/val-paper-$shape" --shape $shape --size 256 --seed "${seed}5" --scene paper \
         --limit 0 --max-samples "$VAL" --workers 2 --no-dashboard > "$WORK/val-$shape.log" 2>&1 &
     drawing+=($!)
+    children+=($!)
 done
 wait "${drawing[@]}"
 generators=()
@@ -64,11 +73,9 @@ for shape in $SHAPES; do
         "$PY" "${CUBOIDGEN[@]}" run --spool "$WORK/train-$shape" --shape $shape --size 256 --scene $scene --limit "$LIMIT" \
             --seed "$seed" --workers "$GEN_WORKERS" --no-dashboard > "$WORK/generator-$shape-$scene.log" 2>&1 &
         generators+=($!)
+        children+=($!)
     done
 done
-stop_generators() { kill -TERM "${generators[@]}" 2>/dev/null; wait "${generators[@]}"; }
-trap stop_generators EXIT
-trap 'exit 143' TERM INT  # through the EXIT trap: a timeout's kill leaves no generator behind
 say "validation spools drawn; ${#generators[@]} generators started"
 
 # 2. framing on the device against the framing before issue 29
@@ -102,6 +109,7 @@ if stage train; then
         "$PY" -m cuboidtrain run --phase 1 --spool "$WORK/train-$shape" --shape $shape "${common[@]}" --lr "$P1_LR" \
             --max-minutes "$P1_MIN" --out "$WORK/$shape/p1" > "$WORK/$shape-p1.log" 2>&1 &
         trainers+=($!)
+        children+=($!)
     done
     wait "${trainers[@]}"
     for shape in $SHAPES; do tail -n 4 "$WORK/$shape-p1.log"; pack $shape "$WORK/$shape/p1" "$WORK/$shape/p1/model.pt"; done
@@ -111,6 +119,7 @@ if stage train; then
         "$PY" -m cuboidtrain run --phase 2 --spool "$WORK/train-$shape" --shape $shape "${common[@]}" --lr "$P2_LR" \
             --max-minutes "$P2_MIN" --init "$WORK/$shape/p1/model.pt" --out "$WORK/$shape/p2" > "$WORK/$shape-p2.log" 2>&1 &
         trainers+=($!)
+        children+=($!)
     done
     wait "${trainers[@]}"
     for shape in $SHAPES; do tail -n 4 "$WORK/$shape-p2.log"; pack $shape "$WORK/$shape/p2" "$OUT/$shape.pt"; done

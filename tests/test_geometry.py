@@ -189,3 +189,23 @@ def test_the_distance_field_is_the_same_whatever_opencvs_thread_count():
         cv2.setNumThreads(before)
     assert all(np.array_equal(field, fields[0]) for field in fields)
     assert fields[0][0, 0] > 0 > fields[0][128, 128]  # positive outside, negative inside
+
+
+def test_the_distance_field_from_several_threads_is_one_field_and_leaves_opencvs_count():
+    import cv2
+    from concurrent.futures import ThreadPoolExecutor
+
+    from cuboidtrain.geometry.outline import signed_distance_field
+
+    mask = np.zeros((256, 256), bool)
+    cv2.fillConvexPoly(mask.view(np.uint8), np.array([[30, 40], [210, 25], [230, 220], [40, 200]]), 1)
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        expected = signed_distance_field(mask)
+        with ThreadPoolExecutor(4) as pool:
+            fields = list(pool.map(lambda _: signed_distance_field(mask), range(40)))
+        assert cv2.getNumThreads() == 1  # each call restored the count it found, none another's
+    finally:
+        cv2.setNumThreads(before)
+    assert all(np.array_equal(field, expected) for field in fields)

@@ -209,6 +209,25 @@ def test_cosine_schedule_falls_from_lr_to_a_hundredth():
     assert learning_rate(TrainConfig(steps=100), 50) == 1e-3
 
 
+def test_a_schedule_over_minutes_reads_rank_0s_clock_on_every_rank():
+    from cuboidtrain.train.loop import schedule_seconds
+
+    class Rank1:  # a torchrun replica: its collective sums every rank's share; rank 0 said 42 s
+        main, distributed = False, True
+
+        def sum(self, values):
+            assert values == [0.0]  # this rank adds nothing of its own clock
+            return [42.0]
+
+    class Alone:
+        main, distributed = True, False
+
+    timed = TrainConfig(max_minutes=10, lr_schedule="cosine")
+    assert schedule_seconds(timed, Rank1(), started=0.0) == 42.0
+    assert 0 < schedule_seconds(timed, Alone(), started=time.monotonic() - 5.0) < 60
+    assert schedule_seconds(TrainConfig(steps=100, max_minutes=10, lr_schedule="cosine"), Rank1(), 0.0) == 0.0  # by steps
+
+
 def test_cosine_schedule_without_steps_runs_out_with_max_minutes():
     cfg = TrainConfig(max_minutes=10, lr=1e-3, lr_schedule="cosine").validate()
     rates = [learning_rate(cfg, 0, elapsed) for elapsed in range(0, 700, 30)]  # the step count plays no part

@@ -6,6 +6,7 @@ minimises them.
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -57,14 +58,17 @@ def boundary_points(mask: np.ndarray, limit: int) -> np.ndarray:
 # differs from itself by up to 4e-6 px from call to call, and from its answer on two threads;
 # on two threads or more it gives one answer, the same for any count (OpenCV 5.0.0,
 # tests/test_geometry.py). The fit's flat valleys turn such bits into moves a user sees
-# (BENCHMARKS.md, "The same answer everywhere"), so it always runs on two.
+# (BENCHMARKS.md, "The same answer everywhere"), so it always runs on two. OpenCV's count is the
+# process's: the lock keeps threads that fit at once (a Dask worker's) from restoring it under
+# each other.
 DISTANCE_THREADS = 2
+_DISTANCE_LOCK = threading.Lock()
 
 
 def signed_distance_field(mask: np.ndarray) -> np.ndarray:
     """Approximate distance to the mask's outline in px, positive outside the mask."""
     m = mask.astype(np.uint8)
-    with threads_held(cv2.getNumThreads, cv2.setNumThreads, DISTANCE_THREADS):
+    with _DISTANCE_LOCK, threads_held(cv2.getNumThreads, cv2.setNumThreads, DISTANCE_THREADS):
         outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return np.where(m > 0, 0.5 - inside, outside - 0.5).astype(np.float64)

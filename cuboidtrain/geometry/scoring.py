@@ -217,7 +217,7 @@ def summarise(errors: list[CornerErrors]) -> dict[str, float]:
                                             for n in (1, 2))
     nearest = np.array([e.nearest_depth for e in errors])
     nearest = nearest[np.isfinite(nearest)]
-    out["camera_inside"] = int((nearest <= 0).sum())  # fits with a corner at or behind the camera
+    out["camera_inside"] = int((nearest <= 0).sum())  # fits (or networks' corners lifted) with a corner at or behind the camera
     out["nearest_depth_min"] = float(nearest.min()) if len(nearest) else float("nan")
     return out
 

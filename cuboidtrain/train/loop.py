@@ -132,7 +132,8 @@ def train_step(model: CuboidNet, optimizer: torch.optim.Optimizer, x: dict, conf
 def learning_rate(config: TrainConfig, step: int, elapsed_s: float = 0.0) -> float:
     """The rate for the step after `step`: constant, or cosine from lr down to lr/100 at --steps,
     or, without --steps, at --max-minutes of this run's wall time (`elapsed_s`): a lease of a
-    GPU is counted in minutes, and how many steps fit in them is only known on the machine."""
+    GPU is counted in minutes, and how many steps fit in them is only known on the machine.
+    Over minutes the rates follow the machine's pace, so two runs of one seed differ."""
     if config.lr_schedule == "constant":
         return config.lr
     if config.steps is not None:
@@ -141,6 +142,16 @@ def learning_rate(config: TrainConfig, step: int, elapsed_s: float = 0.0) -> flo
         progress = min(elapsed_s / (config.max_minutes * 60), 1.0)
     floor = config.lr / 100
     return floor + (config.lr - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def schedule_seconds(config: TrainConfig, ranks, started: float) -> float:
+    """This run's seconds so far for a schedule over --max-minutes: rank 0's on every rank, since
+    DDP averages gradients, not weights, and replicas stepped at other rates would drift apart.
+    0 where the schedule does not read the clock (no collective then)."""
+    if config.lr_schedule != "cosine" or config.steps is not None:
+        return 0.0
+    elapsed = time.monotonic() - started
+    return ranks.sum([elapsed if ranks.main else 0.0])[0] if ranks.distributed else elapsed
 
 
 def run(config: TrainConfig, dashboard=None, stop: StopRequest | None = None,
@@ -250,7 +261,7 @@ def train_one_step(s: Session, position: Position, batch: dict, waited: float, s
     # 2. targets rendered on the device; forward, backward, step
     x = prepare_batch(batch, s.device, config.heatmap_sigma, config.size)
     for group in setup.optimizer.param_groups:
-        group["lr"] = learning_rate(config, position.step, time.monotonic() - s.started)
+        group["lr"] = learning_rate(config, position.step, schedule_seconds(config, s.ranks, s.started))
     losses = train_step(setup.model, setup.optimizer, x, config, s.device, setup.losses_of)
     step = position.step + 1
     # 3. account and report

@@ -24,7 +24,7 @@ LOSSES = ("D_R", "D_S", "D_T", "total")
 
 @dataclass(frozen=True, slots=True)
 class Rates:
-    """Speed over the last WINDOW steps; None before the first step."""
+    """Speed over the last WINDOW steps or WINDOW_S seconds, whichever hold more; None before the first step."""
 
     samples_per_s: float | None = None
     step_time_s: float | None = None
@@ -87,7 +87,7 @@ class RunningStats:
         return Rates(
             samples_per_s=samples / total if total else None,
             step_time_s=total / len(self.recent) if self.recent else None,
-            data_wait_fraction=waited / total if total else None,
+            data_wait_fraction=max(waited / total, 0.0) if total else None,  # running sums: no -0.0% from rounding
         )
 
     def mean_losses(self) -> dict[str, float]:
