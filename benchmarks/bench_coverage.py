@@ -21,7 +21,6 @@ import itertools
 import json
 import sys
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -296,14 +296,21 @@ def frame(mask: np.ndarray, size: int, margin: float = DEFAULT_MARGIN) -> tuple[
     its Framing."""
     if not mask.any():
         raise ValueError("cannot frame an empty mask")
-    x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))
+    box = cv2.boundingRect(mask.astype(np.uint8))
+    framing = framing_of(box, size, margin, mask.shape[:2])
+    return _warp(mask, box, framing) >= 0.5, framing
+
+
+def framing_of(box: tuple[int, int, int, int], size: int, margin: float, shape: tuple[int, int]) -> Framing:
+    """The Framing `frame` gives an object whose bounding box is `box` (x, y, w, h) in an image of
+    `shape` (height, width): its longer side spans `size` less two margins. The trainer's loader
+    frames a sample's building by it too (`train.data.framed_record`)."""
+    x, y, w, h = box
     # Pixels x .. x + w - 1 cover [x - 0.5, x + w - 0.5]: w px wide, centred on x + (w - 1) / 2,
     # as the generator centres a polygon's extent on the model's middle pixel (size - 1) / 2.
     scale = size * (1 - 2 * margin) / max(w, h)
-    centre = np.array([x + (w - 1) / 2, y + (h - 1) / 2])
-    offset = (size - 1) / 2 - scale * centre
-    framing = Framing(float(scale), (float(offset[0]), float(offset[1])), size, mask.shape[:2])
-    return _warp(mask, (x, y, w, h), framing) >= 0.5, framing
+    offset = ((size - 1) / 2 - scale * (x + (w - 1) / 2), (size - 1) / 2 - scale * (y + (h - 1) / 2))
+    return Framing(float(scale), (float(offset[0]), float(offset[1])), size, shape)
 
 
 def warp(mask: np.ndarray, framing: Framing) -> np.ndarray:
@@ -313,12 +320,15 @@ def warp(mask: np.ndarray, framing: Framing) -> np.ndarray:
     return _warp(mask, (0, 0, width, height), framing) >= 0.5
 
 
+SHRINK_BLUR = 0.29  # the Gaussian's std when shrinking, in source px per model px (`train.data` frames by it too)
+
+
 def _warp(mask: np.ndarray, box: tuple[int, int, int, int], framing: Framing) -> np.ndarray:
     """The float coverage of `mask` sampled at the model's pixel centres."""
     s = framing.scale
     # Shrinking: a Gaussian with the variance of a 1/s-wide box, then bilinear sampling,
     # approximates INTER_AREA (which warpAffine lacks) without a half-pixel shift.
-    sigma = 0.29 / s if s < 1 else 0.0
+    sigma = SHRINK_BLUR / s if s < 1 else 0.0
     # Crop to the box plus room for the blur, padded with background so objects that
     # touch the image border are not mirrored or cut by the blur's border rule.
     pad = math.ceil(3 * sigma) + 2

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -40,7 +39,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.train.losses import ChainBatch
-from cuboidtrain.fit.masks import PIECE_SHARE, Framing
+from cuboidtrain.fit.masks import PIECE_SHARE, SHRINK_BLUR, Framing, framing_of
 from cuboidtrain.fit.options import DEFAULT_MARGIN
 from shared.sample import BIT_ORDER, BIT_SHIFTS, KEYPOINT_DTYPE, Sample, collate, decode_record, from_record
 from shared.shapes import get_shape
@@ -103,15 +102,6 @@ def _without(mask: np.ndarray, contours, links: np.ndarray, dropped: list[int], 
     for i in sorted(outer, key=lambda i: -pixels[i]):
         cv2.drawContours(canvas, contours, i, 0 if i in dropped else 1, thickness=cv2.FILLED)
     return canvas & mask
-
-
-def framing_of(box: tuple[int, int, int, int], size: int, margin: float, shape: tuple[int, int]) -> Framing:
-    """The Framing `cuboidtrain.fit.masks.frame` gives an object whose bounding box is `box`
-    (x, y, w, h) in an image of `shape` (height, width): its longer side spans `size` less two margins."""
-    x, y, w, h = box
-    scale = size * (1 - 2 * margin) / max(w, h)
-    offset = ((size - 1) / 2 - scale * (x + (w - 1) / 2), (size - 1) / 2 - scale * (y + (h - 1) / 2))
-    return Framing(float(scale), (float(offset[0]), float(offset[1])), size, shape)
 
 
 def framed_record(record: dict, size: int, margin: float = DEFAULT_MARGIN) -> dict:
@@ -450,7 +440,6 @@ CHUNK = 8  # model rows per product: fewer waste less of the source rows read, m
 GROUP = {"cpu": 8}  # samples framed together by device type: on a CPU what a group reads stays in its cache
 DEVICE_GROUP = 64  # elsewhere (a GPU): few launches, bounded memory
 DENSE_MOST = 64  # model px up to which the columns' pass is one product (a CPU's fastest), above it chunked
-SHRINK_BLUR = 0.29  # px of the source per model px: `cuboidtrain.fit.masks`' Gaussian when shrinking
 
 
 def frame_masks(noisy: torch.Tensor, clean: torch.Tensor, framing: torch.Tensor, source: int,
