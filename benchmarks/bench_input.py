@@ -10,7 +10,8 @@ over the same spool, interleaved and repeated (medians: this machine is shared):
 
 Without reframing the spool is generated at the model's size (the spool's own framing);
 with reframing it is a 256 px spool, framed at the model's size as `infer` frames a mask.
-The process is pinned to one core (`--core`) with torch and OpenCV on one thread.
+The process is pinned to one core (`--core`) with torch and OpenCV on one thread, and keeps
+the buffers it frees as the trainer does (`cuboidtrain.allocator`; `--glibc-default` does not).
 `--equivalence SPOOL...` instead compares the reframed batches of those spools, framed on
 `--device`, with the framing before issue 29 (`cuboidtrain.fit.masks`' frame of the silhouette, warp of the clean mask): the
 pixels that differ and the keypoints' largest difference, at each size.
@@ -34,6 +35,7 @@ import torch
 from cuboidgen.config import PAPER, STREET
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
+from cuboidtrain.allocator import TRAINER_KEEPS, keep_freed_memory
 from cuboidtrain.models.codec import default_sigma
 from cuboidtrain.models.device import resolve_device
 from cuboidtrain.train.data import SpoolBatches, make_loader, prepare_batch
@@ -113,6 +115,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="The training device of the whole path (cpu, cuda, auto).")
     parser.add_argument("--core", type=int, default=None, help="Pin to this core (default: the last one allowed).")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--glibc-default", action="store_true",
+                        help="Leave glibc's allocator as it is (the trainer keeps freed buffers: cuboidtrain.allocator).")
     parser.add_argument("--equivalence", type=Path, nargs="+", default=None, metavar="SPOOL",
                         help="Instead: compare these spools' reframed batches with the framing before issue 29.")
     args = parser.parse_args()
@@ -125,6 +129,7 @@ def main() -> None:
         print(json.dumps(rows, indent=2))
         return
     os.sched_setaffinity(0, {args.core if args.core is not None else max(os.sched_getaffinity(0))})
+    kept = not args.glibc_default and keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)  # as `cuboidtrain run` does
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     device, count, rows = resolve_device(args.device), args.batch * args.batches, []
@@ -139,7 +144,7 @@ def main() -> None:
                       f"loader {r['loader_samples_per_s']:8.0f} samples/s  whole path {r['whole_samples_per_s']:8.0f} "
                       f"samples/s", flush=True)
     result = {"device": str(device), "core": sorted(os.sched_getaffinity(0)), "torch_threads": torch.get_num_threads(),
-              "batch": args.batch, "batches": args.batches, "repeats": args.repeats, "rows": rows}
+              "freed_memory_kept": kept, "batch": args.batch, "batches": args.batches, "repeats": args.repeats, "rows": rows}
     print(json.dumps(result, indent=2))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))

@@ -89,6 +89,25 @@ def test_sigma_sets_the_width(sigma):
     assert maps[y, x + 1].item() == pytest.approx(math.exp(-1 / (2 * sigma**2)), rel=1e-6)
 
 
+@pytest.mark.parametrize("sigma", [1.0, 2.0])
+def test_the_tails_are_zero_and_no_value_is_a_subnormal_float(sigma):
+    # Beyond exp(-TAIL) a profile is 0: far from its keypoint a map is exactly 0, never a
+    # subnormal float (which costs a CPU 10x to make), and near it the Gaussian itself.
+    from cuboidtrain.models.codec import TAIL
+
+    keypoints = torch.tensor([[[0.0, 0.0], [31.0, 31.0], [15.3, 7.8], [-20.0, 40.0]]])
+    maps = render_heatmaps(keypoints, MAP_SIZE, sigma)[0]
+    assert ((maps == 0) | (maps >= torch.finfo(torch.float32).tiny)).all()
+    grid = torch.arange(MAP_SIZE, dtype=torch.float64)
+    for n, (x, y) in enumerate(keypoints[0].double().tolist()):
+        ex, ey = (-((grid - x) ** 2) / (2 * sigma**2)), (-((grid - y) ** 2) / (2 * sigma**2))
+        exact = torch.exp(ey[:, None]) * torch.exp(ex[None, :])
+        inside = (ey[:, None] >= -TAIL) & (ex[None, :] >= -TAIL)
+        torch.testing.assert_close(maps[n].double()[inside], exact[inside], rtol=1e-5, atol=1e-30)
+        assert (maps[n][~inside] == 0).all()
+    assert (maps[0, 31, :] == 0).all() and maps[3].max() == 0  # 31 px from (0, 0); a keypoint far outside
+
+
 def test_each_keypoint_of_a_batch_gets_its_own_map():
     keypoints = torch.tensor([[[3.0, 4.0], [10.0, 11.0]], [[30.0, 2.0], [0.0, 0.0]]])
     maps = render_heatmaps(keypoints, MAP_SIZE, sigma=1.0)

@@ -207,6 +207,35 @@ def test_the_identity_framing_gives_the_masks_back_bit_for_bit():
     assert torch.equal(noisy[:, 0] > 0, torch.from_numpy(masks[0])) and torch.equal(clean[:, 0] > 0, torch.from_numpy(masks[1]))
 
 
+def test_the_cpus_columns_image_is_the_permuted_rows_pass():
+    # OpenCV's transposes on a CPU lay out what torch's permute does on any other device
+    from cuboidtrain.train.data import _by_columns
+
+    for batch, spread, source in ((1, 1, 1), (3, 8, 5), (2, 64, 256), (4, 24, 33)):
+        across = torch.rand(batch, spread, 2 * source)
+        image = _by_columns(across, source)
+        assert image.is_contiguous() and image.shape == (batch, source, 2 * spread)
+        want = across.view(batch, spread, 2, source).permute(0, 3, 2, 1).reshape(batch, source, 2 * spread)
+        assert torch.equal(image, want)
+
+
+@pytest.mark.parametrize("size", [24, 48, 64])
+def test_the_columns_pass_by_chunks_equals_the_single_product(tmp_path, monkeypatch, size):
+    # A CPU takes the columns chunk by chunk on the transposed rows' result (DENSE_MOST 0), a GPU
+    # by one product up to 64 px: both are the same weights, summed in another order.
+    from cuboidtrain.train import data
+
+    publish(tmp_path, [build_sample(seed, size=96, scene=STREET if seed % 2 else PAPER) for seed in range(10)])
+    batch = SpoolBatches(tmp_path, "box", size, reframe="always")[enumerate_spool(tmp_path)]
+    framed = {}
+    for most in (0, 64):
+        monkeypatch.setitem(data.DENSE_MOST, "cpu", most)
+        framed[most] = frame_masks(batch["noisy"], batch["clean"], batch["framing"], batch["source"], size)
+    for by_chunks, at_once in zip(framed[0], framed[64]):
+        assert by_chunks.shape == at_once.shape == (len(batch["names"]), 1, size, size)
+        assert (by_chunks != at_once).float().mean() <= 0.0005  # measured: none differ
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_a_gpu_frames_a_batch_as_the_cpu_does(tmp_path):
     publish(tmp_path, [build_sample(seed, size=128) for seed in range(8)])

@@ -16,6 +16,7 @@ import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from cuboidtrain import allocator
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.pool import CHUNK, Group, fit_one
 from shared.errors import UsageError
@@ -104,13 +105,4 @@ def keep_freed_memory() -> None:
     buffer of a fit over 128 KB is then mmap'ed, freed to the kernel and faulted in again on
     the next fit. Measured: 200 fits 5.4 to 5.8 s with it (1.2 to 1.4 million page faults, about
     2 s in the kernel), 3.2 to 3.3 s after this (BENCHMARKS.md). glibc only; elsewhere nothing to undo."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(-3, 32 * 1024 * 1024)  # M_MMAP_THRESHOLD: glibc's adaptive ceiling
-    mallopt(-1, 64 * 1024 * 1024)  # M_TRIM_THRESHOLD: keep up to 64 MB freed at the heap's top
+    allocator.keep_freed_memory(32 * 1024 * 1024, 64 * 1024 * 1024)  # glibc's adaptive ceiling; 64 MB kept at the top

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from cuboidtrain.models.codec import render_heatmaps
+from cuboidtrain.models.codec import TAIL, render_heatmaps
 from cuboidtrain.train.losses import ChainBatch
 from cuboidtrain.fit.masks import PIECE_SHARE, SHRINK_BLUR, Framing, framing_of
 from cuboidtrain.fit.options import DEFAULT_MARGIN
@@ -435,11 +435,18 @@ def unpack_masks(packed: torch.Tensor, size: int) -> torch.Tensor:
 # of the source rows near its centre, whose weights are the tent's lerp of the discrete Gaussian
 # (`_axis_weights`), and so are its columns. So a batch takes two batched matrix products: over the
 # rows, chunk by chunk of CHUNK model rows and the source rows they reach (`_pass`; a blur of every
-# source pixel would cost 6x more), then over the columns, alike or at once (`DENSE_MOST`).
+# source pixel would cost 6x more), then over the columns, alike on the transposed result or at once
+# (`DENSE_MOST`).
 CHUNK = 8  # model rows per product: fewer waste less of the source rows read, more run faster
 GROUP = {"cpu": 8}  # samples framed together by device type: on a CPU what a group reads stays in its cache
 DEVICE_GROUP = 64  # elsewhere (a GPU): few launches, bounded memory
-DENSE_MOST = 64  # model px up to which the columns' pass is one product (a CPU's fastest), above it chunked
+# Model px up to which the columns' pass is one product over every source column, by device type;
+# above it the columns go chunk by chunk like the rows. On a CPU the chunks win at every size, as
+# OpenCV transposes the rows' result 10x faster than torch copies it (`_by_columns`; frame_masks
+# 5-10% faster at 64 px, 22% at 128, BENCHMARKS.md); on a GPU the single product up to 64 px is
+# what was measured there.
+DENSE_MOST = {"cpu": 0}
+DEVICE_DENSE_MOST = 64
 
 
 def frame_masks(noisy: torch.Tensor, clean: torch.Tensor, framing: torch.Tensor, source: int,
@@ -478,16 +485,29 @@ def _frame_group(noisy: torch.Tensor, clean: torch.Tensor, source: int, rows: li
     else:
         pair = torch.cat([unpack_bits(m, source * source).view(-1, source, source) for m in (noisy, clean)], 2)
     batch, spread = pair.shape[0], rows[0].shape[1] * CHUNK  # model px in whole chunks, >= size
-    across = _pass(pair, *rows)  # model rows by (mask, source x)
-    if spread <= DENSE_MOST:  # by every source column the group reaches, at once
+    across = _pass(pair, *rows)  # model y by (mask, source x)
+    if spread <= DENSE_MOST.get(pair.device.type, DEVICE_DENSE_MOST):  # every source column the group reaches, at once
         low, high = (int(bound) for bound in torch.aminmax(cols[0]))
         framed = torch.bmm(across.view(batch, 2 * spread, source)[:, :, low : high + 1],
                            _dense(cols[0] - low, cols[1], high + 1 - low))
         return framed.view(batch, spread, 2, spread).transpose(1, 2) >= 0.5
-    # source x by (mask, model y), the image a chunked columns' pass reads
-    across = across.view(batch, spread, 2, source).permute(0, 3, 2, 1).reshape(batch, source, 2 * spread)
-    framed = _pass(across, *cols).view(batch, spread, 2, spread)  # model x by (mask, model y)
+    # source x by (mask, model y): the image the columns' pass reads, both masks' chunks in one product
+    framed = _pass(_by_columns(across, source), *cols).view(batch, spread, 2, spread)  # model x by (mask, model y)
     return framed.permute(0, 2, 3, 1) >= 0.5
+
+
+def _by_columns(across: torch.Tensor, source: int) -> torch.Tensor:
+    """The rows' pass (B, model y, (mask, source x)) -> (B, source x, (mask, model y)), contiguous.
+    On a CPU by OpenCV's blocked transposes (each mask's into its columns), 10x faster than torch's
+    copy of the permuted view, which any other device does."""
+    batch, spread = across.shape[:2]
+    if across.device.type != "cpu":
+        return across.view(batch, spread, 2, source).permute(0, 3, 2, 1).reshape(batch, source, 2 * spread)
+    image = across.new_empty(batch, source, 2 * spread)
+    for rows, columns in zip(across.numpy(), image.numpy()):
+        for mask in range(2):
+            cv2.transpose(rows[:, mask * source : (mask + 1) * source], columns[:, mask * spread : (mask + 1) * spread])
+    return image
 
 
 def _dense(pixels: torch.Tensor, weights: torch.Tensor, source: int) -> torch.Tensor:
@@ -519,11 +539,11 @@ def _axis_weights(offset: torch.Tensor, scale: torch.Tensor, source: int,
     batch, chunks = offset.shape[0], -(-size // CHUNK)
     blur = torch.where(scale < 1, SHRINK_BLUR / scale, torch.zeros_like(scale))
     radius = torch.where(blur > 0, torch.round(blur * 8 + 1).long() | 1, torch.ones_like(blur, dtype=torch.long)) // 2
-    needed = torch.ceil((CHUNK - 1) / scale).long() + 2 * radius + 4
+    needed = torch.ceil((CHUNK - 1) / scale).long() + 2 * radius + 2  # what the lerp of the taps reaches
     reach = int(needed.max())
     centre = (torch.arange(chunks * CHUNK, device=offset.device, dtype=torch.float64) - offset[:, None]) / scale[:, None]
     centre = centre.view(batch, chunks, CHUNK)  # source px
-    first = centre[:, :, :1].floor() - radius[:, None, None] - 1  # (B, C, 1): each chunk's first source px
+    first = centre[:, :, :1].floor() - radius[:, None, None]  # (B, C, 1): each chunk's first source px
     whole = (centre - first).floor()  # in [0, reach): the source px just below each centre, from `first`
     taps = _gaussian(blur, radius, reach)  # (B, 2 reach + 1): the Gaussian at -reach .. reach px
     # Source px first + l weighs taps(whole - l) (1 - frac) + taps(whole - l + 1) frac: a slice of
@@ -533,14 +553,17 @@ def _axis_weights(offset: torch.Tensor, scale: torch.Tensor, source: int,
     window = window.view(batch, chunks, CHUNK, reach + 1)
     weights = torch.lerp(window[..., 1:], window[..., :-1], (centre - first - whole).float()[..., None])
     pixels = first.long() + torch.arange(reach, device=offset.device)  # (B, C, L)
-    return pixels.clamp(0, source - 1), weights * ((pixels >= 0) & (pixels < source))[:, :, None, :], needed
+    inside = ((pixels >= 0) & (pixels < source)).to(weights.dtype)  # a source px off the image weighs 0
+    return pixels.clamp(0, source - 1), weights.mul_(inside[:, :, None, :]), needed
 
 
 def _gaussian(blur: torch.Tensor, radius: torch.Tensor, reach: int) -> torch.Tensor:
     """(B,) std in source px (0: none) and radius (cv2's for float images) -> (B, 2 reach + 1)
     float32: each sample's normalised discrete Gaussian at -reach .. reach px."""
     offsets, blur = torch.arange(-reach, reach + 1, device=blur.device, dtype=torch.float32), blur.float()[:, None]
-    taps = torch.where(blur > 0, torch.exp(-offsets**2 / (2 * blur.clamp(min=1e-6) ** 2)), (offsets == 0).float())
+    # the exponent clamped: no exp underflows (10x slower on a CPU); beyond the radius taps are 0 anyway
+    taps = torch.where(blur > 0, torch.exp((-offsets**2 / (2 * blur.clamp(min=1e-6) ** 2)).clamp(min=-TAIL)),
+                       (offsets == 0).float())
     taps = taps * (offsets.abs() <= radius[:, None])
     return taps / taps.sum(1, keepdim=True)
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from cuboidtrain.allocator import TRAINER_KEEPS, keep_freed_memory
 from cuboidtrain.models.checkpoint import load_checkpoint, set_rng_state
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.config import TrainConfig
@@ -81,6 +82,9 @@ def set_up(config: TrainConfig, ranks: Ranks, device: torch.device, stop: StopRe
         # On a shared CPU a second intra-op thread that gets descheduled stalls every
         # barrier of the other; fewer threads can be faster than all cores.
         torch.set_num_threads(config.threads)
+    # Every batch allocates the same large buffers (the heat maps: 32 MB at 64 px): kept for the next
+    # batch rather than faulted in again (the loader's workers, forked after this, inherit it)
+    keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
     start = build_state(config, device)
     least = least_batch(start.model, device)
     if config.batch_size < least:

@@ -1,0 +1,41 @@
+"""The allocator keeps what a process frees: the trainer's heat maps of a batch (32 MB at 64 px and
+256 samples, above glibc's adaptive ceiling), made again for the next batch, fault no page in once
+freed memory is kept, and every page without it."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from cuboidtrain.allocator import keep_freed_memory
+
+# Five batches' heat maps, each freed before the next (as the trainer frees a step's batch);
+# prints the page faults of the last four.
+BATCHES = """
+import resource, sys, torch
+from cuboidtrain.allocator import TRAINER_KEEPS, keep_freed_memory
+from cuboidtrain.models.codec import render_heatmaps
+if sys.argv[1] == "kept":
+    assert keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
+keypoints, faults = torch.rand(256, 8, 2) * 64, []
+for _ in range(5):
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    maps = render_heatmaps(keypoints, 64, 1.0)
+    del maps
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+print(max(faults[1:]), min(faults[1:]))
+"""
+
+
+def faults_of_later_batches(mode: str) -> tuple[int, int]:
+    done = subprocess.run([sys.executable, "-c", BATCHES, mode], capture_output=True, text=True, check=True)
+    most, least = done.stdout.split()[-2:]
+    return int(most), int(least)
+
+
+@pytest.mark.skipif(not keep_freed_memory(32 << 20, 64 << 20), reason="glibc's mallopt only")
+def test_the_next_batchs_heat_maps_reuse_the_freed_ones_without_faulting_pages_in():
+    pages = 256 * 8 * 64 * 64 * 4 // 4096
+    assert faults_of_later_batches("default")[1] >= pages // 2  # mapped afresh for every batch
+    assert faults_of_later_batches("kept")[0] < pages // 100
