@@ -207,18 +207,6 @@ def test_the_identity_framing_gives_the_masks_back_bit_for_bit():
     assert torch.equal(noisy[:, 0] > 0, torch.from_numpy(masks[0])) and torch.equal(clean[:, 0] > 0, torch.from_numpy(masks[1]))
 
 
-def test_the_cpus_columns_image_is_the_permuted_rows_pass():
-    # OpenCV's transposes on a CPU lay out what torch's permute does on any other device
-    from cuboidtrain.train.data import _by_columns
-
-    for batch, spread, source in ((1, 1, 1), (3, 8, 5), (2, 64, 256), (4, 24, 33)):
-        across = torch.rand(batch, spread, 2 * source)
-        image = _by_columns(across, source)
-        assert image.is_contiguous() and image.shape == (batch, source, 2 * spread)
-        want = across.view(batch, spread, 2, source).permute(0, 3, 2, 1).reshape(batch, source, 2 * spread)
-        assert torch.equal(image, want)
-
-
 @pytest.mark.parametrize("size", [24, 48, 64])
 def test_the_columns_pass_by_chunks_equals_the_single_product(tmp_path, monkeypatch, size):
     # A CPU takes the columns chunk by chunk on the transposed rows' result (DENSE_MOST 0), a GPU
