@@ -3,9 +3,9 @@
 By default glibc hands a freed buffer above its adaptive threshold (128 KB, rising to at most
 32 MB) back to the kernel, and the next buffer of that size faults every page in again, zeroed by
 the kernel. A trainer on a CPU allocates the same buffers every batch: at 64 px and a batch of 256
-the heat maps alone are 32 MB (x3: 128 MB at 128 px). Kept, the input path gains 8% at 64 px and
-55% at 128 px with reframing, 2.6-3.5x without it (BENCHMARKS.md, "The input path"); a Dask
-worker's fits, 1.7x. Elsewhere than glibc there is nothing to set, and nothing is.
+the heat maps alone are 32 MB (x3: 128 MB at 128 px). Kept, the input path on one core gains 3%
+at 64 px, 63% at 128 px and 2.1x at 256 px with reframing, 2.5-3.5x without it (BENCHMARKS.md,
+"The input path"); a Dask worker's fits, 1.7x. Elsewhere than glibc there is nothing to set.
 """
 from __future__ import annotations
 
