@@ -35,10 +35,11 @@ import torch
 from cuboidgen.config import PAPER, STREET
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
-from cuboidtrain.allocator import TRAINER_KEEPS, keep_freed_memory
+from cuboidtrain.allocator import keep_freed_memory
 from cuboidtrain.models.codec import default_sigma
 from cuboidtrain.models.device import resolve_device
 from cuboidtrain.train.data import SpoolBatches, make_loader, prepare_batch
+from cuboidtrain.train.startup import TRAINER_KEEPS
 from shared.sample import encode
 from shared.spool import SpoolWriter
 
@@ -129,7 +130,8 @@ def main() -> None:
         print(json.dumps(rows, indent=2))
         return
     os.sched_setaffinity(0, {args.core if args.core is not None else max(os.sched_getaffinity(0))})
-    kept = not args.glibc_default and keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)  # as `cuboidtrain run` does
+    on_cpu = resolve_device(args.device).type == "cpu"  # where `cuboidtrain run` keeps freed buffers
+    kept = not args.glibc_default and on_cpu and keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     device, count, rows = resolve_device(args.device), args.batch * args.batches, []

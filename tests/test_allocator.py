@@ -3,6 +3,7 @@
 freed memory is kept, and every page without it."""
 from __future__ import annotations
 
+import os
 import platform
 import subprocess
 import sys
@@ -14,8 +15,11 @@ import pytest
 # prints the page faults of the last five: kept, glibc settles within a few batches (measured: at
 # most one of the first six faults its pages in again, none of the last five).
 BATCHES = """
-import resource, sys, torch
-from cuboidtrain.allocator import TRAINER_KEEPS, keep_freed_memory
+import ctypes, resource, sys
+ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: pages of 4 KB, whatever the host's huge-page policy
+import torch
+from cuboidtrain.allocator import keep_freed_memory
+from cuboidtrain.train.startup import TRAINER_KEEPS
 from cuboidtrain.models.codec import render_heatmaps
 if sys.argv[1] == "kept":
     assert keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
@@ -31,7 +35,9 @@ print(sum(faults[-5:]), min(faults[-5:]))
 
 def faults_of_later_batches(mode: str) -> tuple[int, int]:
     """(the last five batches' page faults in all, the fewest of one of them)."""
-    done = subprocess.run([sys.executable, "-c", BATCHES, mode], capture_output=True, text=True, check=True)
+    # glibc as it comes: no preloaded allocator, no tunables from the environment
+    env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD" and not k.startswith(("MALLOC_", "GLIBC_TUNABLES"))}
+    done = subprocess.run([sys.executable, "-c", BATCHES, mode], capture_output=True, text=True, check=True, env=env)
     total, least = done.stdout.split()[-2:]
     return int(total), int(least)
 

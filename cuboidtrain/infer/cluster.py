@@ -94,12 +94,12 @@ def _fitter(checkpoints: list[str], options: FitOptions):
         from cuboidtrain.fit.fitter import Fitter
 
         torch.set_num_threads(1)  # one thread a fit, as the local pool's workers; one process a core
-        keep_freed_memory()
+        undo_nanny_trim()
         _local.fitter, _local.key = Fitter.from_files(checkpoints, options), key
     return _local.fitter
 
 
-def keep_freed_memory() -> None:
+def undo_nanny_trim() -> None:
     """Undo, in this worker, the MALLOC_TRIM_THRESHOLD_=65536 a Dask nanny gives its workers
     (`distributed.nanny.pre-spawn-environ`). It turns off glibc's adaptive thresholds: every
     buffer of a fit over 128 KB is then mmap'ed, freed to the kernel and faulted in again on

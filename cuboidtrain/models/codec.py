@@ -67,7 +67,7 @@ TAIL = 40.0
 def _profile(offset: torch.Tensor, sigma: float) -> torch.Tensor:
     """exp(-offset^2 / 2 sigma^2), 0 beyond the TAIL."""
     exponent = -(offset**2) / (2 * sigma**2)
-    return torch.exp(exponent.clamp(min=-TAIL)).masked_fill_(exponent < -TAIL, 0)
+    return torch.where(exponent < -TAIL, 0.0, torch.exp(exponent.clamp(min=-TAIL)))  # out of place: differentiable
 
 
 # ---- decoding: heat maps (B, N, H, W) -> keypoints (B, N, 2) px ------------------------------

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from cuboidtrain.models.codec import TAIL, render_heatmaps
+from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.train.losses import ChainBatch
 from cuboidtrain.fit.masks import PIECE_SHARE, SHRINK_BLUR, Framing, framing_of
 from cuboidtrain.fit.options import DEFAULT_MARGIN
@@ -441,10 +441,10 @@ CHUNK = 8  # model rows per product: fewer waste less of the source rows read, m
 GROUP = {"cpu": 8}  # samples framed together by device type: on a CPU what a group reads stays in its cache
 DEVICE_GROUP = 64  # elsewhere (a GPU): few launches, bounded memory
 # Model px up to which the columns' pass is one product over every source column, by device type;
-# above it the columns go chunk by chunk like the rows. On a CPU the chunks win at every size, as
-# OpenCV transposes the rows' result 10x faster than torch copies it (`_by_columns`; frame_masks
-# 5-10% faster at 64 px, 22% at 128, BENCHMARKS.md); on a GPU the single product up to 64 px is
-# what was measured there.
+# above it the columns go chunk by chunk like the rows. On a CPU (one torch thread, as measured)
+# the chunks win at every size, as OpenCV transposes the rows' result 14x faster than torch
+# copies it (`_by_columns`; frame_masks 1-9% faster at 64 px, 22% at 128, BENCHMARKS.md).
+# Elsewhere the single product up to 64 px stays, as it was chosen for a CPU (not measured on a GPU).
 DENSE_MOST = {"cpu": 0}
 DEVICE_DENSE_MOST = 64
 
@@ -561,8 +561,9 @@ def _gaussian(blur: torch.Tensor, radius: torch.Tensor, reach: int) -> torch.Ten
     """(B,) std in source px (0: none) and radius (cv2's for float images) -> (B, 2 reach + 1)
     float32: each sample's normalised discrete Gaussian at -reach .. reach px."""
     offsets, blur = torch.arange(-reach, reach + 1, device=blur.device, dtype=torch.float32), blur.float()[:, None]
-    # the exponent clamped: no exp underflows (10x slower on a CPU); beyond the radius taps are 0 anyway
-    taps = torch.where(blur > 0, torch.exp((-offsets**2 / (2 * blur.clamp(min=1e-6) ** 2)).clamp(min=-TAIL)),
+    # the exponent clamped at -40 (exp(-8) at the radius): no exp underflows, 13x slower on a CPU;
+    # beyond the radius the taps are 0 anyway
+    taps = torch.where(blur > 0, torch.exp((-offsets**2 / (2 * blur.clamp(min=1e-6) ** 2)).clamp(min=-40.0)),
                        (offsets == 0).float())
     taps = taps * (offsets.abs() <= radius[:, None])
     return taps / taps.sum(1, keepdim=True)

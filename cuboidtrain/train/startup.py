@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
-from cuboidtrain.allocator import TRAINER_KEEPS, keep_freed_memory
+from cuboidtrain.allocator import keep_freed_memory
 from cuboidtrain.models.checkpoint import load_checkpoint, set_rng_state
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.config import TrainConfig
@@ -21,6 +21,10 @@ from shared.errors import UsageError
 from shared.files import write_json
 
 log = logging.getLogger(__name__)
+# On a CPU every batch allocates the same large buffers (the heat maps: 32 MB at 64 px): up to this
+# many bytes come from the heap and stay there for the next batch rather than being faulted in again
+# (`cuboidtrain.allocator`; the loader's workers, forked after, inherit it). On a GPU they live there.
+TRAINER_KEEPS = 1 << 30
 
 
 @dataclass(frozen=True)
@@ -82,9 +86,8 @@ def set_up(config: TrainConfig, ranks: Ranks, device: torch.device, stop: StopRe
         # On a shared CPU a second intra-op thread that gets descheduled stalls every
         # barrier of the other; fewer threads can be faster than all cores.
         torch.set_num_threads(config.threads)
-    # Every batch allocates the same large buffers (the heat maps: 32 MB at 64 px): kept for the next
-    # batch rather than faulted in again (the loader's workers, forked after this, inherit it)
-    keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
+    if device.type == "cpu" and not keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS):
+        log.debug("glibc's allocator not tuned (not glibc): each batch's buffers are mapped afresh")
     start = build_state(config, device)
     least = least_batch(start.model, device)
     if config.batch_size < least:
