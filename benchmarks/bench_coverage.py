@@ -39,8 +39,18 @@ from cuboidtrain.models.zoo import default_checkpoints  # noqa: E402
 PATHS = ("cuboid", "cuboid_camera_given")
 SIDE = 256  # px: bench_accuracy's masks
 BAND = (0.60, 0.80, 0.90)  # 1 sd between the first two, 2 sd at least the third
-CONSTANTS = {"ratio": ("RATIO_SCALE", "RATIO_FLOOR"), "yaw": ("YAW_SCALE", "YAW_FLOOR_DEG"),
-             "focal": ("FOCAL_SCALE", "FOCAL_FLOOR")}
+# (path, quantity) -> the names of its (a, b[, p]) in `geometry.uncertainty`: sd^2 = (a u (raw / u)^p)^2
+# + (b u)^2, u the floor's unit, p 1 where not named (the free camera's ratios are compressed)
+CONSTANTS = {("cuboid_camera_given", "ratio"): ("RATIO_SCALE", "RATIO_FLOOR"),
+             ("cuboid", "ratio"): ("FREE_RATIO_SCALE", "FREE_RATIO_FLOOR", "FREE_RATIO_POWER"),
+             **{(path, "yaw"): ("YAW_SCALE", "YAW_FLOOR_DEG") for path in PATHS},
+             **{(path, "focal"): ("FOCAL_SCALE", "FOCAL_FLOOR") for path in PATHS}}
+
+
+def constants_of(path: str, kind: str) -> tuple[float, float, float, float]:
+    """Today's (a, b, c, p) of a (path, quantity): c (the outline rms term) 0, p 1 where not named."""
+    a, b, *power = (getattr(uncertainty, name) for name in CONSTANTS[path, kind])
+    return a, b, 0.0, (power or [1.0])[0]
 
 
 def observations(args) -> list[dict]:
@@ -69,8 +79,8 @@ def _quantities(record: dict, cuboid, truth, path: str, scene: str, shape: str, 
     units = values + [1.0] + ([camera.focal_px()] if spread.focal_px is not None else [])
     out = []
     for kind, sd, unit, zi in zip(kinds, sds, units, z):
-        scale, floor = (getattr(uncertainty, name) for name in CONSTANTS[kind])
-        raw = np.sqrt(max(sd**2 - (floor * unit) ** 2, 0.0)) / scale
+        scale, floor, _, power = constants_of(path, kind)
+        raw = unit * (np.sqrt(max(sd**2 - (floor * unit) ** 2, 0.0)) / (scale * unit)) ** (1 / power)
         out.append({"path": path, "scene": scene, "shape": shape, "index": index, "kind": kind,
                     "error": float(zi * sd), "raw": float(raw), "unit": float(unit),
                     "rms": float(record["cuboid"]["outline_rms_px"]) / SIDE * 100})  # % of the frame's side
@@ -79,11 +89,12 @@ def _quantities(record: dict, cuboid, truth, path: str, scene: str, shape: str, 
 
 def coverage(rows: list[dict], constants: dict) -> dict:
     """(path, kind, scene) -> (share within 1 sd, within 2 sd, count) under `constants`
-    ((path, kind) -> (a, b) or (a, b, c): sd^2 = (a raw)^2 + (b unit)^2 + (c unit rms)^2)."""
+    ((path, kind) -> (a, b), (a, b, c) or (a, b, c, p): sd^2 = (a unit (raw / unit)^p)^2 + (b unit)^2
+    + (c unit rms)^2, c 0 and p 1 where not given)."""
     cells = {}
     for key, group in _groups(rows).items():
-        a, b, c = (tuple(constants[key[:2]]) + (0.0,))[:3]
-        z = group["error"] / _sd(group, a, b, c)
+        a, b, c, p = (tuple(constants[key[:2]]) + (0.0, 1.0)[len(constants[key[:2]]) - 2:])[:4]
+        z = group["error"] / _sd(group, a, b, c, p)
         cells[key] = (float(np.mean(z <= 1)), float(np.mean(z <= 2)), len(z))
     return cells
 
@@ -96,8 +107,10 @@ def _groups(rows: list[dict]) -> dict:
             for key, group in out.items()}
 
 
-def _sd(group: dict, a: float, b: float, c: float) -> np.ndarray:
-    return np.sqrt((a * group["raw"]) ** 2 + (b * group["unit"]) ** 2 + (c * group["unit"] * group["rms"]) ** 2) + 1e-300
+def _sd(group: dict, a: float, b: float, c: float, p: float = 1.0) -> np.ndarray:
+    unit = group["unit"]
+    scaled = a * unit * (group["raw"] / unit) ** p
+    return np.sqrt(scaled**2 + (b * unit) ** 2 + (c * unit * group["rms"]) ** 2) + 1e-300
 
 
 def search(rows: list[dict], with_rms: bool = False) -> dict:
@@ -121,7 +134,7 @@ def search(rows: list[dict], with_rms: bool = False) -> dict:
 
 
 def today(rows: list[dict]) -> dict:
-    return {(r["path"], r["kind"]): tuple(getattr(uncertainty, name) for name in CONSTANTS[r["kind"]]) for r in rows}
+    return {(r["path"], r["kind"]): constants_of(r["path"], r["kind"]) for r in rows}
 
 
 def table(cells: dict, title: str) -> None:

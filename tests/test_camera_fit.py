@@ -174,3 +174,22 @@ def test_error_bars_are_positive_finite_and_shrink_with_the_camera_given(street,
             assert np.isfinite(sd).all() and (sd > 0).all() and record["cuboid"]["yaw_sd_deg"] > 0
             relative[name].append(sd[0] / shape.ratio_vector(record["ratios"])[0])
     assert np.median(relative["given"]) < np.median(relative["free"])  # the camera fixes what the depth traded with
+
+
+def test_the_free_cameras_ratio_sd_is_floored_compressed_and_grows_with_the_laplace_sd():
+    from cuboidtrain.geometry.uncertainty import FREE_RATIO_FLOOR, FREE_RATIO_POWER, FREE_RATIO_SCALE, free_ratio_sd
+
+    values = np.array([0.3, 1.0, 2.5])
+    raws = [values * relative for relative in (0.0, 1e-4, 1e-2, 0.1, 1.0)]
+    sds = [free_ratio_sd(raw, values) for raw in raws]
+    np.testing.assert_allclose(sds[0], FREE_RATIO_FLOOR * values)  # no Laplace sd: the floor
+    for smaller, larger in zip(sds, sds[1:]):
+        assert (larger > smaller).all()  # more raw sd, more sd
+    # relative to the ratio it depends on the relative raw sd alone: a ratio's scale changes nothing
+    relative = [sd / values for sd in sds]
+    for r in relative:
+        np.testing.assert_allclose(r, r[0])
+    # compressed: 10x the relative raw sd is 10^p times the scaled term
+    scaled = [np.sqrt(r[0] ** 2 - FREE_RATIO_FLOOR**2) for r in relative[2:4]]
+    assert scaled[1] / scaled[0] == pytest.approx(10**FREE_RATIO_POWER, rel=1e-9)
+    assert scaled[0] == pytest.approx(FREE_RATIO_SCALE * 1e-2**FREE_RATIO_POWER, rel=1e-9)
