@@ -441,7 +441,7 @@ CHUNK = 8  # model rows per product: fewer waste less of the source rows read, m
 GROUP = {"cpu": 8}  # samples framed together by device type: on a CPU what a group reads stays in its cache
 DEVICE_GROUP = 64  # elsewhere (a GPU): few launches, bounded memory
 # Model px up to which the columns' pass is one product over every source column, by device type;
-# above it the columns go chunk by chunk like the rows. On a CPU (one torch thread, as measured)
+# above it the columns go chunk by chunk like the rows. On a CPU (with one torch thread or two)
 # the chunks win at every size, as OpenCV transposes the rows' result 14x faster than torch
 # copies it (`_by_columns`; frame_masks 1-9% faster at 64 px, 22% at 128, BENCHMARKS.md).
 # Elsewhere the single product up to 64 px stays, as it was chosen for a CPU (not measured on a GPU).
