@@ -89,11 +89,10 @@ def _quantities(record: dict, cuboid, truth, path: str, scene: str, shape: str, 
 
 def coverage(rows: list[dict], constants: dict) -> dict:
     """(path, kind, scene) -> (share within 1 sd, within 2 sd, count) under `constants`
-    ((path, kind) -> (a, b), (a, b, c) or (a, b, c, p): sd^2 = (a unit (raw / unit)^p)^2 + (b unit)^2
-    + (c unit rms)^2, c 0 and p 1 where not given)."""
+    ((path, kind) -> (a, b, c, p): sd^2 = (a unit (raw / unit)^p)^2 + (b unit)^2 + (c unit rms)^2)."""
     cells = {}
     for key, group in _groups(rows).items():
-        a, b, c, p = (tuple(constants[key[:2]]) + (0.0, 1.0)[len(constants[key[:2]]) - 2:])[:4]
+        a, b, c, p = constants[key[:2]]
         z = group["error"] / _sd(group, a, b, c, p)
         cells[key] = (float(np.mean(z <= 1)), float(np.mean(z <= 2)), len(z))
     return cells
@@ -129,7 +128,7 @@ def search(rows: list[dict], with_rms: bool = False) -> dict:
             miss = sum(max(BAND[0] - one, 0) + max(one - BAND[1], 0) + max(BAND[2] - both, 0) for one, both in shares)
             scored.append((miss, sum(abs(one - 0.70) for one, _ in shares), a, b, c))
         _, _, a, b, c = min(scored)
-        best[path, kind] = (float(a), float(b), float(c))
+        best[path, kind] = (float(a), float(b), float(c), 1.0)  # the power not searched: linear
     return best
 
 

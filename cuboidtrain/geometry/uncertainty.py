@@ -13,9 +13,10 @@ held by a stiff row, so its sd comes out near 0 and the others grow where it no 
 The raw Laplace sd is 3-6 times too small, and its tails too light, where the error is the
 networks' (corners placed wrong with confidence, an occluded part guessed), not the outline's
 noise: each quantity's sd is scaled, and a floor added in quadrature, sd = sqrt((a sd)^2 + b^2)
-(the free camera's ratios: compressed, `free_ratio_sd`), calibrated on generated masks (paper-clean,
-paper, street; box, twobox; camera free and given) so that the truth lies within one sd for 60-80% of the values and within
-two for at least 90%, per scene (BENCHMARKS.md, "Error bars", with the held-out check).
+(the free camera's ratios: compressed, `free_ratio_sd`), calibrated on generated masks
+(paper-clean, paper, street; box, twobox; camera free and given) so that the truth lies within
+one sd for 60-80% of the values and within two for at least 90%, per scene (BENCHMARKS.md,
+"Error bars", with the held-out checks).
 """
 from __future__ import annotations
 
