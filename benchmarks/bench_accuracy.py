@@ -60,6 +60,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -93,9 +94,12 @@ TARGETS = {"paper-clean": 2.0, "paper": 3.0, "street": 3.0, "selection": 0.95, "
 
 
 def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
-    """The seeded 256 px validation spool of (shape, scene), drawn once with `samples` samples."""
+    """The seeded 256 px validation spool of (shape, scene), its first `samples` samples the seeded
+    sequence's. One that holds fewer is drawn afresh, not topped up: a second draw with the same
+    seed repeats the first's samples (spools topped up so held 82 distinct masks in their first 200)."""
     spool = root / f"val-{scene}-{shape}-256"
     if not spool.is_dir() or len(enumerate_spool(spool)) < samples:
+        shutil.rmtree(spool, ignore_errors=True)
         subprocess.run([str(Path(sys.executable).parent / "cuboidgen"), "run", "--spool", str(spool), "--shape", shape,
                         "--size", "256", "--scene", scene, "--seed", str(SEEDS[shape, scene]), "--limit", "0",
                         "--max-samples", str(samples), "--workers", "1", "--no-dashboard"],
