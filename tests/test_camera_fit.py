@@ -176,20 +176,45 @@ def test_error_bars_are_positive_finite_and_shrink_with_the_camera_given(street,
     assert np.median(relative["given"]) < np.median(relative["free"])  # the camera fixes what the depth traded with
 
 
-def test_the_free_cameras_ratio_sd_is_floored_compressed_and_grows_with_the_laplace_sd():
-    from cuboidtrain.geometry.uncertainty import FREE_RATIO_FLOOR, FREE_RATIO_POWER, FREE_RATIO_SCALE, free_ratio_sd
+def test_a_calibrated_sd_is_floored_grows_with_each_feature_it_weighs_and_scales_with_its_unit():
+    from cuboidtrain.geometry.uncertainty import CALIBRATIONS, FEATURES, Calibration
 
-    values = np.array([0.3, 1.0, 2.5])
-    raws = [values * relative for relative in (0.0, 1e-4, 1e-2, 0.1, 1.0)]
-    sds = [free_ratio_sd(raw, values) for raw in raws]
-    np.testing.assert_allclose(sds[0], FREE_RATIO_FLOOR * values)  # no Laplace sd: the floor
-    for smaller, larger in zip(sds, sds[1:]):
-        assert (larger > smaller).all()  # more raw sd, more sd
-    # relative to the ratio it depends on the relative raw sd alone: a ratio's scale changes nothing
-    relative = [sd / values for sd in sds]
-    for r in relative:
-        np.testing.assert_allclose(r, r[0])
-    # compressed: 10x the relative raw sd is 10^p times the scaled term
-    scaled = [np.sqrt(r[0] ** 2 - FREE_RATIO_FLOOR**2) for r in relative[2:4]]
-    assert scaled[1] / scaled[0] == pytest.approx(10**FREE_RATIO_POWER, rel=1e-9)
-    assert scaled[0] == pytest.approx(FREE_RATIO_SCALE * 1e-2**FREE_RATIO_POWER, rel=1e-9)
+    calibration = Calibration((0.5, 1.0, -0.4, -0.1, 0.8, 0.4), 0.2)
+    x = np.zeros((1, len(FEATURES)))
+    assert calibration.sd(x - 1e3 * np.eye(len(FEATURES))[0], [2.0])[0] == pytest.approx(0.2 * 2.0)  # no raw sd: the floor
+    for feature, weight in enumerate(calibration.coefficients[1:]):
+        step = np.eye(len(FEATURES))[feature]
+        lower, higher = (calibration.sd(x + sign * step, [1.0])[0] for sign in (-1, 1))
+        assert (higher > lower) == (weight > 0)  # each feature moves the sd the way its coefficient says
+    np.testing.assert_allclose(calibration.sd(np.repeat(x, 3, 0), [0.5, 1.0, 4.0]) / [0.5, 1.0, 4.0],
+                               calibration.sd(x, [1.0])[0])  # relative to its unit, a ratio's scale changes nothing
+    # every shipped calibration widens with the Laplace sd and with the corner gap
+    assert all(c.coefficients[1] > 0 and c.coefficients[-1] > 0 for c in CALIBRATIONS.values())
+
+
+def test_the_records_sds_are_the_calibration_of_their_features_and_the_corner_gap_is_measured(street, fitter):
+    from cuboidtrain.geometry.mask_fit import evidence
+    from cuboidtrain.geometry.uncertainty import CALIBRATIONS
+
+    paths, truths = street
+    for path, camera in ((paths[0], None), (paths[1], truths[1].known_camera())):
+        fit = fitter.fit(path, camera=camera)
+        spread, fitted = fit.cuboid.fit.spread, fit.cuboid.fit
+        values = get_shape(fit.shape).ratio_vector(fit.ratios)
+        units = [*values, 1.0, *([fitted.focal_px] if spread.focal_px is not None else [])]
+        kinds = ["ratio"] * len(values) + ["yaw"] + (["focal"] if spread.focal_px is not None else [])
+        sds = [CALIBRATIONS[camera is not None, kind].sd(row[None], [unit])[0]
+               for kind, row, unit in zip(kinds, spread.features, units)]
+        np.testing.assert_allclose(sds, [*spread.ratios, spread.yaw_deg, *([spread.focal_px] if spread.focal_px else [])],
+                                   rtol=1e-9)
+    # the corner gap: 0 for corners on the box, 1% of the side for corners all 3 px off on a 300 px frame
+    from cuboidtrain.geometry.camera import project
+    from cuboidtrain.geometry.outline import MaskTarget
+
+    camera = lift(truths[0].keypoints, truths[0].shape).camera
+    on_box = project(camera.vector[None], camera.shape, np.array([camera.mirror]))[0]
+    target = MaskTarget.of(np.ones((300, 200), bool))
+    confidence = np.linspace(0.1, 1.0, len(on_box))
+    assert evidence(camera, 6.0, target, on_box, confidence).corner_gap == pytest.approx(0.0, abs=1e-9)
+    shifted = evidence(camera, 6.0, target, on_box + [3.0, 0.0], confidence)
+    assert shifted.corner_gap == pytest.approx(1.0) and shifted.outline_rms == pytest.approx(2.0)

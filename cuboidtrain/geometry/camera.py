@@ -27,7 +27,7 @@ scene and shape): projection equal to the samples' keypoints to 3e-12 px.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import cv2
@@ -344,12 +344,24 @@ def from_sample_params(shape: Shape, params: dict) -> CameraParams:
 
 
 @dataclass(frozen=True)
+class Evidence:
+    """What a mask fit shows of its own error beyond the Laplace sd, in % of the frame's longer side
+    (`cuboidtrain.geometry.uncertainty` reads it)."""
+
+    outline_rms: float  # the outline's rms residual at the solution (`CuboidFit.residual_px`)
+    corner_gap: float  # the network's corners' rms distance from the fitted box's, weighted by confidence
+
+
+@dataclass(frozen=True)
 class Spread:
     """A fit's standard deviations in the record's terms (`cuboidtrain.geometry.uncertainty`)."""
 
     ratios: np.ndarray  # (R,) in `shape.ratio_names` order, in the ratios' own units
     yaw_deg: float
     focal_px: float | None  # None where the focal length is given, or infinite (weak perspective)
+    # What they were calibrated from (benchmarks/bench_coverage.py refits the calibration on them):
+    # each quantity's features (`uncertainty.features`), ratios first, then the yaw and the focal length
+    features: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)

@@ -14,12 +14,13 @@ clean-mask medians improve strongly (box 2.8 -> 0.7 px) while noisy means barely
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import (CameraParams, CuboidFit, describe, log_ratio_jacobian, project,
+from cuboidtrain.geometry.camera import (CameraParams, CuboidFit, Evidence, describe, log_ratio_jacobian, project,
                                       project_with_jacobian, ratios)
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, hypotheses, levenberg_marquardt
@@ -68,9 +69,23 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
         first += len(mine)
         camera = CameraParams(shape, solved.params[best], bool(mirrors[best]))
         focal_given = known is not None and known[k] is not None and known[k].focal_px is not None
-        bars = spread(camera, 2 * solved.cost[best], solved.normal[best], solved.residuals, focal_given)
-        fits.append(replace(described(target, shape, camera, weights), spread=bars))
+        fit = described(target, shape, camera, weights)
+        bars = spread(camera, 2 * solved.cost[best], solved.normal[best], solved.residuals, focal_given,
+                      evidence(camera, fit.residual_px, target, corners[k], confidence[k]))
+        fits.append(replace(fit, spread=bars))
     return fits
+
+
+def evidence(camera: CameraParams, outline_rms: float, target: MaskTarget, corners: np.ndarray,
+             confidence: np.ndarray) -> Evidence:
+    """What the error bars read beside the Laplace sd: the solved camera's outline rms (px) and the
+    network's corners' (N, 2) distance from its box's, weighted as their pull is, each in % of the
+    frame's side."""
+    side = max(target.mask.shape) / 100
+    image = project(camera.vector[None], camera.shape, np.array([camera.mirror]))[0]  # the network's order
+    weight = np.clip(confidence, 0.05, 1.0)
+    gap = math.sqrt(float(np.sum(weight * np.sum((image - corners) ** 2, axis=1)) / np.sum(weight)))
+    return Evidence(outline_rms / side, gap / side)
 
 
 def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,

@@ -1,78 +1,110 @@
-"""Error bars of a fitted cuboid: the Laplace approximation of the solved least-squares problem.
+"""Error bars of a fitted cuboid: the Laplace approximation of the solved least-squares problem,
+calibrated by what the fit shows of its own error.
 
 At the solution x of min 0.5 |r(x)|^2 (the mask fit's residuals, its corner pull, ratio anchor
 and camera rows included), the parameters' covariance is approximated by
 
     Sigma = sigma^2 (J^T J)^-1,   sigma^2 = |r|^2 / (M - P)   (the residuals' own variance)
 
-and each reported quantity's standard deviation follows by the delta method: the ratios through
-`camera.log_ratio_jacobian` (sd of a ratio = ratio x sd of its log), the focal length through
-log f = log s - log k, the yaw by a central difference of the pose's yaw. A given intrinsic is
-held by a stiff row, so its sd comes out near 0 and the others grow where it no longer trades.
+and each reported quantity's raw standard deviation follows by the delta method: the ratios
+through `camera.log_ratio_jacobian` (sd of a ratio = ratio x sd of its log), the focal length
+through log f = log s - log k, the yaw by a central difference of the pose's yaw. A given
+intrinsic is held by a stiff row, so its sd comes out near 0 and the others grow where it no
+longer trades.
 
-The raw Laplace sd is 3-6 times too small, and its tails too light, where the error is the
-networks' (corners placed wrong with confidence, an occluded part guessed), not the outline's
-noise: each quantity's sd is scaled, and a floor added in quadrature, sd = sqrt((a sd)^2 + b^2)
-(the free camera's ratios: compressed, `free_ratio_sd`), calibrated on generated masks
-(paper-clean, paper, street; box, twobox; camera free and given) so that the truth lies within
-one sd for 60-80% of the values and within two for at least 90%, per scene (BENCHMARKS.md,
-"Error bars", with the held-out checks).
+The raw sd is 2-6 times too small, by a factor that differs with the mask: where the error is
+the networks' (corners placed wrong with confidence, an occluded part guessed) or the trade of
+focal length, distance and depth, not the outline's noise. No single scale serves clean and
+noisy masks, street views and others (BENCHMARKS.md, "Error bars"), so each quantity's sd is
+
+    sd = u sqrt(exp(2 c . x) + floor^2),   x = (1, log(raw / u), log outline rms, log k,
+                                                |sin 2 yaw|, log corner gap)
+
+u the quantity's unit (the ratio or focal length itself, 1 degree for the yaw), k the fit's
+perspective strength (weak perspective: focal length and depth trade), |sin 2 yaw| how oblique
+the view is (a frontal view hides one face), and the outline rms and corner gap (`Evidence`) in
+% of the frame's side. The coefficients c are a least-squares fit of log |error| on x over
+generated masks (paper-clean, paper, street; box, twobox), scaled and floored so that the truth
+lies within one sd for 60-80% of the values and within two for at least 90% in each scene,
+separately for a given and a fitted focal length (`benchmarks/bench_coverage.py --fit-from`).
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+
 import numpy as np
 
-from cuboidtrain.geometry.camera import (CameraParams, Spread, canonical, euler_angles, log_ratio_jacobian, ratios,
-                                         rotation_matrices)
+from cuboidtrain.geometry.camera import (CameraParams, Evidence, Spread, canonical, euler_angles, log_ratio_jacobian,
+                                         ratios, rotation_matrices)
 
-RATIO_SCALE, RATIO_FLOOR = 7.1, 0.0  # the ratios, camera given: a, and b relative to the ratio
-# The ratios, camera free: sd = sqrt((a r (raw / r)^p)^2 + (b r)^2), r the ratio. The Laplace sd
-# says little where focal length, distance and depth trade: one scale a ratio left street's 86%
-# within 1 sd and paper-clean's 67% (200 masks a set). Compressed (p 0.2) and floored at 14% of
-# the ratio, each scene's lies in the band on masks the constants were not chosen on (chosen on
-# masks 0-99 or 100-199: the same constants; BENCHMARKS.md, "Error bars").
-FREE_RATIO_SCALE, FREE_RATIO_POWER, FREE_RATIO_FLOOR = 0.37, 0.2, 0.14
-YAW_SCALE, YAW_FLOOR_DEG = 2.5, 3.4  # the yaw: a, and b in degrees
-FOCAL_SCALE, FOCAL_FLOOR = 3.6, 0.36  # the focal length: a, and b relative to it
+KINDS = ("ratio", "yaw", "focal")
+FEATURES = ("raw", "outline_rms", "perspective", "oblique", "corner_gap")  # x after its 1
+# Offsets inside the logs: below them a feature says nothing more (a fit with no outline residual,
+# weak perspective, corners on the box)
+RAW_LEAST, OUTLINE_LEAST, PERSPECTIVE_LEAST, GAP_LEAST = 1e-9, 1e-3, 1e-3, 1e-2
 YAW_STEP = 1e-5  # rad, the central difference of the yaw
 
 
-def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: int,
-           focal_given: bool) -> Spread | None:
+@dataclass(frozen=True)
+class Calibration:
+    """One quantity's sd from its features: u sqrt(exp(2 c . (1, x)) + floor^2)."""
+
+    coefficients: tuple[float, ...]  # c: the intercept, then one a feature (FEATURES)
+    floor: float  # relative to the unit
+
+    def sd(self, x: np.ndarray, unit) -> np.ndarray:
+        """(Q,) sds of Q values from their features x (Q, len(FEATURES)) and units (Q,)."""
+        c = np.asarray(self.coefficients)
+        return np.asarray(unit) * np.sqrt(np.exp(2 * (c[0] + np.asarray(x) @ c[1:])) + self.floor**2)
+
+
+# (focal length given, quantity) -> its calibration. Fitted on masks 0-399 of bench_accuracy's six
+# validation spools (box and twobox pooled); BENCHMARKS.md, "Error bars", has the command, the
+# coverage on them and on masks 400-599, which they were not fitted on.
+CALIBRATIONS = {
+    (False, "ratio"): Calibration((0.397, 1.053, -0.452, -0.083, -0.090, 0.347), 0.200),
+    (True, "ratio"): Calibration((1.661, 1.076, -0.074, -0.145, -0.217, 0.429), 0.000),
+    (False, "yaw"): Calibration((0.332, 0.617, -0.122, -0.286, 0.767, 0.421), 0.750),
+    (True, "yaw"): Calibration((0.739, 0.606, 0.491, -0.400, 0.372, 0.572), 0.000),
+    (False, "focal"): Calibration((0.253, 0.624, -0.369, -0.016, -0.586, 0.403), 0.000),
+}
+
+
+def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: int, focal_given: bool,
+           evidence: Evidence) -> Spread | None:
     """The standard deviations of `camera`'s ratios, yaw and focal length, from the solution's sum
-    of squared residuals, its J^T J (P, P) and how many residuals there are (`lift.Solved`); None
-    where they are not finite (a degenerate fit)."""
+    of squared residuals, its J^T J (P, P) and how many residuals there are (`lift.Solved`), and
+    what else the fit shows (`evidence`); None where they are not finite (a degenerate fit)."""
     if not (math.isfinite(squares) and np.isfinite(normal).all()):
         return None
     covariance = laplace(normal, squares, residuals)
     vector = camera.vector
     log_ratios = log_ratio_jacobian(vector[None], camera.shape)[0]  # (R, P)
     values = ratios(vector[None], camera.shape)[0]
-    ratio_sd = values * np.sqrt(np.maximum(np.einsum("rp,pq,rq->r", log_ratios, covariance, log_ratios), 0.0))
+    raw_ratios = values * np.sqrt(np.maximum(np.einsum("rp,pq,rq->r", log_ratios, covariance, log_ratios), 0.0))
     yaw_gradient = _yaw_gradient(camera)
-    yaw_sd = math.sqrt(max(yaw_gradient @ covariance @ yaw_gradient, 0.0))
-    ratio_bars = (calibrated(ratio_sd, RATIO_SCALE, RATIO_FLOOR * values) if focal_given
-                  else free_ratio_sd(ratio_sd, values))
-    bars = Spread(ratio_bars, float(calibrated(yaw_sd, YAW_SCALE, YAW_FLOOR_DEG)),
-                  None if focal_given else _focal_sd(camera, covariance))
-    finite = np.isfinite(bars.ratios).all() and math.isfinite(bars.yaw_deg) and (bars.focal_px is None
-                                                                                or math.isfinite(bars.focal_px))
-    return bars if finite else None
+    raw_yaw = math.sqrt(max(yaw_gradient @ covariance @ yaw_gradient, 0.0))
+    focal = camera.focal_px()
+    raw_focal = None if focal_given or not math.isfinite(focal) else _raw_focal_sd(camera, covariance)
+    raws = [*raw_ratios, raw_yaw, *([] if raw_focal is None else [raw_focal])]
+    units = [*values, 1.0, *([] if raw_focal is None else [focal])]
+    kinds = ["ratio"] * len(values) + ["yaw"] + ([] if raw_focal is None else ["focal"])
+    x = features(np.array(raws), np.array(units), camera, evidence)
+    sds = np.array([CALIBRATIONS[focal_given, kind].sd(row, unit) for kind, row, unit in zip(kinds, x, units)])
+    bars = Spread(sds[: len(values)], float(sds[len(values)]), None if raw_focal is None else float(sds[-1]), x)
+    return bars if np.isfinite(sds).all() else None
 
 
-def calibrated(raw, scale: float, floor):
-    """sqrt((scale raw)^2 + floor^2): the Laplace sd scaled, with a floor for what it does not see."""
-    return np.sqrt((scale * np.asarray(raw)) ** 2 + np.asarray(floor) ** 2)
-
-
-def free_ratio_sd(raw, values):
-    """The ratios' sd with the camera free, from their raw Laplace sd: compressed relative to each
-    ratio and floored (FREE_RATIO_*)."""
-    values = np.abs(np.asarray(values, dtype=float))
-    relative = np.asarray(raw) / np.maximum(values, 1e-300)
-    scaled = FREE_RATIO_SCALE * values * np.maximum(relative, 0.0) ** FREE_RATIO_POWER
-    return np.sqrt(scaled**2 + (FREE_RATIO_FLOOR * values) ** 2)
+def features(raw: np.ndarray, unit: np.ndarray, camera: CameraParams, evidence: Evidence) -> np.ndarray:
+    """(Q, len(FEATURES)): each quantity's raw sd relative to its unit, beside what the whole fit
+    shows (`Evidence`, the perspective strength, how oblique the view is)."""
+    relative = np.log(np.abs(raw) / np.maximum(np.abs(unit), 1e-300) + RAW_LEAST)
+    shared = [math.log(max(evidence.outline_rms, 0.0) + OUTLINE_LEAST),
+              math.log(abs(float(camera.vector[8])) + PERSPECTIVE_LEAST),
+              abs(math.sin(math.radians(2 * _yaw(camera)))),
+              math.log(max(evidence.corner_gap, 0.0) + GAP_LEAST)]
+    return np.column_stack([relative, np.tile(shared, (len(relative), 1))])
 
 
 def laplace(normal: np.ndarray, squares: float, residuals: int) -> np.ndarray:
@@ -84,14 +116,10 @@ def laplace(normal: np.ndarray, squares: float, residuals: int) -> np.ndarray:
     return sigma2 * inverse
 
 
-def _focal_sd(camera: CameraParams, covariance: np.ndarray) -> float | None:
-    focal = camera.focal_px()
-    if not math.isfinite(focal):
-        return None
+def _raw_focal_sd(camera: CameraParams, covariance: np.ndarray) -> float:
     gradient = np.zeros(len(camera.vector))
     gradient[7], gradient[8] = 1.0, -1.0 / camera.vector[8]  # log f = log s - log |k|
-    raw = focal * math.sqrt(max(gradient @ covariance @ gradient, 0.0))
-    return float(calibrated(raw, FOCAL_SCALE, FOCAL_FLOOR * focal))
+    return camera.focal_px() * math.sqrt(max(gradient @ covariance @ gradient, 0.0))
 
 
 def _yaw_gradient(camera: CameraParams) -> np.ndarray:
