@@ -105,9 +105,11 @@ def fit_calibrations(rows: list[dict]) -> dict:
     for path, kind in sorted({key[:2] for key in groups}):
         mine = [group for key, group in groups.items() if key[:2] == (path, kind)]
         x = np.concatenate([g["x"] for g in mine])
-        design = np.column_stack([np.ones(len(x)), x])
+        varying = np.ptp(x, axis=0) > 1e-9  # a feature constant here (the start spread of a given focal length) weighs 0
+        design = np.column_stack([np.ones(len(x)), x[:, varying]])
         target = np.log(np.concatenate([np.abs(g["error"]) / np.abs(g["unit"]) for g in mine]) + 1e-6)
-        coefficients = np.linalg.lstsq(design, target, rcond=None)[0]
+        coefficients = np.zeros(1 + x.shape[1])
+        coefficients[np.concatenate([[True], varying])] = np.linalg.lstsq(design, target, rcond=None)[0]
         floors = FLOORS * (10 if kind == "yaw" else 1)
         scored = []
         for scale, floor in itertools.product(SCALES, floors):

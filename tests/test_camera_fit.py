@@ -179,7 +179,7 @@ def test_error_bars_are_positive_finite_and_shrink_with_the_camera_given(street,
 def test_a_calibrated_sd_is_floored_grows_with_each_feature_it_weighs_and_scales_with_its_unit():
     from cuboidtrain.geometry.uncertainty import CALIBRATIONS, FEATURES, Calibration
 
-    calibration = Calibration((0.5, 1.0, -0.4, -0.1, 0.8, 0.4), 0.2)
+    calibration = Calibration((0.5, 1.0, -0.4, -0.1, 0.8, 0.4, 0.1), 0.2)
     x = np.zeros((1, len(FEATURES)))
     assert calibration.sd(x - 1e3 * np.eye(len(FEATURES))[0], [2.0])[0] == pytest.approx(0.2 * 2.0)  # no raw sd: the floor
     for feature, weight in enumerate(calibration.coefficients[1:]):
@@ -188,8 +188,11 @@ def test_a_calibrated_sd_is_floored_grows_with_each_feature_it_weighs_and_scales
         assert (higher > lower) == (weight > 0)  # each feature moves the sd the way its coefficient says
     np.testing.assert_allclose(calibration.sd(np.repeat(x, 3, 0), [0.5, 1.0, 4.0]) / [0.5, 1.0, 4.0],
                                calibration.sd(x, [1.0])[0])  # relative to its unit, a ratio's scale changes nothing
-    # every shipped calibration widens with the Laplace sd and with the corner gap
-    assert all(c.coefficients[1] > 0 and c.coefficients[-1] > 0 for c in CALIBRATIONS.values())
+    # every shipped calibration widens with the Laplace sd and with the corner gap, and a fitted focal
+    # length's with the starts' disagreement on it
+    gap, spread = (1 + FEATURES.index(name) for name in ("corner_gap", "start_spread"))
+    assert all(c.coefficients[1] > 0 and c.coefficients[gap] > 0 for c in CALIBRATIONS.values())
+    assert CALIBRATIONS[False, "focal"].coefficients[spread] > 0
 
 
 def test_the_records_sds_are_the_calibration_of_their_features_and_the_corner_gap_is_measured(street, fitter):
@@ -215,6 +218,11 @@ def test_the_records_sds_are_the_calibration_of_their_features_and_the_corner_ga
     on_box = project(camera.vector[None], camera.shape, np.array([camera.mirror]))[0]
     target = MaskTarget.of(np.ones((300, 200), bool))
     confidence = np.linspace(0.1, 1.0, len(on_box))
-    assert evidence(camera, 6.0, target, on_box, confidence).corner_gap == pytest.approx(0.0, abs=1e-9)
-    shifted = evidence(camera, 6.0, target, on_box + [3.0, 0.0], confidence)
+    starts = np.stack([camera.vector, camera.vector])
+    assert evidence(camera, 6.0, target, on_box, confidence, starts).corner_gap == pytest.approx(0.0, abs=1e-9)
+    shifted = evidence(camera, 6.0, target, on_box + [3.0, 0.0], confidence, starts)
     assert shifted.corner_gap == pytest.approx(1.0) and shifted.outline_rms == pytest.approx(2.0)
+    # the start spread: starts that agree on the focal length spread 0; one at twice its focal length, log 2
+    assert shifted.start_spread == pytest.approx(0.0, abs=1e-12)
+    starts[1, 7] += np.log(2.0)  # log f = log s - log |k|: twice the scale at the same k is twice the focal length
+    assert evidence(camera, 6.0, target, on_box, confidence, starts).start_spread == pytest.approx(np.log(2.0))

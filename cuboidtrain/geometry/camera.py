@@ -350,6 +350,9 @@ class Evidence:
 
     outline_rms: float  # the outline's rms residual at the solution (`CuboidFit.residual_px`)
     corner_gap: float  # the network's corners' rms distance from the fitted box's, weighted by confidence
+    # How far apart the lift's starts put the focal length (the range of their log focal lengths):
+    # where the corners admit several cameras, the one the fit settled on is the less certain
+    start_spread: float = 0.0
 
 
 @dataclass(frozen=True)

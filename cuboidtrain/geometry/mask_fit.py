@@ -70,22 +70,25 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
         camera = CameraParams(shape, solved.params[best], bool(mirrors[best]))
         focal_given = known is not None and known[k] is not None and known[k].focal_px is not None
         fit = described(target, shape, camera, weights)
+        starts_k = lifted.params[lifted.owner == k]  # every lift hypothesis of this mask, not just those fitted
         bars = spread(camera, 2 * solved.cost[best], solved.normal[best], solved.residuals, focal_given,
-                      evidence(camera, fit.residual_px, target, corners[k], confidence[k]))
+                      evidence(camera, fit.residual_px, target, corners[k], confidence[k], starts_k))
         fits.append(replace(fit, spread=bars))
     return fits
 
 
 def evidence(camera: CameraParams, outline_rms: float, target: MaskTarget, corners: np.ndarray,
-             confidence: np.ndarray) -> Evidence:
+             confidence: np.ndarray, starts: np.ndarray) -> Evidence:
     """What the error bars read beside the Laplace sd: the solved camera's outline rms (px) and the
     network's corners' (N, 2) distance from its box's, weighted as their pull is, each in % of the
-    frame's side."""
+    frame's side; and how far apart the lift hypotheses (H, P) the fit started among put the
+    focal length (the range of their log focal lengths; a weak-perspective one counts as 1e12 px)."""
     side = max(target.mask.shape) / 100
     image = project(camera.vector[None], camera.shape, np.array([camera.mirror]))[0]  # the network's order
     weight = np.clip(confidence, 0.05, 1.0)
     gap = math.sqrt(float(np.sum(weight * np.sum((image - corners) ** 2, axis=1)) / np.sum(weight)))
-    return Evidence(outline_rms / side, gap / side)
+    log_focal = starts[:, 7] - np.log(np.maximum(np.abs(starts[:, 8]), 1e-12))  # log f = log s - log |k|
+    return Evidence(outline_rms / side, gap / side, float(np.ptp(log_focal)) if len(starts) else 0.0)
 
 
 def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,

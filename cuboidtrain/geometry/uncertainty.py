@@ -18,12 +18,15 @@ focal length, distance and depth, not the outline's noise. No single scale serve
 noisy masks, street views and others (BENCHMARKS.md, "Error bars"), so each quantity's sd is
 
     sd = u sqrt(exp(2 c . x) + floor^2),   x = (1, log(raw / u), log outline rms, log k,
-                                                |sin 2 yaw|, log corner gap)
+                                                |sin 2 yaw|, log corner gap, log start spread)
 
 u the quantity's unit (the ratio or focal length itself, 1 degree for the yaw), k the fit's
 perspective strength (weak perspective: focal length and depth trade), |sin 2 yaw| how oblique
-the view is (a frontal view hides one face), and the outline rms and corner gap (`Evidence`) in
-% of the frame's side. The coefficients c are a least-squares fit of log |error| on x over
+the view is (a frontal view hides one face), the outline rms and corner gap (`Evidence`) in % of
+the frame's side, and the start spread how far apart the lift's hypotheses put the focal length
+(its log's range: where the corners admit several cameras, the focal length and the depth the fit
+settled on are the less certain; without it the free focal length's sd could not serve `paper`
+and `street` at once). The coefficients c are a least-squares fit of log |error| on x over
 generated masks (paper-clean, paper, street; box, twobox), scaled and floored so that the truth
 lies within one sd for 60-80% of the values and within two for at least 90% in each scene,
 separately for a given and a fitted focal length (`benchmarks/bench_coverage.py --fit-from`).
@@ -31,7 +34,7 @@ separately for a given and a fitted focal length (`benchmarks/bench_coverage.py 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,10 +42,10 @@ from cuboidtrain.geometry.camera import (CameraParams, Evidence, Spread, canonic
                                          ratios, rotation_matrices)
 
 KINDS = ("ratio", "yaw", "focal")
-FEATURES = ("raw", "outline_rms", "perspective", "oblique", "corner_gap")  # x after its 1
+FEATURES = ("raw", "outline_rms", "perspective", "oblique", "corner_gap", "start_spread")  # x after its 1
 # Offsets inside the logs: below them a feature says nothing more (a fit with no outline residual,
-# weak perspective, corners on the box)
-RAW_LEAST, OUTLINE_LEAST, PERSPECTIVE_LEAST, GAP_LEAST = 1e-9, 1e-3, 1e-3, 1e-2
+# weak perspective, corners on the box, starts that agree)
+RAW_LEAST, OUTLINE_LEAST, PERSPECTIVE_LEAST, GAP_LEAST, SPREAD_LEAST = 1e-9, 1e-3, 1e-3, 1e-2, 1e-2
 YAW_STEP = 1e-5  # rad, the central difference of the yaw
 
 
@@ -63,11 +66,11 @@ class Calibration:
 # validation spools (box and twobox pooled); BENCHMARKS.md, "Error bars", has the command, the
 # coverage on them and on masks 400-599, which they were not fitted on.
 CALIBRATIONS = {
-    (False, "ratio"): Calibration((0.397, 1.053, -0.452, -0.083, -0.090, 0.347), 0.200),
-    (True, "ratio"): Calibration((1.661, 1.076, -0.074, -0.145, -0.217, 0.429), 0.000),
-    (False, "yaw"): Calibration((0.332, 0.617, -0.122, -0.286, 0.767, 0.421), 0.750),
-    (True, "yaw"): Calibration((0.739, 0.606, 0.491, -0.400, 0.372, 0.572), 0.000),
-    (False, "focal"): Calibration((0.253, 0.624, -0.369, -0.016, -0.586, 0.403), 0.000),
+    (False, "ratio"): Calibration((0.416, 1.052, -0.444, -0.068, -0.039, 0.342, 0.017), 0.200),
+    (True, "ratio"): Calibration((1.661, 1.076, -0.074, -0.145, -0.217, 0.429, 0.000), 0.000),
+    (False, "yaw"): Calibration((0.464, 0.588, -0.063, -0.206, 1.085, 0.391, 0.095), 0.750),
+    (True, "yaw"): Calibration((0.739, 0.606, 0.491, -0.400, 0.372, 0.572, 0.000), 0.000),
+    (False, "focal"): Calibration((0.339, 0.596, -0.309, 0.072, -0.310, 0.372, 0.099), 0.000),
 }
 
 
@@ -90,7 +93,8 @@ def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: 
     raws = [*raw_ratios, raw_yaw, *([] if raw_focal is None else [raw_focal])]
     units = [*values, 1.0, *([] if raw_focal is None else [focal])]
     kinds = ["ratio"] * len(values) + ["yaw"] + ([] if raw_focal is None else ["focal"])
-    x = features(np.array(raws), np.array(units), camera, evidence)
+    # A given focal length holds every start to it: what spread is left is its row's give, not the corners' doubt.
+    x = features(np.array(raws), np.array(units), camera, replace(evidence, start_spread=0.0) if focal_given else evidence)
     sds = np.array([CALIBRATIONS[focal_given, kind].sd(row, unit) for kind, row, unit in zip(kinds, x, units)])
     bars = Spread(sds[: len(values)], float(sds[len(values)]), None if raw_focal is None else float(sds[-1]), x)
     return bars if np.isfinite(sds).all() else None
@@ -103,7 +107,8 @@ def features(raw: np.ndarray, unit: np.ndarray, camera: CameraParams, evidence: 
     shared = [math.log(max(evidence.outline_rms, 0.0) + OUTLINE_LEAST),
               math.log(abs(float(camera.vector[8])) + PERSPECTIVE_LEAST),
               abs(math.sin(math.radians(2 * _yaw(camera)))),
-              math.log(max(evidence.corner_gap, 0.0) + GAP_LEAST)]
+              math.log(max(evidence.corner_gap, 0.0) + GAP_LEAST),
+              math.log(max(evidence.start_spread, 0.0) + SPREAD_LEAST)]
     return np.column_stack([relative, np.tile(shared, (len(relative), 1))])
 
 
