@@ -24,7 +24,9 @@ demo: $(STAMP)
 	# The shipped models on a mask of another size, with the picture of how the networks got there.
 	mkdir -p runs/demo  # --json writes into a folder that exists (a missing one is an error, not made)
 	$(BIN)/cuboidtrain infer examples/building.png --explain runs/demo/explain --json runs/demo/infer.json
-	# And on 200 fresh noisy, occluded 256 px street masks, as `eval` scores them.
+	# And on 200 fresh noisy, occluded 256 px street masks, as `eval` scores them (drawn afresh:
+	# the same seed into a spool that has them would add the same 200 again).
+	rm -rf runs/demo/val
 	$(BIN)/cuboidgen run --spool runs/demo/val --scene street --limit 0 --max-samples 200 --seed 3 --workers 1 --no-dashboard
 	$(BIN)/cuboidtrain eval --spool runs/demo/val
 	@echo "records in runs/demo/infer.json; explanation panel runs/demo/explain/building.png"

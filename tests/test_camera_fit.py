@@ -3,6 +3,7 @@ plausible, the record does not depend on torch's threads, the workers or the inp
 error bars are there and honest on exact data."""
 from __future__ import annotations
 
+import itertools
 import json
 
 import cv2
@@ -226,3 +227,21 @@ def test_the_records_sds_are_the_calibration_of_their_features_and_the_corner_ga
     assert shifted.start_spread == pytest.approx(0.0, abs=1e-12)
     starts[1, 7] += np.log(2.0)  # log f = log s - log |k|: twice the scale at the same k is twice the focal length
     assert evidence(camera, 6.0, target, on_box, confidence, starts).start_spread == pytest.approx(np.log(2.0))
+
+
+@pytest.mark.parametrize("shape", ["box", "twobox"])
+def test_the_error_bars_batched_yaw_is_the_poses_yaw_for_every_twin_and_mirror(shape):
+    from cuboidtrain.geometry.camera import CameraParams, canonical, euler_angles, rotation_matrices
+    from cuboidtrain.geometry.uncertainty import yaws_deg
+
+    rng = np.random.default_rng(3)
+    geometry = get_shape(shape)
+    for k, mirror in itertools.product((0.4, -0.3, 0.0), (False, True)):
+        vectors = rng.normal(size=(5, 13 if shape == "twobox" else 11)) * 0.5
+        vectors[:, 7], vectors[:, 8] = 6.0, k
+        expected = []
+        for vector in vectors:
+            pinhole = CameraParams(geometry, *canonical(vector, mirror)).pinhole()
+            expected.append(pinhole[0].pose.yaw_deg if pinhole is not None
+                            else euler_angles(rotation_matrices(vector[None, 2:5])[0])[1])
+        np.testing.assert_allclose(yaws_deg(CameraParams(geometry, vectors[0], mirror), vectors), expected, atol=1e-9)

@@ -38,8 +38,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import (CameraParams, Evidence, Spread, canonical, euler_angles, log_ratio_jacobian,
-                                         ratios, rotation_matrices)
+from cuboidtrain.geometry.camera import (MIRROR_X, WEAK_K, CameraParams, Evidence, Spread, log_ratio_jacobian, ratios,
+                                         rotation_matrices)
 
 KINDS = ("ratio", "yaw", "focal")
 FEATURES = ("raw", "outline_rms", "perspective", "oblique", "corner_gap", "start_spread")  # x after its 1
@@ -86,7 +86,7 @@ def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: 
     log_ratios = log_ratio_jacobian(vector[None], camera.shape)[0]  # (R, P)
     values = ratios(vector[None], camera.shape)[0]
     raw_ratios = values * np.sqrt(np.maximum(np.einsum("rp,pq,rq->r", log_ratios, covariance, log_ratios), 0.0))
-    yaw_gradient = _yaw_gradient(camera)
+    yaw, yaw_gradient = _yaw_and_gradient(camera)
     raw_yaw = math.sqrt(max(yaw_gradient @ covariance @ yaw_gradient, 0.0))
     focal = camera.focal_px()
     raw_focal = None if focal_given or not math.isfinite(focal) else _raw_focal_sd(camera, covariance)
@@ -94,19 +94,20 @@ def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: 
     units = [*values, 1.0, *([] if raw_focal is None else [focal])]
     kinds = ["ratio"] * len(values) + ["yaw"] + ([] if raw_focal is None else ["focal"])
     # A given focal length holds every start to it: what spread is left is its row's give, not the corners' doubt.
-    x = features(np.array(raws), np.array(units), camera, replace(evidence, start_spread=0.0) if focal_given else evidence)
+    x = features(np.array(raws), np.array(units), camera, yaw,
+                 replace(evidence, start_spread=0.0) if focal_given else evidence)
     sds = np.array([CALIBRATIONS[focal_given, kind].sd(row, unit) for kind, row, unit in zip(kinds, x, units)])
     bars = Spread(sds[: len(values)], float(sds[len(values)]), None if raw_focal is None else float(sds[-1]), x)
     return bars if np.isfinite(sds).all() else None
 
 
-def features(raw: np.ndarray, unit: np.ndarray, camera: CameraParams, evidence: Evidence) -> np.ndarray:
+def features(raw: np.ndarray, unit: np.ndarray, camera: CameraParams, yaw_deg: float, evidence: Evidence) -> np.ndarray:
     """(Q, len(FEATURES)): each quantity's raw sd relative to its unit, beside what the whole fit
-    shows (`Evidence`, the perspective strength, how oblique the view is)."""
+    shows (`Evidence`, the perspective strength, how oblique the view is: its pose's yaw)."""
     relative = np.log(np.abs(raw) / np.maximum(np.abs(unit), 1e-300) + RAW_LEAST)
     shared = [math.log(max(evidence.outline_rms, 0.0) + OUTLINE_LEAST),
               math.log(abs(float(camera.vector[8])) + PERSPECTIVE_LEAST),
-              abs(math.sin(math.radians(2 * _yaw(camera)))),
+              abs(math.sin(math.radians(2 * yaw_deg))),
               math.log(max(evidence.corner_gap, 0.0) + GAP_LEAST),
               math.log(max(evidence.start_spread, 0.0) + SPREAD_LEAST)]
     return np.column_stack([relative, np.tile(shared, (len(relative), 1))])
@@ -127,19 +128,26 @@ def _raw_focal_sd(camera: CameraParams, covariance: np.ndarray) -> float:
     return camera.focal_px() * math.sqrt(max(gradient @ covariance @ gradient, 0.0))
 
 
-def _yaw_gradient(camera: CameraParams) -> np.ndarray:
-    """d yaw_deg / d params by central differences on the rotation vector (the yaw depends on no other)."""
+def _yaw_and_gradient(camera: CameraParams) -> tuple[float, np.ndarray]:
+    """The pose's yaw in degrees and d yaw / d params, by central differences on the rotation vector
+    (the yaw depends on no other parameter), the seven rotations in one batch."""
+    steps = np.zeros((7, len(camera.vector)))
+    steps[1:4, 2:5], steps[4:7, 2:5] = YAW_STEP * np.eye(3), -YAW_STEP * np.eye(3)
+    yaws = yaws_deg(camera, camera.vector + steps)
     gradient = np.zeros(len(camera.vector))
-    for index in (2, 3, 4):
-        step = np.zeros(len(camera.vector))
-        step[index] = YAW_STEP
-        ahead, behind = (_yaw(CameraParams(camera.shape, camera.vector + sign * step, camera.mirror)) for sign in (1, -1))
-        gradient[index] = ((ahead - behind + 180.0) % 360.0 - 180.0) / (2 * YAW_STEP)
-    return gradient
+    gradient[2:5] = ((yaws[1:4] - yaws[4:7] + 180.0) % 360.0 - 180.0) / (2 * YAW_STEP)
+    return float(yaws[0]), gradient
 
 
-def _yaw(camera: CameraParams) -> float:
-    pinhole = CameraParams(camera.shape, *canonical(camera.vector, camera.mirror)).pinhole()
-    if pinhole is None:  # weak perspective: the rotation's own yaw
-        return euler_angles(rotation_matrices(camera.vector[None, 2:5])[0])[1]
-    return pinhole[0].pose.yaw_deg
+def yaws_deg(camera: CameraParams, vectors: np.ndarray) -> np.ndarray:
+    """(B,) the pose's yaw (`CameraParams.pinhole`, of the k >= 0 twin: `canonical`) of parameter
+    vectors (B, P) that share `camera`'s perspective strength k and mirror flag; a weak-perspective
+    one's is its rotation's own yaw."""
+    rotations = rotation_matrices(vectors[:, 2:5])
+    k, mirror = float(camera.vector[8]), camera.mirror
+    if abs(k) > WEAK_K:
+        if k < 0:  # the depth-reversed twin's rotation, and its flag (`canonical`)
+            rotations, mirror = np.diag([1.0, 1.0, -1.0]) @ rotations @ MIRROR_X, not mirror
+        if mirror:  # as `pinhole` reads a reflected box's rotation
+            rotations = MIRROR_X @ rotations @ MIRROR_X
+    return np.degrees(np.arctan2(-rotations[:, 2, 0], rotations[:, 2, 2]))
