@@ -41,7 +41,6 @@ import numpy as np
 from cuboidtrain.geometry.camera import (MIRROR_X, WEAK_K, CameraParams, Evidence, Spread, log_ratio_jacobian, ratios,
                                          rotation_matrices)
 
-KINDS = ("ratio", "yaw", "focal")
 FEATURES = ("raw", "outline_rms", "perspective", "oblique", "corner_gap", "start_spread")  # x after its 1
 # Offsets inside the logs: below them a feature says nothing more (a fit with no outline residual,
 # weak perspective, corners on the box, starts that agree)

@@ -169,10 +169,13 @@ def run(config: TrainConfig, dashboard=None, stop: StopRequest | None = None,
 def _train(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None) -> TrainerStatus:
     check_paths(config)
     ranks, device = from_environment(resolve_device(config.device))
+    together = False
     try:
-        return _train_ranks(config, dashboard, stop, loader_timeout, ranks, device)
+        status = _train_ranks(config, dashboard, stop, loader_timeout, ranks, device)
+        together = status.state in ("done", "stopped")  # every rank agreed on it (`ranks.any`): all are here
+        return status
     finally:
-        shutdown(ranks)
+        shutdown(ranks, together=together)
 
 
 def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeout: float | None,
