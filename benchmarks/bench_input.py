@@ -130,11 +130,11 @@ def main() -> None:
         print(json.dumps(rows, indent=2))
         return
     os.sched_setaffinity(0, {args.core if args.core is not None else max(os.sched_getaffinity(0))})
-    on_cpu = resolve_device(args.device).type == "cpu"  # where `cuboidtrain run` keeps freed buffers
-    kept = not args.glibc_default and on_cpu and keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
+    device, count, rows = resolve_device(args.device), args.batch * args.batches, []
+    # on a CPU, as `cuboidtrain run` does: keep the freed buffers
+    kept = not args.glibc_default and device.type == "cpu" and keep_freed_memory(TRAINER_KEEPS, TRAINER_KEEPS)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    device, count, rows = resolve_device(args.device), args.batch * args.batches, []
     with tempfile.TemporaryDirectory(dir=".", prefix=".bench-input-") as tmp:
         source = fill(Path(tmp) / f"spool-{SOURCE_SIZE}", SOURCE_SIZE, count)
         for size in args.sizes:

@@ -155,4 +155,4 @@ def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: M
     optimiser found it)."""
     image = project(camera.vector[None], shape, np.array([camera.mirror]))
     outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
-    return describe(camera, outline_rms, iou=confidence(shape, camera.keypoints(), target.mask))
+    return describe(camera, outline_rms, iou=confidence(shape, image[0], target.mask))  # image[0]: camera.keypoints()
