@@ -25,7 +25,7 @@ from cuboidgen.config import PAPER, SCENES, GenConfig, SceneConfig
 from cuboidgen.occluders import OccluderLibrary
 from shared.threads import threads_held
 from cuboidgen.synth import make_sample
-from shared.sample import collate, decode_record, encode
+from shared.sample import collate, decode_packed, encode
 from shared.spool import SpoolWriter, enumerate_spool, read_sample_bytes
 
 TARGETS = {"generate_per_core": 2000.0, "bytes_per_sample": 20 * 1024, "read_one_core": 20000.0, "read_over_generate": 10.0}
@@ -155,7 +155,7 @@ def bench_read(size: int, samples: int, batch: int, repeats: int, library, where
         def epoch(unpack: bool):
             names = enumerate_spool(spool)
             for start in range(0, len(names), batch):
-                records = [decode_record(read_sample_bytes(spool, n)) for n in names[start : start + batch]]
+                records = [decode_packed(read_sample_bytes(spool, n)) for n in names[start : start + batch]]
                 tensors = {k: torch.from_numpy(v) for k, v in collate(records, unpack=unpack).items()}
                 assert tensors["keypoints"].shape[0] == len(records)
 

@@ -112,7 +112,7 @@ def masks(
 ) -> None:
     """Write each sample's input mask as OUT_DIR/NNNNN.png and its truth as NNNNN.json (shape, keypoints,
     ratios, camera focal length and principal point in px): for `cuboidtrain infer OUT_DIR`."""
-    from cuboidgen.masks import write_masks
+    from cuboidgen.export_masks import write_masks
 
     check_writable("OUT_DIR", out, folder=True)
     written = write_masks(spool, out, count, clean)

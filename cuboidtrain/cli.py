@@ -462,7 +462,7 @@ def models_pack(
     checkpoint: Path = typer.Option(..., metavar="CKPT", help="A training checkpoint (cuboidtrain run's last.pt), or a model file with --pdm-spool."),
     out: Path = typer.Option(..., metavar="OUT.pt", help="The model file to write (replaced atomically)."),
     scene: list[str] = typer.Option([], metavar="NAME", help="A scene the training spool was drawn from, for the card (repeat)."),
-    validation: Optional[Path] = typer.Option(None, metavar="JSON", help="Validation figures for the card (benchmarks/bench_accuracy.py --json output)."),
+    validation: Optional[Path] = typer.Option(None, metavar="JSON", help="Validation figures for the card (benchmarks/accuracy/bench_accuracy.py --json output)."),
     recipe: Optional[str] = typer.Option(None, help="The command that trained it, for the card."),
     half: bool = typer.Option(True, "--half/--float32", help="Store the weights as float16 (half the size)."),
     pdm_spool: Optional[Path] = typer.Option(None, metavar="DIR", help="Fit --extractor pdm's shape model on this spool's keypoints (the one it trained on) and save it in the file; with a model file as CKPT, only that is redone."),

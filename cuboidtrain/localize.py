@@ -205,7 +205,7 @@ def localize_masks(street: list[Building], masks: list[str], models: list[Cuboid
     if not temperature > 0:
         raise UsageError(f"--temperature {temperature}: expected a positive number")
     options = replace(options or FitOptions(), shape="box")
-    fits = Fitter([box_model(models)], options).records(masks)
+    fits = Fitter([box_model(models)], options).outcomes(masks)
     for fit in fits:
         if isinstance(fit, FitFailure):
             raise UsageError(f"{fit.reason} (every mask is needed: the sequence cannot have a gap)")

@@ -30,7 +30,7 @@ MAX_SIZE = 4096  # px: the generator's largest --size
 # How far outside the image a keypoint may lie, as a fraction of the size. The generator frames
 # the whole silhouette inside the image, so its keypoints lie within it; a hidden corner of another
 # writer's sample may lie beyond an edge, and the trainer cuts off any beyond 1/8 of the size
-# (cuboidtrain.train.data.MAX_OUTSIDE), so this bound is only for values no framing explains.
+# (cuboidtrain.data.reframing.MAX_OUTSIDE), so this bound is only for values no framing explains.
 KEYPOINT_REACH = 0.5
 RATIO_RANGE = (1e-3, 1e3)  # depth/height and width/height: positive, and no part a thousand times flatter
 
@@ -227,36 +227,81 @@ def from_record(r: dict) -> Sample:
     )
 
 
-def collate(records: list[dict], unpack: bool = True) -> dict[str, np.ndarray]:
-    """Decoded records of one shape and size -> batched arrays.
+@dataclass(frozen=True, slots=True, eq=False)
+class PackedSample:
+    """A sample as a batch is made of it: read and checked once (`decode_packed`), its masks still
+    packed (`pack_mask`'s bytes: what a batch copies, 8x less than the pixels), its keypoints
+    (N, 2) float64 px. `record` is what was read, for the rest of the sample (`unpacked`)."""
+
+    shape: str
+    size: int
+    keypoints: np.ndarray  # (N, 2) float64 px: the sample's own, or the model's once framed
+    ratios: np.ndarray  # (R,) float64: the shape's ratio vector (shared.shapes.Shape.ratio_vector)
+    noisy: bytes
+    clean: bytes
+    record: dict
+
+    def noisy_mask(self) -> np.ndarray:
+        """The noisy mask's (size, size) uint8 0/1 pixels."""
+        return unpack_mask(self.noisy, self.size).view(np.uint8)
+
+    def unpacked(self) -> Sample:
+        """The whole sample as read: masks unpacked, keypoints in the sample's own px."""
+        return from_record(self.record)
+
+
+def decode_packed(data: bytes) -> PackedSample:
+    """Bytes -> PackedSample, every field checked once (`decode_record`). Raises ValueError."""
+    record = decode_record(data)
+    geometry = get_shape(record["shape"])
+    keypoints = np.frombuffer(record["keypoints"], KEYPOINT_DTYPE).reshape(geometry.num_keypoints, 2)
+    return PackedSample(record["shape"], record["size"], keypoints, geometry.ratio_vector(record["ratios"]),
+                        record["noisy"], record["clean"], record)
+
+
+def packed_rows(samples: list[PackedSample], key: str, size: int) -> np.ndarray:
+    """(B, ceil(size^2 / 8)) uint8: each sample's `key` mask ("noisy" or "clean") packed at `size`
+    px, a smaller one padded with background below and right."""
+    if all(s.size == size for s in samples):  # the usual batch: the bytes as read, joined
+        # bytearray: a writable buffer, so torch.from_numpy can share it without a warning
+        return np.frombuffer(bytearray().join(getattr(s, key) for s in samples), np.uint8).reshape(len(samples), -1)
+    canvas = np.zeros((len(samples), size, size), np.uint8)
+    for canvas_row, s in zip(canvas, samples):
+        canvas_row[: s.size, : s.size] = unpack_mask(getattr(s, key), s.size)
+    return np.packbits(canvas.reshape(len(samples), -1), axis=1, bitorder=BIT_ORDER)
+
+
+def unpack_rows(packed: np.ndarray, count: int) -> np.ndarray:
+    """(..., n) uint8 packed bits (`pack_mask`'s order) -> (..., count) uint8 0/1 along the last axis."""
+    return np.unpackbits(packed, axis=-1, count=count, bitorder=BIT_ORDER)
+
+
+def collate(samples: list[PackedSample], unpack: bool = True) -> dict[str, np.ndarray]:
+    """Samples of one shape and size (`decode_packed`) -> batched arrays.
 
     `noisy`/`clean` are (B, H, W) uint8 0/1 when `unpack`, else the packed bits
     (B, H*W/8): a trainer can ship packed bits to its device and unpack there,
     8x less to copy. `keypoints` is (B, N, 2) float32, `ratios` (B, R) float32.
     """
-    if not records:
+    if not samples:
         raise ValueError("cannot collate an empty batch")
-    shape, size = records[0]["shape"], records[0]["size"]
-    geometry = get_shape(shape)
-    for r in records:
-        if r["shape"] != shape or r["size"] != size:
-            raise ValueError(f"mixed batch: {r['shape']} {r['size']}px among {shape} {size}px samples")
+    shape, size = samples[0].shape, samples[0].size
+    for s in samples:
+        if s.shape != shape or s.size != size:
+            raise ValueError(f"mixed batch: {s.shape} {s.size}px among {shape} {size}px samples")
     batch = {}
     if unpack and size * size % 8 == 0:
         # Both masks of the whole batch in one flat unpack into one array (two views): no
         # per-row padding to cut, and one large allocation rather than two, which glibc
         # would hand back to the kernel and fault in again, page by page, every batch
         # (ten times slower on this VM).
-        packed = b"".join([r["noisy"] for r in records] + [r["clean"] for r in records])
-        both = np.unpackbits(np.frombuffer(packed, np.uint8), bitorder=BIT_ORDER).reshape(2, len(records), size, size)
+        packed = b"".join([s.noisy for s in samples] + [s.clean for s in samples])
+        both = np.unpackbits(np.frombuffer(packed, np.uint8), bitorder=BIT_ORDER).reshape(2, len(samples), size, size)
         batch["noisy"], batch["clean"] = both[0], both[1]
     else:
         for key in ("noisy", "clean"):
-            # bytearray: a writable buffer, so torch.from_numpy can share it without a warning
-            packed = np.frombuffer(bytearray(b"".join([r[key] for r in records])), np.uint8).reshape(len(records), -1)
-            batch[key] = (np.unpackbits(packed, axis=1, count=size * size, bitorder=BIT_ORDER).reshape(-1, size, size)
-                          if unpack else packed)
-    keypoints = np.frombuffer(b"".join(r["keypoints"] for r in records), KEYPOINT_DTYPE)
-    batch["keypoints"] = keypoints.reshape(len(records), geometry.num_keypoints, 2).astype(np.float32)
-    batch["ratios"] = np.stack([geometry.ratio_vector(r["ratios"]) for r in records]).astype(np.float32)
+            packed = packed_rows(samples, key, size)
+            batch[key] = unpack_rows(packed, size * size).reshape(-1, size, size) if unpack else packed
+    batch["keypoints"] = np.stack([s.keypoints for s in samples]).astype(np.float32)
+    batch["ratios"] = np.stack([s.ratios for s in samples]).astype(np.float32)
     return batch

@@ -69,7 +69,7 @@ def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     from cuboidtrain.infer.records import to_records
 
     fitter = Fitter(models, FitOptions(**({"device": "cpu"} | options)))
-    return to_records(fitter.records(paths, explain=explain), fitter.options)
+    return to_records(fitter.outcomes(paths, explain=explain), fitter.options)
 
 
 def with_generated_pdm(model):

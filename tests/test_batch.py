@@ -134,12 +134,12 @@ def test_two_workers_give_the_records_of_one_process(masks):
 
 
 def test_without_a_terminal_progress_is_log_lines_and_a_summary(tmp_path, masks, monkeypatch, caplog):
-    monkeypatch.setattr("cuboidtrain.infer.progress.LOG_SECONDS", 0.0)
+    monkeypatch.setattr("cuboidtrain.infer.reporting.LOG_SECONDS", 0.0)
     console = Console(file=(tmp_path / "console.txt").open("w"), width=300)
     checkpoints = default_checkpoints(None)
     batch = Batch(tuple(masks[15:25]), tuple(checkpoints), FitOptions(device="cpu"), jsonl=tmp_path / "o.jsonl",
                   keep=False)
-    with caplog.at_level("INFO", logger="cuboidtrain.infer.progress"):
+    with caplog.at_level("INFO", logger="cuboidtrain.infer.reporting"):
         records, tally = run_batch(batch, Fitter.from_files(checkpoints, FitOptions(device="cpu")), console)
     console.file.close()
     assert records == [] and tally.done == 10 and tally.failed == 1

@@ -5,7 +5,7 @@ from pathlib import Path
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy"))
 from bench_accuracy import spool_for  # noqa: E402
 
 

@@ -18,7 +18,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import lift
-from cuboidtrain.geometry.scoring import Truth
+from cuboidtrain.geometry.accuracy import Truth
 from cuboidtrain.infer.records import to_record
 from shared.errors import UsageError
 from shared.shapes import get_shape
@@ -212,7 +212,7 @@ def test_the_records_sds_are_the_calibration_of_their_features_and_the_corner_ga
         np.testing.assert_allclose(sds, [*spread.ratios, spread.yaw_deg, *([spread.focal_px] if spread.focal_px else [])],
                                    rtol=1e-9)
     # the corner gap: 0 for corners on the box, 1% of the side for corners all 3 px off on a 300 px frame
-    from cuboidtrain.geometry.camera import project
+    from cuboidtrain.geometry.camera_params import project
     from cuboidtrain.geometry.outline import MaskTarget
 
     camera = lift(truths[0].keypoints, truths[0].shape).camera
@@ -231,7 +231,7 @@ def test_the_records_sds_are_the_calibration_of_their_features_and_the_corner_ga
 
 @pytest.mark.parametrize("shape", ["box", "twobox"])
 def test_the_error_bars_batched_yaw_is_the_poses_yaw_for_every_twin_and_mirror(shape):
-    from cuboidtrain.geometry.camera import CameraParams, canonical, euler_angles, rotation_matrices
+    from cuboidtrain.geometry.camera_params import CameraParams, canonical, euler_angles, rotation_matrices
     from cuboidtrain.geometry.uncertainty import yaws_deg
 
     rng = np.random.default_rng(3)

@@ -42,7 +42,7 @@ def records(masks):
     out = {}
     for cuboid in (False, True):
         fitters = {s: Fitter.from_shipped(FitOptions(shape=s, device="cpu", cuboid=cuboid)) for s in ("box", "twobox")}
-        out[cuboid] = [to_record(fitters[s.shape].records([p])[0], cuboid=cuboid) for p, s in zip(paths, samples)]
+        out[cuboid] = [to_record(fitters[s.shape].outcomes([p])[0], cuboid=cuboid) for p, s in zip(paths, samples)]
     return out
 
 
@@ -105,7 +105,7 @@ def test_without_the_option_the_record_has_no_cuboid(records):
 
 def test_auto_chooses_by_the_fitted_cuboids(masks):
     paths, samples = masks
-    fitted = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)).records(paths[:1] + paths[3:4])
+    fitted = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)).outcomes(paths[:1] + paths[3:4])
     for record in to_records(fitted, FitOptions(cuboid=True)):
         assert set(record["candidates"]) == {"box", "twobox"}
         assert record["cuboid"]["iou"] == record["candidates"][record["shape"]]
@@ -116,7 +116,7 @@ def test_a_non_finite_cuboid_fit_is_an_error_record(masks, monkeypatch):
     real = stage.fit_masks
     monkeypatch.setattr(stage, "fit_masks", lambda *a, **k: [replace(f, yaw_deg=float("nan")) for f in real(*a, **k)])
     paths, _ = masks
-    [failure] = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).records(paths[:1])
+    [failure] = Fitter.from_shipped(FitOptions(shape="box", device="cpu", cuboid=True)).outcomes(paths[:1])
     assert isinstance(failure, FitFailure) and failure.input == paths[0]
     record = to_record(failure, cuboid=True)
     assert record["keypoints"] is None and record["cuboid"] is None
@@ -145,7 +145,7 @@ def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(t
 
 def fitted_cuboid(shape: str, iou: float, left_height: float = 0.6) -> stage.FittedCuboid:
     """A fitted cuboid of `shape` with the given IoU; a twobox's LEFT part `left_height` times the RIGHT's."""
-    from cuboidtrain.geometry.camera import CameraParams, describe
+    from cuboidtrain.geometry.camera_params import CameraParams, describe
 
     vector = np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0, 0.0, np.log(100.0), 0.2, 64.0, 64.0]
                       + ([0.5, np.log(left_height)] if shape == "twobox" else []))
@@ -184,7 +184,7 @@ def test_the_fitted_cuboids_choose_the_class_plausibly(box_iou, twobox_iou, left
 def runaway_twobox(iou: float, split: float = 1.1, k: float = 0.2) -> stage.FittedCuboid:
     """A twobox fit gone wrong: its split outside its width (the LEFT part's width negative) or,
     with a large `k`, its camera inside it."""
-    from cuboidtrain.geometry.camera import CameraParams, describe
+    from cuboidtrain.geometry.camera_params import CameraParams, describe
 
     vector = np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0, 0.0, np.log(100.0), k, 64.0, 64.0, split, np.log(0.6)])
     return stage.FittedCuboid(describe(CameraParams(get_shape("twobox"), vector, False), 0.0, iou=iou),

@@ -18,8 +18,9 @@ import torch
 
 from cuboidgen.daemon import run as generate
 from cuboidtrain.models.checkpoint import load_checkpoint, load_model
-from cuboidtrain.train.data import EpochSampler, LoaderState, SpoolBatches, prepare_batch
-from cuboidtrain.train.distributed import rank_batches
+from cuboidtrain.data.loader import SpoolBatches
+from cuboidtrain.data.prepare import prepare_batch
+from cuboidtrain.data.sampler import EpochSampler, LoaderState, rank_batches
 from cuboidtrain.train.losses import combine, phase_losses
 from tests.conftest import ARCH, tiny_config, tiny_model, train_config
 
@@ -76,7 +77,7 @@ def test_rank_samplers_split_one_listing_and_resume_at_the_same_place(tmp_path):
 def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
     from dataclasses import dataclass
 
-    from cuboidtrain.train.data import SKIP_REASONS
+    from cuboidtrain.data.loader import SKIP_REASONS, LoaderBatch
     from cuboidtrain.train.distributed import Ranks
     from cuboidtrain.train.agreement import batch_facts, stale
 
@@ -87,12 +88,12 @@ def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
         def sum(self, values):
             return [a + b for a, b in zip(values, self.peer)]
 
-    def batch(kept: int, vanished: int) -> dict:
-        return {"names": [f"{i}.cub" for i in range(kept)], "skipped": {**dict.fromkeys(SKIP_REASONS, 0),
-                                                                        "vanished": vanished}}
+    def batch(kept: int, vanished: int) -> LoaderBatch:
+        return LoaderBatch([f"{i}.cub" for i in range(kept)], {**dict.fromkeys(SKIP_REASONS, 0), "vanished": vanished},
+                           [f"gone-{i}.cub" for i in range(vanished)])
 
-    def facts(mine: dict, theirs: dict, rank: int):
-        peer = (*theirs["skipped"].values(), float(len(theirs["names"]) < 2))
+    def facts(mine: LoaderBatch, theirs: LoaderBatch, rank: int):
+        peer = (*theirs.skipped.values(), float(len(theirs.names) < 2))
         return batch_facts(Pair(rank=rank, world=2, peer=peer), mine)
 
     full, short = batch(4, 0), batch(1, 3)  # three of rank 1's four samples were evicted
@@ -176,7 +177,7 @@ def emulated_ranks(spool: Path, steps: int, world: int = 2) -> list[dict]:
     for _ in range(steps):  # the first epoch (5 global batches of 8) holds them all
         grads, losses = [], []
         for batch in (data[next(share)] for share in shares):
-            assert len(batch["names"]) >= 2  # no step is skipped: each rank trains on every batch
+            assert len(batch.names) >= 2  # no step is skipped: each rank trains on every batch
             out = phase_losses(model, prepare_batch(batch, CPU, config.heatmap_sigma, SIZE), "1", config.ratio_weight)
             total = combine(out, "1", config.loss_weights)
             grads.append(torch.autograd.grad(total, params))

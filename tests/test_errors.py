@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from cuboidgen.cli import app as gen_app
 from cuboidtrain.cli import app as train_app
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import CutOff
+from cuboidtrain.data.reframing import CutOff
 from shared.console import Commands
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.spool import SpoolError

@@ -213,11 +213,11 @@ def spool_of_another_size(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("margin", [0.0, 0.1, 0.25])
 def test_eval_frames_samples_of_another_size_with_its_margin(spool_of_another_size, margin):
-    from cuboidtrain.train.data import prepare_batch
+    from cuboidtrain.data.prepare import prepare_batch
     from cuboidtrain.train.evaluate import load_batches
 
     batches, skipped = load_batches(spool_of_another_size, "box", SIZE, 4, None, margin)
-    assert sum(len(b["names"]) for b in batches) + skipped["cut_off"] == 4
+    assert sum(len(b.names) for b in batches) + skipped["cut_off"] == 4
     for batch in batches:  # framed on the device, as the batches are measured
         for mask in prepare_batch(batch, torch.device("cpu"), 1.0, SIZE).x1[:, 0].numpy() > 0:
             ys, xs = np.nonzero(mask)
@@ -284,7 +284,7 @@ def test_eval_scores_the_very_fits_infer_gives(tmp_path):
     """One pipeline: each sample's cuboid path in `eval --cuboid` is the answer `Fitter.fit` (what
     `infer` runs) gives for that sample's mask, though eval fits a batch of samples at once."""
     from cuboidtrain.fit.fitter import Fitter
-    from cuboidtrain.geometry.scoring import Truth, score
+    from cuboidtrain.geometry.accuracy import Truth, against_truth
     from cuboidtrain.train.evaluate import load_batches, measure
 
     spool = tmp_path / "val"
@@ -294,16 +294,16 @@ def test_eval_scores_the_very_fits_infer_gives(tmp_path):
     [model] = fitter.models
     batches, _ = load_batches(spool, "box", model.size, 3, None, options.margin, keep_sources=True)
     scored = measure(model, batches, model.sigma, options, paths=True)["paths"]
-    sources = [source for batch in batches for source in batch["sources"]]
+    sources = [source for batch in batches for source in batch.sources]
     assert len(sources) == len(scored["cuboid"]) == 5
     for source, networks, cuboid in zip(sources, scored["networks"], scored["cuboid"]):
         fit = fitter.fit(source.sample.noisy)
         truth = Truth.of_sample(source.sample)
-        expected = score(fit.keypoints, fit.ratios, truth, fit.cuboid.fit.camera)
+        expected = against_truth(fit.keypoints, fit.ratios, truth, fit.cuboid.fit.camera)
         np.testing.assert_allclose(np.concatenate([cuboid.hull, cuboid.interior]),
                                    np.concatenate([expected.hull, expected.interior]), atol=1e-4)
         assert cuboid.iou3d == pytest.approx(expected.iou3d, abs=1e-4)
         plain = Fitter([model], FitOptions(device="cpu", shape="box")).fit(source.sample.noisy)  # --networks-only
-        alone = score(plain.keypoints, plain.ratios, truth)
+        alone = against_truth(plain.keypoints, plain.ratios, truth)
         np.testing.assert_allclose(np.concatenate([networks.hull, networks.interior]),
                                    np.concatenate([alone.hull, alone.interior]), atol=1e-4)

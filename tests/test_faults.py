@@ -1,5 +1,5 @@
 """Faults: a full disk, bad spool paths, corrupt and foreign files, an almost empty spool,
-and what a killed trainer leaves behind. The kill -9 soak is benchmarks/soak_faults.py."""
+and what a killed trainer leaves behind. The kill -9 soak is benchmarks/soak/soak_faults.py."""
 from __future__ import annotations
 
 import contextlib
@@ -22,17 +22,17 @@ from rich.console import Console
 from typer.testing import CliRunner
 
 import cuboidgen.daemon as daemon
-import cuboidtrain.train.data as data
+import cuboidtrain.data.sampler as data
 import cuboidtrain.train.loop as train_module
 from cuboidgen.cli import app as gen_app
 from cuboidtrain.models.checkpoint import load_checkpoint
 from cuboidtrain.cli import app as train_app
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.monitor.dashboard import render, watch
-from cuboidtrain.train.files import sweep_orphans as sweep_run_folder
+from cuboidtrain.train.run_files import sweep_orphans as sweep_run_folder
 from cuboidtrain.train.monitor.status import TrainerStatus, read_status, trainer_died, write_status
 from cuboidtrain.train.loop import NoUsableSamples, run
-from cuboidtrain.train.stopping import StopRequest
+from cuboidtrain.train.stop_and_wait import StopRequest
 from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
 from shared.sample import encode

@@ -136,7 +136,7 @@ def test_a_fit_that_gives_a_non_finite_value_is_an_error_record(monkeypatch):
     with torch.no_grad():  # a model in hand, not from a file: nothing checked its weights
         for p in model.tabulator.parameters():
             p.fill_(float("nan"))
-    outcomes = Fitter([model], FitOptions(device="cpu")).records(["examples/building.png"])
+    outcomes = Fitter([model], FitOptions(device="cpu")).outcomes(["examples/building.png"])
     assert len(outcomes) == 1 and isinstance(outcomes[0], FitFailure)
     records = to_records(outcomes, FitOptions())
     assert records[0]["keypoints"] is None and records[0]["confidence"] is None

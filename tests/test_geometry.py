@@ -11,7 +11,7 @@ import pytest
 
 from cuboidgen.config import SCENES
 from cuboidgen.scene import draw_view
-from cuboidtrain.geometry.camera import canonical, describe, from_sample_params, outline_corners
+from cuboidtrain.geometry.camera_params import canonical, describe, from_sample_params, outline_corners
 from cuboidtrain.geometry.lift import lift, lift_many
 from cuboidtrain.geometry.mask_fit import fit_mask
 from shared.raster import rasterize
@@ -58,14 +58,14 @@ def test_canonical_twin_projects_the_same_corners():
 
 def _necker_twin(vector, mirror):
     """The k < 0 reflection of a camera (what the lift sometimes converges to)."""
-    from cuboidtrain.geometry.camera import rotation_matrices, rotation_vector
+    from cuboidtrain.geometry.camera_params import rotation_matrices, rotation_vector
     rot = np.diag([1.0, 1.0, -1.0]) @ rotation_matrices(vector[None, 2:5])[0] @ np.diag([-1.0, 1.0, 1.0])
     twin = vector.copy()
     twin[2:5], twin[8] = rotation_vector(rot), -vector[8]
     return twin, not mirror
 
 
-# The issue's bar: 99% of exact views in every cell (benchmarks/bench_lift.py measures 100%
+# The issue's bar: 99% of exact views in every cell (benchmarks/accuracy/bench_lift.py measures 100%
 # on 1,000 views a cell since the vanishing-point start, `cuboidtrain.geometry.vanishing`).
 LIFT_FLOOR = 0.99
 
@@ -118,7 +118,7 @@ def test_mask_fit_improves_hull_corners_from_perturbed_truth(shape, scene):
 @pytest.mark.parametrize("shape", SHAPES)
 def test_projection_jacobian_matches_central_differences(shape):
     """The solver's analytic derivatives, including a rotation near zero and a mirrored box."""
-    from cuboidtrain.geometry.camera import project, project_with_jacobian
+    from cuboidtrain.geometry.camera_params import project, project_with_jacobian
     geometry, rng = get_shape(shape), np.random.default_rng(11)
     for view in views(shape, "paper", 6, seed=4):
         base = from_sample_params(geometry, view.params).vector
@@ -137,7 +137,7 @@ def test_projection_jacobian_matches_central_differences(shape):
 def test_vanishing_point_start_is_exact_on_exact_corners(shape, scene):
     """Three finite vanishing points fix focal length, principal point and rotation; the
     extents and translation then follow linearly: one start reproduces the corners."""
-    from cuboidtrain.geometry.camera import project
+    from cuboidtrain.geometry.camera_params import project
     from cuboidtrain.geometry.vanishing import vanishing_starts
     geometry = get_shape(shape)
     exact = 0

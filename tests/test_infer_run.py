@@ -70,7 +70,7 @@ def test_what_the_fitting_gives_back_is_typed_and_light_in_process_and_from_a_po
 
 
 def test_a_fit_whose_numbers_are_not_finite_is_a_failure_naming_the_field(masks, monkeypatch):
-    monkeypatch.setattr("cuboidtrain.fit.fitter.score", lambda *args: Scores(float("nan"), ()))
+    monkeypatch.setattr("cuboidtrain.fit.fitter.assess", lambda *args: Scores(float("nan"), ()))
     fitter = Fitter.from_shipped(FitOptions(device="cpu", shape="box"))
-    [failure] = fitter.records(masks[:1])
+    [failure] = fitter.outcomes(masks[:1])
     assert failure == FitFailure(masks[0], f"{masks[0]}: the fit's confidence is nan: no fit")

@@ -12,7 +12,7 @@ import torch
 
 from cuboidgen.bench import bench_scenes
 from cuboidgen.config import SCENES
-from cuboidtrain.train.data import EpochPosition
+from cuboidtrain.data.sampler import EpochPosition
 from cuboidtrain.train.monitor import stats
 from cuboidtrain.train.monitor.dashboard import wait_cell
 from cuboidtrain.train.monitor.progress import STARVED, Progress
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_the_input_benchmark_prints_a_table_and_json_for_each_size_with_and_without_reframing(tmp_path):
     out = tmp_path / "input.json"
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_input.py"), "--sizes", "32", "64",
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "speed" / "bench_input.py"), "--sizes", "32", "64",
                            "--batch", "8", "--batches", "2", "--repeats", "1", "--json", str(out)],
                           cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr

@@ -92,7 +92,7 @@ def test_inspect_and_the_trainers_reader_count_non_finite_samples_as_corrupt_wit
 
     import numpy as np
 
-    from cuboidtrain.train.data import SpoolBatches
+    from cuboidtrain.data.loader import SpoolBatches
 
     names = fill_spool(tmp_path, 4, library=library)
     good = (tmp_path / names[0]).read_bytes()
@@ -105,5 +105,5 @@ def test_inspect_and_the_trainers_reader_count_non_finite_samples_as_corrupt_wit
     assert report["samples"] == 2 and report["corrupt"] == 2
     assert report["corrupt_reasons"] == {"keypoints: not finite": 1, "ratios: not finite": 1}
     batch = SpoolBatches(tmp_path, "box", 48)[names]
-    assert batch["names"] == [names[0], names[3]] and batch["skipped"]["corrupt"] == 2
-    assert np.isfinite(batch["keypoints"].numpy()).all()
+    assert batch.names == [names[0], names[3]] and batch.skipped["corrupt"] == 2
+    assert np.isfinite(batch.keypoints.numpy()).all()

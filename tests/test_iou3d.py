@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cuboidtrain.geometry.camera import rotation_matrices
+from cuboidtrain.geometry.camera_params import rotation_matrices
 from cuboidtrain.geometry.iou3d import OrientedBox, intersection_volume, iou, union_iou
 
 coordinate = st.floats(-2.0, 2.0, allow_nan=False)

@@ -40,6 +40,15 @@ def test_only_the_experiments_import_the_generator():
     assert {p: m for p, m in offenders.items() if m} == {}
 
 
+def test_the_generator_never_imports_the_trainer():
+    """The daemons meet only through the spool (docs/contract.md): the generator runs without torch's trainer."""
+    generator = list((ROOT / "cuboidgen").rglob("*.py"))
+    assert len(generator) > 10  # the scan sees the package
+    offenders = {str(p.relative_to(ROOT)): sorted(m for m in imported_modules(p) if m.split(".")[0] == "cuboidtrain")
+                 for p in generator}
+    assert {p: m for p, m in offenders.items() if m} == {}
+
+
 def test_shared_imports_neither_daemon():
     for path in (ROOT / "shared").rglob("*.py"):
         assert not {m.split(".")[0] for m in imported_modules(path)} & {"cuboidgen", "cuboidtrain"}, path
@@ -157,17 +166,26 @@ def test_no_import_cycles():
 # ---- the floors: each layer imports only the ones beneath it --------------------------
 
 # cuboidtrain's layers, lowest first: the solver knows no network, the networks know no fit, the
-# fit path knows neither the runners nor the trainer. Each may import any lower floor (and shared).
-FLOORS = {"cuboidtrain.geometry": 1, "cuboidtrain.models": 2, "cuboidtrain.fit": 3, "cuboidtrain.infer": 4,
-          "cuboidtrain.train": 4}
+# fit path knows neither the data floor nor the runners and the trainer; the experiments stand on
+# all of them and the command line on everything. Each may import any lower floor (and shared).
+# A package's own `__init__` (the root `cuboidtrain`) is its name alone: the key matches no submodule.
+FLOORS = {"cuboidtrain": 0, "cuboidtrain.allocator": 0, "cuboidtrain.geometry": 1, "cuboidtrain.models": 2,
+          "cuboidtrain.fit": 3, "cuboidtrain.data": 4, "cuboidtrain.localize": 4, "cuboidtrain.infer": 5,
+          "cuboidtrain.train": 5, "cuboidtrain.experiments": 6, "cuboidtrain.cli": 7, "cuboidtrain.__main__": 8}
 
 
 def floor(module: str) -> tuple[str, int] | None:
-    """The layer a module belongs to and its height, None for one above every floor (cli, experiments)."""
+    """The layer a module belongs to and its height; None for a module of no floor (of another package)."""
     for package, height in FLOORS.items():
-        if module == package or module.startswith(package + "."):
+        if module == package or (package not in PACKAGES and module.startswith(package + ".")):
             return package, height
     return None
+
+
+def test_every_module_of_the_trainer_stands_on_a_floor():
+    unplaced = sorted(name for name in module_files() if name.split(".")[0] == "cuboidtrain" and floor(name) is None)
+    assert unplaced == []
+    assert floor("cuboidtrain") == ("cuboidtrain", 0) and floor("cuboidtrain.nothing_here") is None
 
 
 def climbs(graph: dict[str, set[str]]) -> list[str]:
@@ -185,8 +203,10 @@ def climbs(graph: dict[str, set[str]]) -> list[str]:
 def test_climbs_sees_an_import_up_a_floor_and_allows_one_down():
     assert climbs({"cuboidtrain.models.zoo": {"cuboidtrain.fit.options"}}) == [
         "cuboidtrain.models.zoo -> cuboidtrain.fit.options"]
-    assert climbs({"cuboidtrain.infer.pool": {"cuboidtrain.train.data"}}) == [
-        "cuboidtrain.infer.pool -> cuboidtrain.train.data"]  # side by side is no way down either
+    assert climbs({"cuboidtrain.infer.pool": {"cuboidtrain.train.loop"}}) == [
+        "cuboidtrain.infer.pool -> cuboidtrain.train.loop"]  # side by side is no way down either
+    assert climbs({"cuboidtrain.data.loader": {"cuboidtrain.train.distributed"}}) == [
+        "cuboidtrain.data.loader -> cuboidtrain.train.distributed"]  # the data floor stands below the trainer
     assert climbs({"cuboidtrain.fit.fitter": {"cuboidtrain.models.zoo", "cuboidtrain.geometry.lift",
                                               "cuboidtrain.fit.options"}}) == []
     assert climbs({"cuboidtrain.cli": {"cuboidtrain.train.loop"}}) == []  # the command line stands on all
@@ -226,15 +246,29 @@ def test_no_module_imports_a_private_name_of_another(tmp_path):
 
 def test_every_room_holds_at_most_twelve_modules_each_saying_its_role():
     rooms: dict[str, list[Path]] = {}
-    for package in PACKAGES:
+    for package in (*PACKAGES, "benchmarks"):
         for path in (ROOT / package).rglob("*.py"):
             rooms.setdefault(str(path.parent.relative_to(ROOT)), []).append(path)
-    assert {"cuboidtrain/geometry", "cuboidtrain/fit", "cuboidtrain/infer", "cuboidtrain/models"} <= set(rooms)
+    assert {"cuboidtrain/geometry", "cuboidtrain/fit", "cuboidtrain/data", "cuboidtrain/infer", "cuboidtrain/models",
+            "benchmarks/accuracy", "benchmarks/speed", "benchmarks/soak", "benchmarks/gpu"} <= set(rooms)
     assert {room: len(paths) for room, paths in rooms.items()
             if len([p for p in paths if p.name != "__init__.py"]) > 12} == {}
     silent = [str(p.relative_to(ROOT)) for paths in rooms.values() for p in paths
               if not (ast.get_docstring(ast.parse(p.read_text())) or "").strip()]
     assert silent == []
+
+
+def test_no_module_name_means_two_things():
+    """A module's name says its role once: the same file name in two folders of the packages is two
+    meanings for one word (`files`, `camera`, `stopping` were). A package's `__init__`, `cli` (each
+    daemon's command line) and `config` (each daemon's settings) are the one role in each."""
+    roles = ("__init__.py", "__main__.py", "cli.py", "config.py", "dashboard.py")
+    seen: dict[str, list[str]] = {}
+    for package in PACKAGES:
+        for path in (ROOT / package).rglob("*.py"):
+            if path.name not in roles:
+                seen.setdefault(path.name, []).append(str(path.relative_to(ROOT)))
+    assert {name: paths for name, paths in seen.items() if len(paths) > 1} == {}
 
 
 def readme_python_example() -> str:

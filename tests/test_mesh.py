@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from cuboidgen.config import PAPER_CLEAN
 from cuboidtrain.cli import app
 from cuboidtrain.fit.fitter import Fitter, Writers
-from cuboidtrain.geometry.camera import describe
+from cuboidtrain.geometry.camera_params import describe
 from cuboidtrain.infer.mesh import NOMINAL_DISTANCE, MeshWriter, camera_box, obj_text, read_obj
 from cuboidtrain.fit.options import FitOptions
 from shared.camera import project

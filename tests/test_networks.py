@@ -14,9 +14,9 @@ import torch
 from torch import nn
 
 from cuboidtrain.models.checkpoint import FORMAT, VERSION, load_checkpoint, load_model, save_checkpoint
-from cuboidtrain.train.data import loader_state
+from cuboidtrain.data.sampler import loader_state
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import LoaderState
+from cuboidtrain.data.sampler import LoaderState
 from cuboidtrain.infer.export import OnnxPipeline, export_model
 from cuboidtrain.models.codec import render_heatmaps
 from cuboidtrain.models.networks import ARCHS, ChainOutput, Estimator, Refiner, Tabulator, build_model, check_arch

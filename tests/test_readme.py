@@ -105,7 +105,7 @@ def test_make_targets_and_scripts_exist():
                     for target in words[1:]:
                         assert re.search(rf"^{re.escape(target)}:", makefile, re.M), (page.name, target)
                 for word in words:
-                    if re.fullmatch(r"(recipes|benchmarks|ops)/[\w.-]+\.(sh|py)", word):
+                    if re.fullmatch(r"(recipes|benchmarks|ops)/[\w./-]+\.(sh|py)", word):
                         assert (ROOT / word).is_file(), (page.name, word)
 
 

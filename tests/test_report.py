@@ -53,9 +53,9 @@ def test_generated_sweep_levels_share_poses_and_differ_in_noise(tmp_path):
     loud = replace(quiet, contour_noise=(4.0, 4.0))
     a, params_a = generated_batches(tmp_path / "a", "box", SIZE, quiet, 5, 100, library)
     b, params_b = generated_batches(tmp_path / "b", "box", SIZE, loud, 5, 100, library)
-    assert torch.equal(a[0]["keypoints"], b[0]["keypoints"])  # the same poses at every level
-    assert not torch.equal(a[0]["noisy"], b[0]["noisy"])
-    assert torch.equal(a[0]["noisy"], a[0]["clean"])  # no noise, no occluders: x1 is the clean mask
+    assert torch.equal(a[0].keypoints, b[0].keypoints)  # the same poses at every level
+    assert not torch.equal(a[0].noisy, b[0].noisy)
+    assert torch.equal(a[0].noisy, a[0].clean)  # no noise, no occluders: x1 is the clean mask
     assert sorted(p["contour_noise"] for p in params_b.values()) == [4.0 * SIZE / 256] * 5
 
 

@@ -3,8 +3,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.sample import (BIT_SHIFTS, VERSION, collate, decode, decode_record, encode, from_record, pack_mask,
-                           signed, to_record, unpack_mask)
+from shared.sample import (BIT_SHIFTS, VERSION, collate, decode, decode_packed, decode_record, encode, from_record,
+                           pack_mask, packed_rows, signed, to_record, unpack_mask)
+from shared.shapes import get_shape
 from tests.conftest import build_sample
 
 
@@ -87,20 +88,40 @@ def test_encode_refuses_wrong_keypoint_count(library):
         encode(replace(build_sample(0, library=library), keypoints=np.zeros((14, 2))))
 
 
+def test_a_packed_sample_is_the_sample_read_once_its_masks_still_packed(library):
+    for shape in ("box", "twobox"):
+        sample = build_sample(3, shape, library=library)
+        packed = decode_packed(encode(sample))
+        assert packed.unpacked() == sample and (packed.shape, packed.size) == (sample.shape, sample.size)
+        np.testing.assert_array_equal(packed.keypoints, sample.keypoints)
+        np.testing.assert_array_equal(packed.ratios, get_shape(shape).ratio_vector(sample.ratios))
+        assert packed.noisy == pack_mask(sample.noisy) and packed.clean == pack_mask(sample.clean)
+        np.testing.assert_array_equal(packed.noisy_mask(), sample.noisy.astype(np.uint8))
+
+
+def test_packed_rows_pad_a_smaller_sample_with_background(library):
+    small, large = build_sample(0, size=24, library=library), build_sample(1, size=40, library=library)
+    rows = packed_rows([decode_packed(encode(s)) for s in (small, large)], "clean", 40)
+    unpacked = np.unpackbits(rows, axis=1, count=40 * 40).reshape(2, 40, 40).astype(bool)
+    np.testing.assert_array_equal(unpacked[1], large.clean)
+    np.testing.assert_array_equal(unpacked[0, :24, :24], small.clean)
+    assert not unpacked[0, 24:].any() and not unpacked[0, :, 24:].any()
+
+
 def test_collate_batches_records_in_order(library):
     samples = [build_sample(i, library=library) for i in range(4)]
-    batch = collate([decode_record(encode(s)) for s in samples])
+    batch = collate([decode_packed(encode(s)) for s in samples])
     assert batch["noisy"].shape == (4, 48, 48) and batch["noisy"].dtype == np.uint8
     assert batch["keypoints"].shape == (4, 8, 2) and batch["ratios"].shape == (4, 2)
     for i, s in enumerate(samples):
         assert (batch["clean"][i] == s.clean).all() and np.allclose(batch["keypoints"][i], s.keypoints)
-    packed = collate([decode_record(encode(s)) for s in samples], unpack=False)
+    packed = collate([decode_packed(encode(s)) for s in samples], unpack=False)
     assert packed["noisy"].shape == (4, 48 * 48 // 8)
     assert (np.unpackbits(packed["noisy"], axis=1).reshape(4, 48, 48) == batch["noisy"]).all()
 
 
 def test_collate_refuses_mixed_shapes(library):
-    records = [decode_record(encode(build_sample(0, s, library=library))) for s in ("box", "twobox")]
+    records = [decode_packed(encode(build_sample(0, s, library=library))) for s in ("box", "twobox")]
     with pytest.raises(ValueError, match="mixed batch"):
         collate(records)
 

@@ -265,13 +265,13 @@ def test_read_survives_short_reads(tmp_path, monkeypatch, library):
 
 @pytest.mark.parametrize("size", [48, 14])  # 14 x 14 bits do not fill whole bytes
 def test_collated_masks_are_the_decoded_ones(tmp_path, size, library):
-    from shared.sample import collate, decode_record
+    from shared.sample import collate, decode_packed
 
     with SpoolWriter(tmp_path, limit=0) as writer:
         for seed in range(5):
             writer.publish(encode(build_sample(seed, size=size, library=library)))
     data = [read_sample_bytes(tmp_path, n) for n in enumerate_spool(tmp_path)]
-    batch = collate([decode_record(d) for d in data], unpack=True)
+    batch = collate([decode_packed(d) for d in data], unpack=True)
     for key in ("noisy", "clean"):
         expected = np.stack([getattr(decode(d), key) for d in data]).astype(np.uint8)
         assert batch[key].dtype == np.uint8 and batch[key].shape == (5, size, size)

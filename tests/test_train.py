@@ -19,7 +19,8 @@ from typer.testing import CliRunner
 from cuboidtrain.cli import app
 from cuboidtrain.models.checkpoint import load_checkpoint, load_model
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import SpoolBatches, prepare_batch
+from cuboidtrain.data.loader import SpoolBatches
+from cuboidtrain.data.prepare import prepare_batch
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.loop import learning_rate, run
 from cuboidtrain.train.monitor.status import TrainerStatus, read_status

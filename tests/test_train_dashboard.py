@@ -202,7 +202,7 @@ def test_the_live_panel_leaves_room_for_the_echoed_ctrl_c():
 def test_a_stop_is_seen_before_its_handler_runs(tmp_path):
     import signal
 
-    from cuboidtrain.train.stopping import StopRequest
+    from cuboidtrain.train.stop_and_wait import StopRequest
 
     with StopRequest().installed() as stop:
         write = signal.set_wakeup_fd(-1)  # the pipe the signal module writes each signal's number to
@@ -266,7 +266,7 @@ def test_status_follows_steps_slower_than_the_publish_interval(tmp_path, monkeyp
     from cuboidtrain.train.monitor import progress as progress_module
     from cuboidtrain.train.monitor import publisher
     from cuboidtrain.train.config import TrainConfig
-    from cuboidtrain.train.data import EpochPosition
+    from cuboidtrain.data.sampler import EpochPosition
 
     monkeypatch.setattr(publisher, "PUBLISH_EVERY", 0.05)
     monkeypatch.setattr(publisher, "HEARTBEAT_EVERY", 0.01)

@@ -6,9 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cuboidtrain.geometry.camera import describe, from_sample_params, rotation_matrices, rotation_vector
-from cuboidtrain.geometry.scoring import (Truth, camera_boxes, corner_errors, focal_error, hull_corners, iou_up_to_scale,
-                                   score, solid_yaw_deg, summarise, yaw_error_deg)
+from cuboidtrain.geometry.camera_params import describe, from_sample_params, rotation_matrices, rotation_vector
+from cuboidtrain.geometry.accuracy import (Truth, against_truth, camera_boxes, corner_errors, focal_error, hull_corners,
+                                      iou_up_to_scale, solid_yaw_deg, summarise, yaw_error_deg)
 from shared.shapes import get_shape
 
 RATIOS = {"depth_height": 0.5, "width_height": 2.0}
@@ -61,7 +61,7 @@ def _turned(camera, degrees: float):
 def test_the_truth_against_itself_has_no_yaw_error_and_a_3d_iou_of_one(shape, scene):
     for view in _views(shape, scene, 10):
         truth = _truth(view)
-        errors = score(view.keypoints, view.ratios, truth, truth.camera)
+        errors = against_truth(view.keypoints, view.ratios, truth, truth.camera)
         assert errors.yaw_deg == 0.0 and errors.iou3d == pytest.approx(1.0, abs=1e-7) and errors.focal == 0.0
         assert errors.hull.max() == 0 and errors.interior.max() == 0
 
@@ -113,9 +113,9 @@ def test_3d_iou_is_taken_at_the_truths_depth():
 def test_the_networks_corners_are_lifted_for_their_3d_figures():
     view = _views("twobox", "street", 1, seed=6)[0]
     truth = _truth(view)
-    exact = score(view.keypoints, view.ratios, truth)  # no camera given: the corners are lifted
+    exact = against_truth(view.keypoints, view.ratios, truth)  # no camera given: the corners are lifted
     assert exact.yaw_deg == pytest.approx(0.0, abs=1e-4) and exact.iou3d == pytest.approx(1.0, abs=1e-4)
-    unposed = score(view.keypoints, view.ratios, replace(truth, camera=None))
+    unposed = against_truth(view.keypoints, view.ratios, replace(truth, camera=None))
     summary = summarise([exact, unposed])
     assert summary["posed"] == 1 and summary["iou3d_mean"] == pytest.approx(1.0, abs=1e-4)
     assert np.isnan(summarise([unposed])["yaw_mean_deg"])
@@ -124,12 +124,12 @@ def test_the_networks_corners_are_lifted_for_their_3d_figures():
 def test_a_camera_inside_the_box_is_counted():
     view = _views("box", "street", 1, seed=7)[0]
     truth = _truth(view)
-    outside = score(view.keypoints, view.ratios, truth, truth.camera)
+    outside = against_truth(view.keypoints, view.ratios, truth, truth.camera)
     assert 0 < outside.nearest_depth < 1  # a real street view: every corner in front, the nearest nearer than the centre
     inside = truth.camera.vector.copy()
     inside[8] = 3.0 / np.exp(inside[:2]).max()  # the camera a third of the box's longer side from its centre
-    moved = score(view.keypoints, view.ratios, truth, replace(truth.camera, vector=inside))
+    moved = against_truth(view.keypoints, view.ratios, truth, replace(truth.camera, vector=inside))
     assert moved.nearest_depth <= 0
     summary = summarise([outside, moved])
     assert summary["camera_inside"] == 1 and summary["nearest_depth_min"] == pytest.approx(moved.nearest_depth)
-    assert np.isnan(score(view.keypoints, view.ratios, replace(truth, camera=None)).nearest_depth)
+    assert np.isnan(against_truth(view.keypoints, view.ratios, replace(truth, camera=None)).nearest_depth)

@@ -30,6 +30,7 @@ import torch
 from cuboidgen.config import PAPER
 from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
+from cuboidtrain.data.loader import LoaderBatch
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.models.device import resolve_device
 from cuboidtrain.train.evaluate import load_batches, measure, report
@@ -106,7 +107,7 @@ def load_by_shape(paths: tuple[str, ...], role: str) -> dict[str, tuple[CuboidNe
     return models
 
 
-def read_validation(spools: tuple[str, ...], model: CuboidNet, samples: int) -> tuple[list[dict], str] | None:
+def read_validation(spools: tuple[str, ...], model: CuboidNet, samples: int) -> tuple[list[LoaderBatch], str] | None:
     """The first `samples` samples of the model's shape and size from the first spool that has any."""
     for spool in spools:
         try:
@@ -118,7 +119,7 @@ def read_validation(spools: tuple[str, ...], model: CuboidNet, samples: int) -> 
     return None
 
 
-def mean_error(model: CuboidNet, batches: list[dict], device, extractor: str = "tabulator",
+def mean_error(model: CuboidNet, batches: list[LoaderBatch], device, extractor: str = "tabulator",
                refine_steps: int | None = 1) -> dict:
     options = FitOptions(device=device, extractor=extractor, refine_steps=refine_steps)
     result = report(model, batches, {}, model.sigma, options)
@@ -127,7 +128,7 @@ def mean_error(model: CuboidNet, batches: list[dict], device, extractor: str = "
             "mean_ratio_error": result.mean_ratio_error}
 
 
-def table3(shape: str, model: CuboidNet, batches: list[dict], device, finetune=None, e2e=None) -> list[dict]:
+def table3(shape: str, model: CuboidNet, batches: list[LoaderBatch], device, finetune=None, e2e=None) -> list[dict]:
     """The paper's Table 3 rows for one shape class, in its order; a model not given is None."""
     rows = [
         ("random weights", build_model(shape, model.size, seed=0, sigma=model.sigma, arch=model.arch), "tabulator"),
@@ -140,17 +141,17 @@ def table3(shape: str, model: CuboidNet, batches: list[dict], device, finetune=N
             for name, m, extractor in rows]
 
 
-def extractor_errors(model: CuboidNet, batches: list[dict], device) -> dict[str, float]:
+def extractor_errors(model: CuboidNet, batches: list[LoaderBatch], device) -> dict[str, float]:
     return {name: mean_error(model, batches, device, name)["mean_px_error"] for name in EXTRACTORS}
 
 
-def refinement_errors(model: CuboidNet, batches: list[dict], device) -> list[dict]:
+def refinement_errors(model: CuboidNet, batches: list[LoaderBatch], device) -> list[dict]:
     return [{"refine_steps": "auto" if k is None else k, **mean_error(model, batches, device, refine_steps=k)}
             for k in REFINE_STEPS]
 
 
 def generated_batches(folder: Path, shape: str, size: int, scene, count: int, seed: int,
-                      library) -> tuple[list[dict], dict[str, dict]]:
+                      library) -> tuple[list[LoaderBatch], dict[str, dict]]:
     """`count` samples drawn with seeds seed.. into a spool under `folder`, read back as batches,
     and each sample's drawn parameters by name."""
     folder.mkdir(parents=True)
@@ -181,7 +182,7 @@ def occlusion_sweep(model: CuboidNet, workdir: Path, count: int, seed: int, devi
     batches, params = generated_batches(workdir / f"{model.shape}-occlusion", model.shape, model.size,
                                         scene, count, seed, library)
     errors = measure(model, batches, model.sigma, FitOptions(device=device))["keypoint"].double().mean(1).numpy()
-    fractions = np.array([params[name]["occluded_fraction"] for batch in batches for name in batch["names"]])
+    fractions = np.array([params[name]["occluded_fraction"] for batch in batches for name in batch.names])
     rows = []
     for low, high in zip(OCCLUSION_BINS[:-1], OCCLUSION_BINS[1:]):
         inside = (fractions >= low) & ((fractions < high) | (high == OCCLUSION_BINS[-1]))  # the last bin holds 1.0

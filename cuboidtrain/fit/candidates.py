@@ -6,7 +6,7 @@ read, split into components and framed at every model's resolution
 in `cuboidtrain.models.refine`) and gives one `Candidate` per shape class. The
 candidate whose silhouette best explains the input mask wins (`choose`), the
 simpler class unless the richer one explains clearly more; that IoU, lowered
-where the fit is guessed (`score`), is the record's `confidence`. The stages
+where the fit is guessed (`assess`), is the record's `confidence`. The stages
 hand each other frozen dataclasses: none edits another's result.
 """
 from __future__ import annotations
@@ -87,7 +87,7 @@ def outside_keypoints(keypoints: np.ndarray, shape: tuple[int, int]) -> np.ndarr
     return np.flatnonzero((x < -0.5) | (x > width - 0.5) | (y < -0.5) | (y > height - 0.5))
 
 
-def score(candidate: Candidate, mask: np.ndarray, keypoints: np.ndarray) -> Scores:
+def assess(candidate: Candidate, mask: np.ndarray, keypoints: np.ndarray) -> Scores:
     """The chosen candidate's confidence, lowered, and the warnings saying why, where the fit
     explains less than its IoU claims: corners outside the input are guessed, a silhouette cut by
     the image's edge hides its outline (a mask filling the frame shows none of it), and a Refiner

@@ -24,7 +24,7 @@ import numpy as np
 
 from cuboidtrain.fit.candidates import Candidate, choose
 from cuboidtrain.fit.completion import completed_target
-from cuboidtrain.geometry.camera import CuboidFit
+from cuboidtrain.geometry.camera_params import CuboidFit
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.mask_fit import fit_masks
 from cuboidtrain.geometry.outline import MaskTarget, bilinear
@@ -48,7 +48,7 @@ CORNER_SCORE_PX = 2.0
 
 class NonFiniteCuboid(ValueError):
     """The cuboid fit gave NaN or Infinity where the record needs a number: no fit, and in
-    `Fitter.records` an error record (never a networks-only record in its place)."""
+    `Fitter.outcomes` an error record (never a networks-only record in its place)."""
 
 
 @dataclass(frozen=True)
@@ -94,8 +94,8 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
     """The cuboid of each candidate's class fitted to its mask (H, W) bool, the input component (or
     its MaskTarget, shared by the shape classes tried), each shape class's fits solved as one
     batch (`mask_fit.fit_masks`), or one by one by the soft-rasterised fit (`optimizer="soft"`,
-    `soft_raster.fit_soft`); a fit that is not finite is a NoCuboid saying why, in its place.
-    `completion=False` leaves the Refiner's completion out (benchmarks/bench_cuboid_fit.py).
+    `soft_mask_fit.fit_soft`); a fit that is not finite is a NoCuboid saying why, in its place.
+    `completion=False` leaves the Refiner's completion out (benchmarks/accuracy/bench_cuboid_fit.py).
     `known`: each pair's given camera (or None), held by the fit (LM only); `plausible`: every
     camera kept to a plausible one (`intrinsics.PlausibleRows`)."""
     if any(c.framing is None for c in candidates):
@@ -124,7 +124,7 @@ def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
     """The fits of one shape class's starts by `optimizer` (FitOptions.optimizer), each held to its
     given camera, if any (LM only: FitOptions refuses a camera with the soft optimiser)."""
     if optimizer == "soft":
-        from cuboidtrain.geometry.soft_raster import fit_soft  # torch's autograd: only when asked for
+        from cuboidtrain.geometry.soft_mask_fit import fit_soft  # torch's autograd: only when asked for
 
         return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
     return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),
@@ -135,7 +135,7 @@ def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
 @dataclass(frozen=True)
 class FitStart:
     """What a mask fit takes from a network candidate and the input, in the input's pixels:
-    any optimiser's inputs (`mask_fit.fit_masks`; `soft_raster.fit_soft`, measured against it)."""
+    any optimiser's inputs (`mask_fit.fit_masks`; `soft_mask_fit.fit_soft`, measured against it)."""
 
     target: MaskTarget  # the input's, with the Refiner's completion (`completion.completed_target`)
     corners: np.ndarray  # (N, 2) input px, the network's corner order

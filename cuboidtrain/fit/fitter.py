@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from cuboidtrain.models.device import one_thread, resolve_device
-from cuboidtrain.fit.candidates import Candidate, Explanation, choose, score
+from cuboidtrain.fit.candidates import Candidate, Explanation, assess, choose
 from cuboidtrain.models.codec import make_codec
 from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates
 from cuboidtrain.geometry.outline import MaskTarget
@@ -133,7 +133,7 @@ class Fitter:
         """One Fit per component (>= 16 px, largest first) with `all_components`, else `fit`'s one."""
         return self._fit_parts(mask, self.options.all_components)
 
-    def records(self, paths: Sequence[str | Path],
+    def outcomes(self, paths: Sequence[str | Path],
                 explain: Callable[[int, str, Fit], Sequence[str]] | None = None) -> list[Outcome]:
         """`cuboidtrain infer`'s fits of the inputs, in input order: each input's Fit (one per component
         with `all_components`), without its explanation's arrays, or a FitFailure for an input that
@@ -195,7 +195,7 @@ class Fitter:
             best = choose(candidates)
         cuboid = cuboids.get(best.shape)
         keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
-        scores = score(best, mask, keypoints)
+        scores = assess(best, mask, keypoints)
         return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios if cuboid is None else cuboid.fit.ratios,
                    confidence=scores.confidence, refine_steps=best.refine_steps,
                    refine_converged=best.refine_converged, warnings=scores.warnings + tuple(set_aside),

@@ -304,7 +304,7 @@ def frame(mask: np.ndarray, size: int, margin: float = DEFAULT_MARGIN) -> tuple[
 def framing_of(box: tuple[int, int, int, int], size: int, margin: float, shape: tuple[int, int]) -> Framing:
     """The Framing `frame` gives an object whose bounding box is `box` (x, y, w, h) in an image of
     `shape` (height, width): its longer side spans `size` less two margins. The trainer's loader
-    frames a sample's building by it too (`train.data.framed_record`)."""
+    frames a sample's building by it too (`cuboidtrain.data.reframing.framed`)."""
     x, y, w, h = box
     # Pixels x .. x + w - 1 cover [x - 0.5, x + w - 0.5]: w px wide, centred on x + (w - 1) / 2,
     # as the generator centres a polygon's extent on the model's middle pixel (size - 1) / 2.
@@ -320,7 +320,7 @@ def warp(mask: np.ndarray, framing: Framing) -> np.ndarray:
     return _warp(mask, (0, 0, width, height), framing) >= 0.5
 
 
-SHRINK_BLUR = 0.29  # the Gaussian's std when shrinking, in source px per model px (`train.data` frames by it too)
+SHRINK_BLUR = 0.29  # the Gaussian's std when shrinking, in source px per model px (`cuboidtrain.data.device_framing` frames by it too)
 
 
 def _warp(mask: np.ndarray, box: tuple[int, int, int, int], framing: Framing) -> np.ndarray:

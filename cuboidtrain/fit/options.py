@@ -20,7 +20,7 @@ from shared.errors import UsageError
 from shared.shapes import SHAPES
 
 FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
-OPTIMIZERS = ("lm", "soft")  # the cuboid fit's: mask_fit (Levenberg-Marquardt), soft_raster (L-BFGS)
+OPTIMIZERS = ("lm", "soft")  # the cuboid fit's: mask_fit (Levenberg-Marquardt), soft_mask_fit (L-BFGS)
 DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the model size per side
 
 

@@ -3,7 +3,7 @@
 A silhouette fixes a box's outline, not its camera: focal length, distance and depth trade
 against each other, and the principal point wanders (issue "3D you can trust"). Where the
 user knows the camera (`infer --focal-px`, `--principal-px`, `--camera FILE`), these rows
-hold the fit to it. In the parameter layout of `cuboidtrain.geometry.camera`, the focal
+hold the fit to it. In the parameter layout of `cuboidtrain.geometry.camera_params`, the focal
 length is f = s / k (s = exp(p7), k = p8) and the principal point is (p9, p10); the rows are
 
     focal:      stiffness * (f_given * k / s - 1)        (0 where s / k = f_given; smooth at k = 0)
@@ -21,7 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import rotated_points
+from cuboidtrain.geometry.camera_params import rotated_points
 from shared.shapes import Shape
 
 HELD = 1000.0  # the stiffness of a given camera: held, not merely preferred

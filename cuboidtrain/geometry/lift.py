@@ -1,12 +1,12 @@
 """Lift: named image corners -> the camera and cuboid that project onto them
-(`cuboidtrain.geometry.camera`'s parameters), and the batched Levenberg-Marquardt solver
+(`cuboidtrain.geometry.camera_params`'s parameters), and the batched Levenberg-Marquardt solver
 that the lift and the mask fit (`cuboidtrain.geometry.outline`) share.
 
 Starts: the algebraic one from the box's vanishing points (`cuboidtrain.geometry.vanishing`:
 exact for perspective views), and the weak-perspective (affine) lift, both depth orders
 (Necker), times a few perspective strengths k (exact for distant ones); then LM on the
 reprojection error with the projection's analytic Jacobian. Measured on exact generated
-corners (benchmarks/bench_lift.py, tests/test_geometry.py): 100% of `paper` and `street`
+corners (benchmarks/accuracy/bench_lift.py, tests/test_geometry.py): 100% of `paper` and `street`
 views, box and twobox, lifted to < 0.01 px with ratios < 0.1%, in about 5 ms. Before the
 vanishing-point start, strongly perspective `paper` views failed in 3-6% of cases.
 """
@@ -18,7 +18,7 @@ from functools import partial
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import CORNER_SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
+from cuboidtrain.geometry.camera_params import CORNER_SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.vanishing import vanishing_starts
 from shared.shapes import Shape

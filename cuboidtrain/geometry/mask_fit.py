@@ -20,7 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import (CameraParams, CuboidFit, Evidence, describe, log_ratio_jacobian, project,
+from cuboidtrain.geometry.camera_params import (CameraParams, CuboidFit, Evidence, describe, log_ratio_jacobian, project,
                                       project_with_jacobian, ratios)
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, hypotheses, levenberg_marquardt
@@ -95,7 +95,7 @@ def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,
                 cameras: CameraTerms | None = None) -> Hypotheses:
     """The lift hypotheses of K corner sets (K, N, 2) (confidence (K, N)) that mask fits start
     from, each set's best first (`Hypotheses.best`): any optimiser's starts
-    (`cuboidtrain.geometry.soft_raster` starts from the same). `cameras`: the sets' given cameras."""
+    (`cuboidtrain.geometry.soft_mask_fit` starts from the same). `cameras`: the sets' given cameras."""
     # The starts are ranked, not final: the fit after them keeps every corner in front of the camera.
     # The rest of the camera's rows count here already: without them, the starts chosen were the free
     # fit's, and paper's depth/height median went back from 22-26% to 36-46% (40 masks a set).

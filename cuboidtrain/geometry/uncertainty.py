@@ -29,7 +29,7 @@ settled on are the less certain; without it the free focal length's sd could not
 and `street` at once). The coefficients c are a least-squares fit of log |error| on x over
 generated masks (paper-clean, paper, street; box, twobox), scaled and floored so that the truth
 lies within one sd for 60-80% of the values and within two for at least 90% in each scene,
-separately for a given and a fitted focal length (`benchmarks/bench_coverage.py --fit-from`).
+separately for a given and a fitted focal length (`benchmarks/accuracy/bench_coverage.py --fit-from`).
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import (MIRROR_X, WEAK_K, CameraParams, Evidence, Spread, log_ratio_jacobian, ratios,
+from cuboidtrain.geometry.camera_params import (MIRROR_X, WEAK_K, CameraParams, Evidence, Spread, log_ratio_jacobian, ratios,
                                          rotation_matrices)
 
 FEATURES = ("raw", "outline_rms", "perspective", "oblique", "corner_gap", "start_spread")  # x after its 1

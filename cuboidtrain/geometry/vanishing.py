@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import MIRROR_X, object_basis, rotation_vector
+from cuboidtrain.geometry.camera_params import MIRROR_X, object_basis, rotation_vector
 from shared.shapes import Shape
 
 # A vanishing point whose homogeneous w is below this share of its norm (in corner-span

@@ -19,7 +19,7 @@ from pathlib import Path
 from cuboidtrain.fit.fitter import Outcome
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.pool import fit_groups
-from cuboidtrain.infer.progress import Reporter, Tally
+from cuboidtrain.infer.reporting import Reporter, Tally
 from cuboidtrain.infer.records import RecordStore
 
 log = logging.getLogger(__name__)

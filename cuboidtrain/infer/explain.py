@@ -481,7 +481,7 @@ def overlay_figure(photo: np.ndarray, fit: Fit, keypoints: np.ndarray):
 
 
 class Explainer:
-    """`Fitter.records`'s explain callback: writes each fitted component's panel (and overlay) to `folder`.
+    """`Fitter.outcomes`'s explain callback: writes each fitted component's panel (and overlay) to `folder`.
 
     `photos[i]` is the photo behind input i (or None); a mask made at another
     resolution than its photo is scaled onto it. A picture is named after its input's file
@@ -512,7 +512,7 @@ class Explainer:
                 fig, dpi = overlay_figure(photo, shown, on_photo)
                 self._save(fig, self.folder / f"{stem}-overlay.png", dpi=dpi)
             self._save(explanation_figure(shown, photo, on_photo), self.folder / f"{stem}.png", dpi=110)
-        except (OSError, ValueError, RuntimeError) as exc:  # as Fitter.records' `draw`, keeping the notes
+        except (OSError, ValueError, RuntimeError) as exc:  # as Fitter.outcomes' `draw`, keeping the notes
             warning = no_explanation(exc)
             log.warning("%s: %s", path, warning)
             return notes + (warning,)

@@ -1,7 +1,7 @@
 """`cuboidtrain infer --cuboid --mesh DIR`: each fitted box as a Wavefront OBJ file, in the camera's frame.
 
 A `--cuboid` fit is a perspective box (or two) before a pinhole camera (cuboidtrain.fit.cuboid,
-cuboidtrain.geometry.camera); `camera_box` gives its corners in that camera's frame and this module
+cuboidtrain.geometry.camera_params); `camera_box` gives its corners in that camera's frame and this module
 writes them as a mesh that common viewers open (Blender, MeshLab, any OBJ reader):
 
 * **Frame**: OpenCV's camera at the origin: x right, y down, z forward (the way it looks), so the
@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cuboidtrain.geometry.camera import CuboidFit
+from cuboidtrain.geometry.camera_params import CuboidFit
 from cuboidtrain.infer.inputs import OutputNames
 from shared.errors import UsageError
 from shared.files import atomic_path
@@ -136,7 +136,7 @@ def read_obj(path: Path) -> tuple[np.ndarray, dict[str, list[tuple[int, ...]]]]:
 
 
 class MeshWriter:
-    """`Fitter.records`'s per-fit callback for `--mesh DIR`: writes each fitted cuboid to `folder`.
+    """`Fitter.outcomes`'s per-fit callback for `--mesh DIR`: writes each fitted cuboid to `folder`.
 
     `inputs` (the run's inputs, in index order) fixes the file names whichever process writes
     them; without it, names are given in the order fits arrive (`OutputNames`)."""

@@ -3,7 +3,7 @@ Fitter (models loaded once per worker) and one torch thread.
 
 `fit_groups` yields `(index, outcomes)` per input as fits complete: in input order in this
 process, in completion order from a pool (the index says which input). The outcomes are typed
-(`Fit`, `FitFailure`), their explanations' arrays left behind (`Fitter.records`), so a pool
+(`Fit`, `FitFailure`), their explanations' arrays left behind (`Fitter.outcomes`), so a pool
 sends back about as much as their records would weigh: records are made where they are
 written (`records.to_record`). Inputs go to the workers in chunks of `CHUNK` paths (each
 worker reads its own masks), at most two chunks a worker in flight, so a kill loses at most
@@ -46,9 +46,9 @@ _explain = None  # and its per-fit writer (a pickled copy of the parent's: `--me
 
 
 def fit_one(fitter, index: int, path: str, explain: Callable | None = None) -> Group:
-    """Input `index`'s outcomes (`Fitter.records` on it alone; `explain` sees the run's index)."""
+    """Input `index`'s outcomes (`Fitter.outcomes` on it alone; `explain` sees the run's index)."""
     call = None if explain is None else (lambda _i, p, f: explain(index, p, f))
-    return index, list(fitter.records([path], explain=call))
+    return index, list(fitter.outcomes([path], explain=call))
 
 
 def fit_groups(jobs: Sequence[tuple[int, str]], fitter=None, checkpoints: Sequence[Path] = (),

@@ -22,7 +22,7 @@ from shared.files import json_text
 
 if TYPE_CHECKING:  # torch: imported by `infer` only after the warm-up
     from cuboidtrain.fit.fitter import Outcome
-    from cuboidtrain.infer.progress import Tally
+    from cuboidtrain.infer.reporting import Tally
 
 
 @dataclass(frozen=True)

@@ -68,7 +68,7 @@ def non_finite_weights(state: dict) -> tuple[int, int]:
 def save_checkpoint(path: str | Path, model: CuboidNet, config: RunConfig, step: int,
                     optimizer: torch.optim.Optimizer | None = None, loader: object | None = None,
                     metrics: dict | None = None) -> Path:
-    """`loader`: the data loader's position (`cuboidtrain.train.data.LoaderState`, kept as its fields).
+    """`loader`: the data loader's position (`cuboidtrain.data.sampler.LoaderState`, kept as its fields).
     Raises ValueError, writing nothing, for weights that are NaN or Infinity: a diverged
     model never replaces the last good checkpoint."""
     path = Path(path)

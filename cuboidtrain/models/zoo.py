@@ -136,7 +136,7 @@ def pack(checkpoint_path: Path, out: Path, scenes: list[str], validation: dict |
 
 
 def validation_for(bench_json: Path, checkpoint_path: Path) -> dict:
-    """The figures of `benchmarks/bench_accuracy.py --json` that concern this checkpoint's shape class."""
+    """The figures of `benchmarks/accuracy/bench_accuracy.py --json` that concern this checkpoint's shape class."""
     try:
         result = json.loads(Path(bench_json).read_text())
         shape = load_checkpoint(checkpoint_path)["shape"]

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
+from cuboidtrain.data.loader import LoaderBatch
 from cuboidtrain.models.checkpoint import non_finite_weights
 from cuboidtrain.train.distributed import Ranks
 
@@ -31,13 +32,13 @@ def stale(skipped: dict, batch_size: int) -> bool:
     return 2 * skipped["vanished"] > batch_size
 
 
-def batch_facts(ranks: Ranks, batch: dict, least: int = 2) -> BatchFacts:
+def batch_facts(ranks: Ranks, batch: LoaderBatch, least: int = 2) -> BatchFacts:
     """The batch's skip counts summed over ranks, and whether any rank holds fewer than `least`
     samples, too few to step on (`least_batch`): every rank then skips it, or DDP would hang."""
     if not ranks.distributed:
-        return BatchFacts(batch["skipped"], len(batch["names"]) < least)
-    sums = ranks.sum([*batch["skipped"].values(), float(len(batch["names"]) < least)])
-    return BatchFacts(dict(zip(batch["skipped"], (int(n) for n in sums))), sums[-1] > 0)
+        return BatchFacts(batch.skipped, len(batch.names) < least)
+    sums = ranks.sum([*batch.skipped.values(), float(len(batch.names) < least)])
+    return BatchFacts(dict(zip(batch.skipped, (int(n) for n in sums))), sums[-1] > 0)
 
 
 def global_losses(ranks: Ranks, losses: dict[str, float], samples: int) -> StepLosses:

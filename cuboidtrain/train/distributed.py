@@ -5,7 +5,7 @@ ranks agree on everything that decides how many steps run:
 
 * the listing: rank 0 lists the spool and broadcasts the names; every rank shuffles
   them with the same seed and takes its strided share of each global batch
-  (`rank_batches`), so the shares are disjoint and together cover the epoch;
+  (`cuboidtrain.data.sampler.rank_batches`), so the shares are disjoint and together cover the epoch;
 * each batch's fate: a listing gone stale, or a rank left with too few samples
   (a sample vanished on one rank only), is decided on counts summed over ranks;
 * stopping (SIGTERM, Ctrl-C, --max-minutes): a rank stops when any rank asks.
@@ -100,19 +100,6 @@ def shutdown(ranks: Ranks, together: bool = False) -> None:
         if together:
             dist.barrier()
         dist.destroy_process_group()
-
-
-def rank_batches(order: list[str], batch_size: int, rank: int, world: int, position: int = 0) -> list[list[str]]:
-    """This rank's batches of one epoch, from global batch `position` on.
-
-    Global batch k is order[k*B*W : (k+1)*B*W]; rank r takes every W-th name of it from
-    the r-th. The shares are disjoint, equal in size, and together they are exactly the
-    single-process batches of size B*W (the same samples, so the same global batch).
-    A world of one gives the plain batches order[k*B : (k+1)*B].
-    """
-    span = batch_size * world
-    return [order[start + rank : start + span : world]
-            for start in range(position * span, len(order) - span + 1, span)]
 
 
 class PhaseLosses(nn.Module):

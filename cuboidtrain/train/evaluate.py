@@ -11,7 +11,7 @@ row: the same networks with random weights, on the very same samples.
 
 With `paths` (`cuboidtrain eval` always) it also scores the answer a user gets, per path,
 in each sample's own px (a 256 px spool's, whatever the model's size), against the
-sample's truth (`cuboidtrain.geometry.scoring`: corners on the true hull against the hidden
+sample's truth (`cuboidtrain.geometry.accuracy`: corners on the true hull against the hidden
 interior ones, NME as a share of the building's span, ratio, yaw, 3D IoU and focal length
 errors):
 
@@ -39,14 +39,15 @@ import numpy as np
 import torch
 
 from cuboidtrain.models.checkpoint import load_model
-from cuboidtrain.train.data import SKIP_REASONS, Source, SpoolBatches, prepare_batch
+from cuboidtrain.data.loader import SKIP_REASONS, LoaderBatch, Source, SpoolBatches
+from cuboidtrain.data.prepare import prepare_batch
 from cuboidtrain.fit.candidates import Candidate
 from cuboidtrain.fit.cuboid import NoCuboid
 from cuboidtrain.fit.fitter import Fitter, NonFiniteFit
 from cuboidtrain.fit.masks import silhouette
-from cuboidtrain.geometry.camera import CameraParams
+from cuboidtrain.geometry.camera_params import CameraParams
 from cuboidtrain.geometry.lift import lift_many
-from cuboidtrain.geometry.scoring import CornerErrors, Truth, score, summarise
+from cuboidtrain.geometry.accuracy import CornerErrors, Truth, against_truth, summarise
 from cuboidtrain.models.refine import mask_iou
 from cuboidtrain.models.networks import ChainOutput, CuboidNet, build_model
 from cuboidtrain.fit.options import DEFAULT_MARGIN, FitOptions
@@ -114,7 +115,7 @@ def keypoint_errors(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 
 
 def load_batches(spool: Path, shape: str, size: int, batch_size: int, max_samples: int | None,
-                 margin: float = DEFAULT_MARGIN, keep_sources: bool = False) -> tuple[list[dict], dict[str, int]]:
+                 margin: float = DEFAULT_MARGIN, keep_sources: bool = False) -> tuple[list[LoaderBatch], dict[str, int]]:
     """The first `max_samples` samples of this shape, in name order, as packed batches; samples of
     another size are framed at `size` as `infer` frames a mask, with `margin` (so a 256 px spool
     serves any model). `keep_sources`: each batch also holds its samples as read and their
@@ -131,11 +132,11 @@ def load_batches(spool: Path, shape: str, size: int, batch_size: int, max_sample
         chunk = names[position : position + min(batch_size, wanted - kept)]  # never read past what is wanted
         position += len(chunk)
         batch = reader[chunk]
-        for reason, count in batch["skipped"].items():
+        for reason, count in batch.skipped.items():
             skipped[reason] += count
-        if batch["names"]:
+        if batch.names:
             batches.append(batch)
-            kept += len(batch["names"])
+            kept += len(batch.names)
     if not kept:
         raise UsageError(_nothing_to_evaluate(spool, shape, size, names))
     if any(skipped.values()):
@@ -159,7 +160,7 @@ def _nothing_to_evaluate(spool: Path, shape: str, size: int, names: list[str]) -
 
 
 @torch.inference_mode()
-def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float,
+def _measure_batch(fitter: Fitter, model: CuboidNet, batch: LoaderBatch, sigma: float,
                    paths: bool = False) -> tuple[dict[str, torch.Tensor], dict[str, list]]:
     """Per-sample errors of one batch, on the CPU, the keypoints read as the Fitter reads them
     (T's, or its extractor's off S's heat maps); with `paths`, each path's scores too."""
@@ -176,15 +177,15 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: dict, sigma: float,
     }
     if not paths:
         return errors, {}
-    if "sources" not in batch:
+    if batch.sources is None:
         raise ValueError("scoring the paths needs the samples as read: load_batches(..., keep_sources=True)")
     framed = (x.x1[:, 0] > 0).cpu().numpy()
-    return errors, score_paths(fitter, model, out, framed, batch["sources"])
+    return errors, score_paths(fitter, model, out, framed, batch.sources)
 
 
 def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.ndarray,
                 sources: list[Source]) -> dict[str, list[CornerErrors | None]]:
-    """Each path's scores (`where.score`) for the rows of one batch's chain output (`Fitter.predict`
+    """Each path's scores (`cuboidtrain.geometry.accuracy.against_truth`) for the rows of one batch's chain output (`Fitter.predict`
     on the framed masks (B, S, S)); None where a path gave no answer (a non-finite output, a
     failed cuboid fit). The cuboid paths only with the Fitter's options' `cuboid`: the camera
     fitted, and given (the generator's, where the sample says it)."""
@@ -198,7 +199,7 @@ def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.n
             candidates.append(None)
     keypoints = [None if c is None else s.framing.to_input(c.keypoints) for c, s in zip(candidates, sources)]
     cameras = _lifted(keypoints, truths, model.shape)
-    scored["networks"] = [None if k is None else score(k, c.ratios, t, cameras.get(row))
+    scored["networks"] = [None if k is None else against_truth(k, c.ratios, t, cameras.get(row))
                           for row, (k, c, t) in enumerate(zip(keypoints, candidates, truths))]
     if fitter.options.cuboid:
         scored["cuboid"] = _cuboid_scores(fitter, candidates, sources, truths)
@@ -233,11 +234,11 @@ def _cuboid_scores(fitter: Fitter, candidates: list[Candidate | None], sources: 
         if fit is None or isinstance(fit, NoCuboid):
             scores.append(None)
             continue
-        scores.append(score(fit.fit.keypoints, fit.fit.ratios, truth, fit.fit.camera, fit.fit.spread))
+        scores.append(against_truth(fit.fit.keypoints, fit.fit.ratios, truth, fit.fit.camera, fit.fit.spread))
     return scores
 
 
-def measure(model: CuboidNet, batches: list[dict], sigma: float, options: FitOptions | None = None,
+def measure(model: CuboidNet, batches: list[LoaderBatch], sigma: float, options: FitOptions | None = None,
             paths: bool = False) -> dict:
     """Per-sample errors over all batches (keypoint (S, N) px, ratio (S, R), iou (S,), ...), in
     the batches' order; with `paths` (batches read with their sources), `paths` too: each path's
@@ -303,7 +304,7 @@ def evaluate(model: CuboidNet, spool: Path, sigma: float, options: FitOptions | 
     return report(model, batches, skipped, sigma, options, pck_thresholds, paths)
 
 
-def report(model: CuboidNet, batches: list[dict], skipped: dict, sigma: float, options: FitOptions | None = None,
+def report(model: CuboidNet, batches: list[LoaderBatch], skipped: dict, sigma: float, options: FitOptions | None = None,
            thresholds=PCK_THRESHOLDS, paths: bool = False) -> Evaluation:
     """The metrics of `model` on batches already read (`load_batches`; with `keep_sources` for `paths`)."""
     options = (options or FitOptions()).validate()

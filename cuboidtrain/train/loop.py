@@ -25,20 +25,23 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from cuboidtrain.data.census import SpoolCensus
+from cuboidtrain.data.freshness import FreshnessMeter
+from cuboidtrain.data.loader import LoaderBatch, workers_stopped
+from cuboidtrain.data.prepare import prepare_batch
+from cuboidtrain.data.sampler import WaitInterrupted
 from cuboidtrain.models.checkpoint import save_checkpoint
 from cuboidtrain.models.device import resolve_device
 from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.train.agreement import BatchFacts, batch_facts, divergence, global_losses, stale
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import FreshnessMeter, WaitInterrupted, prepare_batch, workers_stopped
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.monitor.progress import Progress
 from cuboidtrain.train.monitor.status import TrainerStatus, TrainingFailed
 from cuboidtrain.train.preflight import LAST, check_paths
-from cuboidtrain.train.spoolwatch import SpoolCensus
 from cuboidtrain.train.startup import Setup, set_up
-from cuboidtrain.train.stopping import Backoff, StopRequest, finished, idle_pause, unusable_reason
+from cuboidtrain.train.stop_and_wait import Backoff, StopRequest, finished, idle_pause, unusable_reason
 from shared.errors import UsageError
 
 if TYPE_CHECKING:  # evaluation is imported when a validation runs: it pulls in nothing the loop needs otherwise
@@ -234,7 +237,7 @@ def train_one_epoch(s: Session, position: Position) -> Epoch:
                 return Epoch(position, stepped, went_stale=True, unusable=unusable)
             if facts.too_small:  # fewer than `least` samples left: BatchNorm cannot step on them
                 s.progress.skip(facts.skipped)
-                unusable["in_short_batches"] = unusable.get("in_short_batches", 0) + len(batch["names"])
+                unusable["in_short_batches"] = unusable.get("in_short_batches", 0) + len(batch.names)
                 continue
             position = after_step(s, train_one_step(s, position, batch, waited, facts.skipped))
             stepped = True
@@ -248,16 +251,16 @@ def train_one_epoch(s: Session, position: Position) -> Epoch:
     return Epoch(position, stepped, unusable=unusable)
 
 
-def _taken(s: Session, batch: dict) -> BatchFacts:
+def _taken(s: Session, batch: LoaderBatch) -> BatchFacts:
     """A fetched batch taken: the sampler moves on, the ranks agree on its skips, the census counts it read."""
     taken = s.setup.sampler.advance()
     facts = batch_facts(s.ranks, batch, s.setup.least)
     # the names this global batch was meant to hold were read, but for those found gone (on this rank)
-    s.census.read(set(taken) - set(batch["vanished"]))
+    s.census.read(set(taken) - set(batch.vanished))
     return facts
 
 
-def train_one_step(s: Session, position: Position, batch: dict, waited: float, skipped: dict) -> Position:
+def train_one_step(s: Session, position: Position, batch: LoaderBatch, waited: float, skipped: dict) -> Position:
     """One step on `batch`, accounted and reported; a NaN or Infinity in its losses or the weights
     stops the run (Diverged) before any record, status or checkpoint could hold it."""
     config, setup = s.config, s.setup
@@ -268,8 +271,8 @@ def train_one_step(s: Session, position: Position, batch: dict, waited: float, s
     losses = train_step(setup.model, setup.optimizer, x, config, s.device, setup.losses_of)
     step = position.step + 1
     # 3. account and report
-    age, reuse = s.freshness.observe(batch["names"])
-    result = global_losses(s.ranks, losses, len(batch["names"]))
+    age, reuse = s.freshness.observe(batch.names)
+    result = global_losses(s.ranks, losses, len(batch.names))
     if (fault := divergence(result.losses, setup.model)) is not None:
         s.progress.state("failed")
         raise Diverged(f"training diverged at step {step}: {fault}; stopped, "

@@ -9,23 +9,11 @@ D_T: squared L2 distance between predicted and true keypoints in px, averaged
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 import torch.nn.functional as F
 
+from cuboidtrain.data.prepare import ChainBatch
 from cuboidtrain.models.networks import CuboidNet
-
-
-@dataclass(frozen=True)
-class ChainBatch:
-    """One batch as the paper names the chain's inputs and targets (3.3.2), on the training device."""
-
-    x1: torch.Tensor  # (B, 1, S, S) +-1: the noisy, occluded mask, R's input
-    x2: torch.Tensor  # (B, 1, S, S) +-1: the clean mask, R's target and S's input in phase 1
-    x3: torch.Tensor  # (B, N, S, S): the keypoints' heat maps, S's target and T's input in phase 1
-    x4: torch.Tensor  # (B, N, 2) px: the keypoints, T's target
-    ratios: torch.Tensor  # (B, R): the shape's ratios, T's other target
 
 
 def refiner_loss(refined: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:

@@ -12,11 +12,12 @@ from cuboidtrain.allocator import keep_freed_memory
 from cuboidtrain.models.checkpoint import load_checkpoint, set_rng_state
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.config import TrainConfig
-from cuboidtrain.train.data import EpochSampler, loader_state, make_loader, spool_names
+from cuboidtrain.data.loader import make_loader
+from cuboidtrain.data.sampler import EpochSampler, loader_state, spool_names
 from cuboidtrain.train.distributed import Ranks, wrap
-from cuboidtrain.train.files import drop_records_after, repair_jsonl, sweep_orphans
+from cuboidtrain.train.run_files import drop_records_after, repair_jsonl, sweep_orphans
 from cuboidtrain.train.preflight import LAST, least_batch
-from cuboidtrain.train.stopping import StopRequest, leave_signals_to_main
+from cuboidtrain.train.stop_and_wait import StopRequest, leave_signals_to_main
 from shared.errors import UsageError
 from shared.files import write_json
 

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from cuboidtrain.train.config import PHASES, TrainConfig
-from cuboidtrain.train.data import EpochPosition
+from cuboidtrain.data.sampler import EpochPosition
 from cuboidtrain.train.monitor.metrics_log import MetricsLog
 from cuboidtrain.train.monitor.publisher import StatusPublisher
 from cuboidtrain.train.monitor.stats import Rates, RunningStats
@@ -170,7 +170,7 @@ class Progress:
             freshness=self.stats.freshness,
             skipped=dict(self.stats.skipped),
             spool_samples=self.watcher.count,
-            # samples the generator evicted before this trainer read them (cuboidtrain.train.spoolwatch)
+            # samples the generator evicted before this trainer read them (cuboidtrain.data.census)
             spool_evicted_unread=getattr(self.watcher, "evicted_unread_total", None),
             foreign_files=self.stats.foreign,
             eta_s=self._eta(rates.step_time_s, where),

@@ -9,7 +9,7 @@ import time
 from collections import Counter, deque
 from dataclasses import dataclass
 
-from cuboidtrain.train.data import SKIP_REASONS
+from cuboidtrain.data.loader import SKIP_REASONS
 from cuboidtrain.train.monitor.status import BatchFreshness
 
 WINDOW = 20  # steps: the fewest that rates and the data-wait fraction are measured over
