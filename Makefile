@@ -35,11 +35,11 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_generate.py
-	$(BIN)/python benchmarks/bench_spool_read.py
-	$(BIN)/python benchmarks/bench_train.py
-	$(BIN)/python benchmarks/bench_infer.py --threads 2
-	$(BIN)/python benchmarks/bench_infer.py --threads 1
+	$(BIN)/python benchmarks/speed/bench_generate.py
+	$(BIN)/python benchmarks/speed/bench_spool_read.py
+	$(BIN)/python benchmarks/speed/bench_train.py
+	$(BIN)/python benchmarks/speed/bench_infer.py --threads 2
+	$(BIN)/python benchmarks/speed/bench_infer.py --threads 1
 
 clean-spool:
 	find data_spool -mindepth 1 ! -name .gitkeep -delete

@@ -36,7 +36,7 @@ spool() {  # spool DIR SEED SCENE COUNT SIZE: add COUNT samples of SCENE, drawn 
 seed=$([ "$SHAPE" = box ] && echo 1 || echo 2)  # the shapes' spools differ in their seeds
 spool "$train" "${seed}1" paper 60000 128
 spool "$train" "${seed}2" street 60000 128
-spool "$val" "${seed}5" paper 500 256  # the seed of benchmarks/bench_accuracy.py's noisy paper set
+spool "$val" "${seed}5" paper 500 256  # the seed of benchmarks/accuracy/bench_accuracy.py's noisy paper set
 
 common=(--threads "$THREADS" --spool "$train" --shape "$SHAPE" --size 64 --arch compact --reframe --sigma 2
         --batch-size 32 --loader-workers 1 --lr-schedule cosine --checkpoint-every 200
