@@ -35,6 +35,7 @@ PATH = re.compile(rf"(?<![\w./~$*-])((?:\.\./)*[\w.*-]+(?:/[\w.*-]+)*\.(?:{FILE_
 TEST = re.compile(r"(?:(?<![\w/.])([\w/]*test_\w+\.py)::|(?<![\w/.*]))(test_\w+\*?)(?![\w.(])")
 DOTTED = re.compile(r"`((?:cuboidtrain|cuboidgen|shared|geometry|models|fit|infer|train|data|experiments)"
                     r"(?:\.\w+)+)(?:\(\))?`")
+MEMBER = re.compile(r"`([A-Z]\w+)\.(\w+)(?:\([^`]*\))?`")  # `Fitter.outcomes`, `Fitter.fit(...)`
 SCRIPT = re.compile(r"(?<![\w/.-])((?:benchmarks/(?:\w+/)*)?(?:bench|soak|snapshot)_\w+\.py)((?:\s+[^`\n]*)?)")
 
 
@@ -124,6 +125,23 @@ def module_names(file: Path) -> dict[str, frozenset[str]]:
     return {"": frozenset(top), **members}
 
 
+@functools.cache
+def classes() -> dict[str, frozenset[str]]:
+    """Every class of the packages and what its body defines (several classes of one name pooled)."""
+    found: dict[str, set[str]] = {}
+    for package in (*PACKAGES, "shared"):
+        for file in sorted((ROOT / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(file.read_text())):
+                if isinstance(node, ast.ClassDef):
+                    found.setdefault(node.name, set()).update(assigned(node.body))
+    return {name: frozenset(members) for name, members in found.items()}
+
+
+def member_exists(owner: str, name: str) -> bool:
+    """`Fitter.outcomes`: the class, where this tree defines one of that name, has that member."""
+    return owner not in classes() or name in classes()[owner]
+
+
 def dotted_exists(name: str) -> bool:
     """`cuboidtrain.fit.masks.silhouette`, `fit.masks.silhouette`, `shared.camera`: a module (or
     package) and, after it, a name it defines, and a class's member after that."""
@@ -201,6 +219,9 @@ def problems(text: str, page_dir: Path = ROOT, history: bool = False) -> list[st
     for match in DOTTED.finditer(text):
         if not dotted_exists(match[1]):
             found.append(f"no module or name {match[1]}")
+    for match in MEMBER.finditer(text):
+        if not member_exists(match[1], match[2]):
+            found.append(f"no member {match[1]}.{match[2]}")
     for cited, options in script_calls(text):
         script = find_script(cited)
         if script is None:
@@ -232,7 +253,7 @@ def test_the_pages_cite_enough_to_check():
 SYNTHETIC = """
 The fit is in `cuboidtrain/geometry/no_such_module.py` and `fit/nowhere.py`; see docs/no-page.md.
 `tests/test_citations.py::test_nothing_by_this_name` and `test_no_such_prefix_*` hold it.
-`cuboidtrain.fit.masks.no_such_function` and `geometry.no_module.lift` do the work.
+`cuboidtrain.fit.masks.no_such_function` and `geometry.no_module.lift` do the work, as `Fitter.no_such_method`.
 
 ```bash
 python benchmarks/bench_no_such_script.py --samples 3
@@ -249,6 +270,7 @@ def test_a_missing_citation_is_caught():
         "no file cuboidtrain/geometry/no_such_module.py", "no file fit/nowhere.py", "no file docs/no-page.md",
         "no test tests/test_citations.py::test_nothing_by_this_name", "no test test_no_such_prefix_*",
         "no module or name cuboidtrain.fit.masks.no_such_function", "no module or name geometry.no_module.lift",
+        "no member Fitter.no_such_method",
         "no benchmark benchmarks/bench_no_such_script.py", "no file benchmarks/bench_no_such_script.py",
         f"{bench_cli}: no option --no-such-option", "bench_cli.py: no option --also-not-an-option",
     ])
@@ -258,7 +280,7 @@ def test_what_exists_passes():
     text = """`cuboidtrain/fit/masks.py`, `fit/masks.py`, shared/sample.py, [the layout](docs/layout.md),
     `tests/test_citations.py::test_a_missing_citation_is_caught`, `test_a_missing_*`, test_citations,
     `cuboidtrain.fit.masks.silhouette`, `fit.masks.silhouette`, `shared.camera`, `runs/demo/infer.json`,
-    `bench_cli.py --repeats 7 --json x.json`
+    `bench_cli.py --repeats 7 --json x.json`, `Fitter.fit`, `Fitter.from_shipped()`, `Fit.candidates`
     """
     assert problems(text) == []
 
