@@ -28,7 +28,7 @@ SOURCE_ROOTS = {"cuboidtrain", "cuboidgen", "shared", "tests", "benchmarks", "do
 TOP_FILES = {"Makefile", "Dockerfile", "docker-compose.yml", "constraints.txt", "pyproject.toml"}
 FILE_TYPES = "py|sh|md|png|json|yml|yaml|txt|toml|csv"
 # docs/research/ describes a prototype that lived in research/geometric_fit_prototype/ (commit 0ab788a) and
-# is gone from the tree: its file names are history, not citations of this tree
+# is gone from the tree: its bare file names (measure_lift.py, test_model.py) are history, not citations
 HISTORY = ("docs/research/",)
 
 PATH = re.compile(rf"(?<![\w./~$*-])((?:\.\./)*[\w.*-]+(?:/[\w.*-]+)*\.(?:{FILE_TYPES}))(?![\w/-])")
@@ -208,11 +208,10 @@ def script_calls(text: str) -> list[tuple[str, list[str]]]:
 def problems(text: str, page_dir: Path = ROOT, history: bool = False) -> list[str]:
     """What a page cites that does not exist, one line each."""
     found = []
-    if not history:
-        for match in PATH.finditer(text):
-            path = match[1]
-            if is_source_path(path) and not path_exists(path, page_dir):
-                found.append(f"no file {path}")
+    for match in PATH.finditer(text):
+        path = match[1]
+        if is_source_path(path) and not (history and "/" not in path) and not path_exists(path, page_dir):
+            found.append(f"no file {path}")
     for match in TEST.finditer(text):
         if not cited_test_exists(match[2], match[1]):
             found.append(f"no test {match[1] + '::' if match[1] else ''}{match[2]}")
