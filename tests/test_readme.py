@@ -14,31 +14,11 @@ import typer
 
 from cuboidgen.cli import app as gen_app
 from cuboidtrain.cli import app as train_app
+from tests.pages import ROOT, commands, shell_blocks, slug
 
-ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 PROGRAMS = {"cuboidgen": gen_app, "cuboidtrain": train_app}
 MAX_README = 15 * 1024
-
-
-def shell_blocks(page: Path) -> list[str]:
-    """The ```bash blocks of a page, each continued line (a trailing backslash) joined."""
-    blocks = re.findall(r"```bash\n(.*?)```", page.read_text(), re.S)
-    return [line for block in blocks for line in block.replace("\\\n", " ").splitlines() if line.strip()]
-
-
-def commands(line: str) -> list[list[str]]:
-    """The simple commands of a shell line: split at |, &&, ; and &, comments dropped."""
-    lexer = shlex.shlex(line, posix=True, punctuation_chars="|&;")
-    lexer.whitespace_split, lexer.commenters = True, "#"
-    found, current = [], []
-    for token in lexer:
-        if set(token) <= set("|&;"):
-            found.append(current)
-            current = []
-        else:
-            current.append(token)
-    return [c for c in found + [current] if c]
 
 
 def cuboid_calls() -> list[tuple[str, str, list[str]]]:
@@ -107,11 +87,6 @@ def test_make_targets_and_scripts_exist():
                 for word in words:
                     if re.fullmatch(r"(recipes|benchmarks|ops)/[\w./-]+\.(sh|py)", word):
                         assert (ROOT / word).is_file(), (page.name, word)
-
-
-def slug(heading: str) -> str:
-    """A heading's anchor as GitHub makes it: lower case, punctuation dropped, spaces as hyphens."""
-    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
 
 
 def test_every_link_between_the_pages_lands():
