@@ -1,7 +1,9 @@
 """The training sample and its versioned byte format.
 
 This module is the only code that turns samples into bytes and back (STYLE.md).
-A sample is one msgpack map. Masks are bit-packed (`np.packbits`, row-major,
+A sample is one msgpack map: its format, its version, and its payload (the sample's fields,
+itself a msgpack map) with the payload's CRC-32, so that a bit flipped after writing (a disk, a
+network file system, a copy) is found on read rather than trained on. Masks are bit-packed (`np.packbits`, row-major,
 BIT_ORDER within a byte), keypoints are little-endian float64, so a 256x256
 sample is about 17 KB. Heat maps are not stored: they are a function of the
 keypoints and the trainer renders them on its device, where it also unpacks the
@@ -10,6 +12,7 @@ masks (in torch, by BIT_SHIFTS: the bit order is stated here and nowhere else).
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field
 
 import msgpack
@@ -18,7 +21,10 @@ import numpy as np
 from shared.shapes import RATIO_KEYS, SHAPES, get_shape
 
 FORMAT = "cuboid-fit/sample"
-VERSION = 1
+# 2: the payload carries its CRC-32 (zlib's: in the standard library, about 1 GB/s, so 17 us for a
+# 256 px sample). A version 1 sample had none: it is refused, not read unchecked, since nothing
+# could tell a flipped bit in it from a real mask; a spool is drawn afresh in minutes.
+VERSION = 2
 KEYPOINT_DTYPE = "<f8"  # little-endian float64, (N, 2) px row-major
 BIT_ORDER = "big"  # np.packbits' default: a byte's first pixel is its most significant bit
 # The right shift that brings each of a byte's 8 pixels, first pixel first, down to bit 0:
@@ -42,6 +48,14 @@ class CorruptSample(ValueError):
     def __init__(self, field: str, fault: str, detail: str):
         super().__init__(f"corrupt sample: {field}: {fault} ({detail})")
         self.reason = f"{field}: {fault}"
+
+
+class DamagedSample(CorruptSample):
+    """A sample whose payload no longer has the CRC-32 it was written with: its bytes changed
+    after writing (bit rot, a torn copy). Readers skip and count it under its own reason."""
+
+    def __init__(self, found: int, written: int):
+        super().__init__("checksum", "mismatch", f"CRC-32 {found:08x}, written as {written:08x}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,8 +98,17 @@ def unpack_mask(packed: bytes, size: int) -> np.ndarray:
 
 
 def encode(sample: Sample) -> bytes:
-    """Sample -> bytes."""
-    return msgpack.packb(to_record(sample), use_bin_type=True)
+    """Sample -> bytes: the payload (its fields) and the payload's CRC-32, in one map."""
+    return pack_record(to_record(sample))
+
+
+def pack_record(record: dict) -> bytes:
+    """A record as `decode_record` gives it -> bytes, its payload (every key but the format and
+    version) with its CRC-32. Unchecked: `encode` checks the record first (`to_record`); tests
+    write records a reader must refuse through it."""
+    outer = {key: record[key] for key in ("format", "version") if key in record}
+    payload = msgpack.packb({key: value for key, value in record.items() if key not in outer}, use_bin_type=True)
+    return msgpack.packb({**outer, "crc32": zlib.crc32(payload), "payload": payload}, use_bin_type=True)
 
 
 def to_record(sample: Sample) -> dict:
@@ -114,23 +137,40 @@ def to_record(sample: Sample) -> dict:
     return record
 
 
-def decode_record(data: bytes) -> dict:
-    """Bytes -> the raw record, checked for format and version, masks still packed.
+def decode_record(data: bytes, verify: bool = True) -> dict:
+    """Bytes -> the raw record (format, version and the payload's fields), checked for format,
+    version, checksum and every field, masks still packed. `verify=False` skips the checksum
+    alone (benchmarks/speed/bench_checksum.py measures what it costs; nothing else passes it).
 
-    Raises ValueError naming what was found and what was expected.
+    Raises ValueError naming what was found and what was expected; DamagedSample (a
+    CorruptSample) when the payload's CRC-32 is not the one written.
     """
-    try:
-        record = msgpack.unpackb(data, raw=False)
-    except Exception as exc:  # msgpack raises several unrelated types for bad bytes
-        raise ValueError(f"corrupt sample: not a msgpack map ({type(exc).__name__}: {exc})") from None
-    if not isinstance(record, dict) or record.get("format") != FORMAT:
-        found = record.get("format") if isinstance(record, dict) else type(record).__name__
+    outer = _unpack(data, "sample")
+    if not isinstance(outer, dict) or outer.get("format") != FORMAT:
+        found = outer.get("format") if isinstance(outer, dict) else type(outer).__name__
         raise ValueError(f"not a cuboid-fit sample: format {found!r}, expected {FORMAT!r}")
-    version = record.get("version")
+    version = outer.get("version")
     if type(version) is not int or version != VERSION:  # True == 1 in Python: the type too
-        raise ValueError(f"sample format version {version!r} is not supported: expected {VERSION}")
+        why = " (version 1 carried no checksum: draw the spool afresh)" if version == 1 else ""
+        raise ValueError(f"sample format version {version!r} is not supported: expected {VERSION}{why}")
+    payload, written = outer.get("payload"), outer.get("crc32")
+    if not isinstance(payload, bytes) or not _integer(written):
+        raise CorruptSample("checksum", "missing", f"a payload of {type(payload).__name__} and a CRC of {written!r}")
+    if verify and (found := zlib.crc32(payload)) != written:
+        raise DamagedSample(found, written)
+    fields = _unpack(payload, "payload")
+    if not isinstance(fields, dict):
+        raise CorruptSample("payload", "not a map", f"a {type(fields).__name__}")
+    record = {"format": FORMAT, "version": VERSION, **fields}
     check_record(record)
     return record
+
+
+def _unpack(data: bytes, what: str):
+    try:
+        return msgpack.unpackb(data, raw=False)
+    except Exception as exc:  # msgpack raises several unrelated types for bad bytes
+        raise ValueError(f"corrupt {what}: not a msgpack map ({type(exc).__name__}: {exc})") from None
 
 
 def check_record(record: dict) -> None:
@@ -250,9 +290,9 @@ class PackedSample:
         return from_record(self.record)
 
 
-def decode_packed(data: bytes) -> PackedSample:
+def decode_packed(data: bytes, verify: bool = True) -> PackedSample:
     """Bytes -> PackedSample, every field checked once (`decode_record`). Raises ValueError."""
-    record = decode_record(data)
+    record = decode_record(data, verify)
     geometry = get_shape(record["shape"])
     keypoints = np.frombuffer(record["keypoints"], KEYPOINT_DTYPE).reshape(geometry.num_keypoints, 2)
     return PackedSample(record["shape"], record["size"], keypoints, geometry.ratio_vector(record["ratios"]),

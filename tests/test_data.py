@@ -8,7 +8,6 @@ import threading
 import time
 from pathlib import Path
 
-import msgpack
 import numpy as np
 import pytest
 import torch
@@ -21,7 +20,7 @@ from cuboidtrain.data.loader import SKIP_REASONS, SpoolBatches, make_loader
 from cuboidtrain.data.prepare import prepare_batch
 from cuboidtrain.data.sampler import EpochPosition, EpochSampler, LoaderState
 from cuboidtrain.data.census import SpoolCensus, parse_name, published_between
-from shared.sample import VERSION, encode, pack_mask, signed, unpack_mask
+from shared.sample import VERSION, encode, pack_mask, pack_record, signed, to_record, unpack_mask
 from shared.shapes import get_shape
 from shared.spool import SpoolWriter, enumerate_spool
 from tests.conftest import SIZE, build_sample, fill_spool
@@ -86,17 +85,17 @@ def test_a_name_evicted_after_listing_is_skipped_as_vanished(tmp_path):
 
 
 def good_record() -> dict:
-    return msgpack.unpackb(encode(build_sample(0)))
+    return to_record(build_sample(0))
 
 
 @pytest.mark.parametrize("bad_bytes", [
     lambda: np.random.default_rng(0).bytes(300),  # garbage
     lambda: b"",  # an empty file
     lambda: encode(build_sample(0))[:-40],  # truncated
-    lambda: msgpack.packb({**good_record(), "version": VERSION + 1}, use_bin_type=True),  # a future format
-    lambda: msgpack.packb({**good_record(), "keypoints": b"\x00" * 8}, use_bin_type=True),  # a short field
-    lambda: msgpack.packb({**good_record(), "ratios": "none"}, use_bin_type=True),  # a malformed ratio record
-    lambda: msgpack.packb({**good_record(), "ratios": {"depth_height": 1.0}}, use_bin_type=True),  # one missing
+    lambda: pack_record({**good_record(), "version": VERSION + 1}),  # a future format
+    lambda: pack_record({**good_record(), "keypoints": b"\x00" * 8}),  # a short field
+    lambda: pack_record({**good_record(), "ratios": "none"}),  # a malformed ratio record
+    lambda: pack_record({**good_record(), "ratios": {"depth_height": 1.0}}),  # one missing
 ], ids=["garbage", "empty", "truncated", "future_version", "short_field", "ratios_not_a_map", "ratio_missing"])
 def test_bad_bytes_under_a_sample_name_are_skipped_as_corrupt(tmp_path, bad_bytes):
     names = fill_spool(tmp_path, 2)

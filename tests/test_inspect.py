@@ -80,11 +80,9 @@ def test_health_is_1_with_one_line_otherwise(tmp_path, library, case, options, m
 
 def poisoned(data: bytes, **changes) -> bytes:
     """A well-formed sample's bytes with fields replaced (a NaN keypoint, a ratio of Infinity)."""
-    import msgpack
+    from shared.sample import decode_record, pack_record
 
-    record = msgpack.unpackb(data)
-    record.update(changes)
-    return msgpack.packb(record, use_bin_type=True)
+    return pack_record({**decode_record(data), **changes})
 
 
 def test_inspect_and_the_trainers_reader_count_non_finite_samples_as_corrupt_with_a_reason(tmp_path, library):
@@ -107,3 +105,23 @@ def test_inspect_and_the_trainers_reader_count_non_finite_samples_as_corrupt_wit
     batch = SpoolBatches(tmp_path, "box", 48)[names]
     assert batch.names == [names[0], names[3]] and batch.skipped["corrupt"] == 2
     assert np.isfinite(batch.keypoints.numpy()).all()
+
+
+def test_a_flipped_bit_is_found_by_inspect_the_trainers_reader_and_eval_as_damaged(tmp_path, library):
+    import json
+
+    from cuboidtrain.data.loader import SpoolBatches
+    from cuboidtrain.train.evaluate import load_batches
+
+    names = fill_spool(tmp_path, 4, library=library)
+    data = bytearray((tmp_path / names[1]).read_bytes())
+    data[len(data) // 2] ^= 0x10  # one bit in the middle: a mask's packed bits
+    (tmp_path / names[1]).write_bytes(bytes(data))
+    result = runner.invoke(app, ["inspect", str(tmp_path), "--json"])
+    report = json.loads(result.stdout)
+    assert report["samples"] == 3 and report["corrupt"] == 1
+    assert report["corrupt_reasons"] == {"checksum: mismatch": 1}
+    batch = SpoolBatches(tmp_path, "box", 48)[names]
+    assert batch.names == [names[0], *names[2:]] and batch.skipped["damaged"] == 1 and batch.skipped["corrupt"] == 0
+    batches, skipped = load_batches(tmp_path, "box", 48, batch_size=4, max_samples=None)
+    assert skipped["damaged"] == 1 and sum(len(b.names) for b in batches) == 3

@@ -3,8 +3,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.sample import (BIT_SHIFTS, VERSION, collate, decode, decode_packed, decode_record, encode, from_record,
-                           pack_mask, packed_rows, signed, to_record, unpack_mask)
+from shared.sample import (BIT_SHIFTS, VERSION, DamagedSample, collate, decode, decode_packed, decode_record, encode, from_record,
+                           pack_mask, pack_record, packed_rows, signed, to_record, unpack_mask)
 from shared.shapes import get_shape
 from tests.conftest import build_sample
 
@@ -55,10 +55,10 @@ def test_signed_masks_are_plus_minus_one():
 
 
 def test_version_mismatch_names_both_versions(library):
-    record = msgpack.unpackb(encode(build_sample(0, library=library)))
+    record = to_record(build_sample(0, library=library))
     record["version"] = VERSION + 1
     with pytest.raises(ValueError, match=f"version {VERSION + 1}.*expected {VERSION}"):
-        decode(msgpack.packb(record, use_bin_type=True))
+        decode(pack_record(record))
 
 
 @pytest.mark.parametrize("damage", [
@@ -75,10 +75,10 @@ def test_corrupt_bytes_raise_value_error(damage, library):
 
 
 def test_short_mask_field_is_corrupt(library):
-    record = msgpack.unpackb(encode(build_sample(0, library=library)))
+    record = to_record(build_sample(0, library=library))
     record["clean"] = record["clean"][:-1]
     with pytest.raises(ValueError, match="clean: wrong length"):
-        decode_record(msgpack.packb(record, use_bin_type=True))
+        decode_record(pack_record(record))
 
 
 def test_encode_refuses_wrong_keypoint_count(library):
@@ -144,13 +144,13 @@ PROPERTY = settings(max_examples=40, deadline=None, suppress_health_check=[Healt
 
 
 def a_record(library, shape: str = "box") -> dict:
-    return msgpack.unpackb(encode(build_sample(0, shape, library=library)))
+    return to_record(build_sample(0, shape, library=library))
 
 
 def refused(record: dict, field: str) -> CorruptSample:
     """decode_record refuses the record, naming `field` in the message and the census reason."""
     with pytest.raises(CorruptSample) as caught:
-        decode_record(msgpack.packb(record, use_bin_type=True))
+        decode_record(pack_record(record))
     assert caught.value.reason.startswith(f"{field}: ") and str(caught.value).startswith(f"corrupt sample: {field}: ")
     assert "\n" not in str(caught.value)
     return caught.value
@@ -250,7 +250,7 @@ def test_any_finite_sample_in_range_round_trips(library, shape, data):
     for part in parts:
         for key in part:
             part[key] = data.draw(ratio)
-    assert decode_record(msgpack.packb(record, use_bin_type=True)) == record
+    assert decode_record(pack_record(record)) == record
 
 
 def test_encode_refuses_a_sample_its_readers_would_refuse(library):
@@ -263,3 +263,37 @@ def test_encode_refuses_a_sample_its_readers_would_refuse(library):
         encode(replace(sample, keypoints=keypoints))
     with pytest.raises(CorruptSample, match="ratios: out of range"):
         encode(replace(sample, ratios={"depth_height": 0.0, "width_height": 1.0}))
+
+
+def flipped(data: bytes, bit: int) -> bytes:
+    """`data` with one bit flipped (bit 0 is the first byte's most significant)."""
+    damaged = bytearray(data)
+    damaged[bit // 8] ^= 0x80 >> (bit % 8)
+    return bytes(damaged)
+
+
+def test_every_single_flipped_bit_of_a_sample_is_refused(library):
+    # A 16 px sample is a few hundred bytes: every one of its bits, flipped alone, is caught,
+    # most by the payload's CRC-32 (DamagedSample), the rest (the map's own bytes) as corrupt.
+    data = encode(build_sample(2, size=16, library=library))
+    damaged = 0
+    for bit in range(len(data) * 8):
+        with pytest.raises(ValueError) as refused:
+            decode_record(flipped(data, bit))
+        damaged += isinstance(refused.value, DamagedSample)
+    assert damaged > len(data) * 8 * 0.8  # the payload is most of the file
+
+
+def test_a_flipped_bit_in_a_mask_is_a_checksum_mismatch_with_its_own_reason(library):
+    data = encode(build_sample(2, library=library))
+    with pytest.raises(DamagedSample, match="corrupt sample: checksum: mismatch") as refused:
+        decode(flipped(data, len(data) * 4))  # the middle of the file: the noisy mask's bits
+    assert refused.value.reason == "checksum: mismatch"
+    assert decode_record(flipped(data, len(data) * 4), verify=False)["shape"] == "box"  # unchecked, it would pass
+
+
+def test_a_version_1_sample_is_refused_saying_it_carried_no_checksum(library):
+    record = {**to_record(build_sample(0, library=library)), "version": 1}
+    old = msgpack.packb(record, use_bin_type=True)  # version 1: the fields in the one map, no checksum
+    with pytest.raises(ValueError, match="version 1 is not supported: expected 2 .*no checksum"):
+        decode_record(old)

@@ -27,10 +27,11 @@ from cuboidtrain.data.reframing import CutOff, Framed, framed, identity_framing
 from cuboidtrain.data.sampler import EpochSampler
 from cuboidtrain.fit.masks import Framing
 from cuboidtrain.fit.options import DEFAULT_MARGIN
-from shared.sample import PackedSample, Sample, collate, decode_packed, packed_rows
+from shared.sample import DamagedSample, PackedSample, Sample, collate, decode_packed, packed_rows
 from shared.spool import enumerate_spool, read_sample_bytes
 
-SKIP_REASONS = ("vanished", "corrupt", "other_shape", "other_size", "cut_off")
+# damaged: a sample whose payload lost the CRC-32 it was written with (bit rot); corrupt: any other fault
+SKIP_REASONS = ("vanished", "damaged", "corrupt", "other_shape", "other_size", "cut_off")
 REFRAME_MODES = ("never", "always", "other-sizes")
 
 
@@ -98,14 +99,16 @@ class SpoolBatches(Dataset):
     skips samples of another size. `margin`: the framing's, as FitOptions' (eval passes its own).
     A batch holding a framed sample keeps its masks at the spool's size, with each sample's
     framing (`collate_batch`): `prepare_batch` frames them on the training device.
-    `keep_sources`: each batch also holds its samples as read, with their framings (`Source`)."""
+    `keep_sources`: each batch also holds its samples as read, with their framings (`Source`).
+    `verify=False` skips the samples' checksums: only benchmarks/speed/bench_checksum.py, to
+    measure what they cost."""
 
     def __init__(self, spool: str | Path, shape: str, size: int, reframe: str = "never",
-                 margin: float = DEFAULT_MARGIN, keep_sources: bool = False):
+                 margin: float = DEFAULT_MARGIN, keep_sources: bool = False, verify: bool = True):
         if reframe not in REFRAME_MODES:
             raise ValueError(f"reframe {reframe!r}: expected one of {', '.join(REFRAME_MODES)}")
         self.spool, self.shape, self.size, self.reframe, self.margin = Path(spool), shape, size, reframe, margin
-        self.keep_sources = keep_sources
+        self.keep_sources, self.verify = keep_sources, verify
 
     def __getitem__(self, names: list[str]) -> LoaderBatch:
         items, kept, vanished, sources, skipped = [], [], [], [], dict.fromkeys(SKIP_REASONS, 0)
@@ -133,7 +136,9 @@ class SpoolBatches(Dataset):
         if data is None:
             return "vanished", None
         try:
-            sample = decode_packed(data)  # every field checked, the ratios too
+            sample = decode_packed(data, self.verify)  # the checksum and every field checked, once
+        except DamagedSample:
+            return "damaged", None
         except ValueError:
             return "corrupt", None
         if sample.shape != self.shape:

@@ -113,4 +113,6 @@ def unusable_reason(config: TrainConfig, skipped: dict) -> str:
         reason += f"; samples of another size need --reframe, or a generator with --size {config.size}"
     elif skipped.get("other_shape"):
         reason += f"; the spool holds no {config.shape} samples (--shape)"
+    elif skipped.get("damaged"):
+        reason += "; their bytes changed after writing (cuboidgen inspect names the fault)"
     return reason

@@ -206,6 +206,9 @@ class Progress:
             notes.append(f"{skipped['other_size']} samples of another size skipped: run cuboidgen with --size {self.config.size}")
         if skipped["other_shape"]:
             notes.append(f"{skipped['other_shape']} samples of another shape skipped (a mix spool, or the wrong --shape)")
+        if skipped["damaged"]:
+            notes.append(f"{skipped['damaged']} damaged samples skipped: their bytes changed after writing (a failing "
+                         f"disk or copy; cuboidgen inspect {self.config.spool} counts them)")
         if skipped["corrupt"]:
             notes.append(f"{skipped['corrupt']} corrupt samples skipped (cuboidgen inspect {self.config.spool} counts them)")
         if foreign:
