@@ -41,7 +41,8 @@ class Shared:
 
     counters: object  # mp.Array of int64, workers x FIELDS
     stop: object  # mp.RawValue flag: lock-free, so a killed process can never leave it locked
-    tickets: object | None  # mp.Value: samples still to publish under --max-samples
+    drawn: object  # mp.Value: the run's samples handed out so far, across workers (each one's index)
+    most: int | None  # --max-samples: no index from it on is handed out
 
     def stopping(self) -> bool:
         return bool(self.stop.value)
@@ -55,14 +56,15 @@ class Shared:
     def get(self, worker: int, name: str) -> int:
         return self.counters[worker * len(FIELDS) + FIELDS.index(name)]
 
-    def take_ticket(self) -> bool:
-        if self.tickets is None:
-            return True
-        with self.tickets.get_lock():
-            if self.tickets.value <= 0:
-                return False
-            self.tickets.value -= 1
-            return True
+    def next_index(self) -> int | None:
+        """The run's next sample index (its seed's), None once --max-samples are handed out. One
+        count for all workers, so the run's samples are the same whatever the number of workers."""
+        with self.drawn.get_lock():
+            index = self.drawn.value
+            if self.most is not None and index >= self.most:
+                return None
+            self.drawn.value = index + 1
+            return index
 
 
 def run(config: GenConfig) -> int:
@@ -79,7 +81,8 @@ def run(config: GenConfig) -> int:
     shared = Shared(
         counters=ctx.Array("q", config.workers * len(FIELDS), lock=False),
         stop=ctx.RawValue("b", 0),
-        tickets=ctx.Value("q", config.max_samples) if config.max_samples else None,
+        drawn=ctx.Value("q", 0),
+        most=config.max_samples or None,
     )
     workers = [ctx.Process(target=work, args=(i, config, seed, shared, os.getpid()), daemon=True,
                            name=f"cuboidgen-{i}")
@@ -144,15 +147,13 @@ def work(index: int, config: GenConfig, run_seed: int, shared: Shared, parent: i
     # Each worker takes an equal share of --max-rate: no lock between processes on the hot path.
     bucket = TokenBucket(config.max_rate / config.workers) if config.max_rate else None
     with SpoolWriter(config.spool, config.limit, config.evict_every, config.fsync) as writer:
-        count = 0
         # A SIGKILLed main process cannot tell us to stop: being re-parented is the sign.
-        while not shared.stopping() and os.getppid() == parent and shared.take_ticket():
+        while not shared.stopping() and os.getppid() == parent and (number := shared.next_index()) is not None:
             if bucket is not None:
                 pause(bucket.take(), shared)
                 if shared.stopping():
                     break
-            seed = sample_seed(run_seed, index, count)
-            count += 1
+            seed = sample_seed(run_seed, 0, number)  # stream 0: numbered across workers
             try:
                 data = encode(make_sample(config.shape, config.scene, config.size, seed, library))
             except Exception:  # a bad draw must not stop the daemon; it is counted and logged

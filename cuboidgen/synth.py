@@ -44,9 +44,11 @@ def _splitmix64(x: int) -> int:
     return x ^ (x >> 31)
 
 
-def sample_seed(run_seed: int, worker: int, index: int) -> int:
-    """The seed of a run's `index`-th sample from one worker: distinct across workers."""
-    return _splitmix64(_splitmix64(_splitmix64(run_seed) ^ worker) ^ index)
+def sample_seed(run_seed: int, stream: int, index: int) -> int:
+    """The seed of the `index`-th sample of one of a run's streams: distinct across streams. The
+    daemon draws from stream 0, its samples numbered across all its workers (`daemon.Shared.next_index`),
+    so `--seed S --max-samples N` means the same N samples whatever `--workers` is."""
+    return _splitmix64(_splitmix64(_splitmix64(run_seed) ^ stream) ^ index)
 
 
 def silhouette_box(keypoints: np.ndarray, size: int) -> tuple[int, int, int, int]:

@@ -14,6 +14,7 @@ import pytest
 import cuboidgen.daemon as daemon
 from cuboidgen.daemon import run
 from shared.inspect import inspect_spool
+from shared.sample import VERSION
 from shared.spool import META_NAME, enumerate_spool
 from tests.conftest import tiny_config
 
@@ -43,6 +44,18 @@ def test_same_seed_same_spool_contents(tmp_path):
     assert read(a) == read(b)
 
 
+def test_a_seed_means_the_same_samples_whatever_the_number_of_workers(tmp_path):
+    # Each worker used to number its own samples' seeds, so which worker took how many of the
+    # --max-samples tickets changed the set; the run now numbers them across workers.
+    spools = {workers: tmp_path / f"w{workers}" for workers in (1, 2, 3)}
+    for workers, spool in spools.items():
+        run(tiny_config(spool, limit=0, max_samples=12, workers=workers, seed=9))
+    read = lambda s: sorted((s / n).read_bytes() for n in enumerate_spool(s))  # noqa: E731
+    one = read(spools[1])
+    assert len(one) == len(set(one)) == 12
+    assert read(spools[2]) == one and read(spools[3]) == one
+
+
 def test_limit_zero_without_max_samples_leaves_the_spool_as_it_is(tmp_path):
     run(tiny_config(tmp_path, limit=0, max_samples=3))
     before = sorted(os.listdir(tmp_path))
@@ -53,7 +66,7 @@ def test_limit_zero_without_max_samples_leaves_the_spool_as_it_is(tmp_path):
 def test_metadata_records_the_config(tmp_path):
     run(tiny_config(tmp_path, max_samples=2, shape="twobox"))
     meta = json.loads((tmp_path / META_NAME).read_text())
-    assert meta["version"] == 1 and meta["generator"]["shape"] == "twobox"
+    assert meta["version"] == VERSION and meta["generator"]["shape"] == "twobox"
     assert meta["generator"]["scene"]["name"] == "paper"
 
 
@@ -159,7 +172,7 @@ def test_after_a_stop_the_last_frame_shows_the_workers_stopped_with_their_final_
     monkeypatch.setattr(daemon, "Dashboard", Recorder)
     ctx = mp.get_context("spawn")
     shared = daemon.Shared(counters=ctx.Array("q", 2 * len(daemon.FIELDS), lock=False), stop=ctx.RawValue("b", 0),
-                           tickets=None)
+                           drawn=ctx.Value("q", 0), most=None)
     for i, published in enumerate((7, 9)):
         shared.set(i, "published", published)
     stop = threading.Event()

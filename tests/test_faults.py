@@ -82,7 +82,7 @@ def shown(status: TrainerStatus) -> str:
 
 def workers_shared(workers: int = 1) -> daemon.Shared:
     return daemon.Shared(counters=mp.Array("q", workers * len(daemon.FIELDS), lock=False), stop=mp.RawValue("b", 0),
-                         tickets=None)
+                         drawn=mp.Value("q", 0), most=None)
 
 
 def test_a_full_disk_backs_off_says_so_and_resumes_publishing(tmp_path, monkeypatch, caplog):
