@@ -137,6 +137,30 @@ def test_resume_reproduces_the_uninterrupted_run(spool, tmp_path):
         assert torch.equal(value, split["model"][key]), key
 
 
+def flip_a_bit(path: Path, at: float = 0.5) -> None:
+    """One bit flipped at `at` of the file's length (the middle of a zip: a tensor's bytes)."""
+    data = bytearray(path.read_bytes())
+    data[int(len(data) * at)] ^= 0x04
+    path.write_bytes(bytes(data))
+
+
+def test_a_damaged_last_checkpoint_is_refused_and_resume_falls_back_to_the_previous_one(spool, tmp_path, caplog):
+    run(config(spool, tmp_path, steps=4, checkpoint_every=2))  # checkpoints at steps 2 and 4
+    assert load_checkpoint(tmp_path / "previous.pt")["step"] == 2 and load_checkpoint(tmp_path / "last.pt")["step"] == 4
+    flip_a_bit(tmp_path / "last.pt")
+    with pytest.raises(UsageError, match=r"last\.pt: damaged: .* does not have the CRC-32 it was written with"):
+        load_checkpoint(tmp_path / "last.pt")
+    with caplog.at_level("WARNING"):
+        run(config(spool, tmp_path, steps=6, checkpoint_every=2, resume=True))
+    assert "resuming from" in caplog.text and "previous.pt (step 2) instead" in caplog.text
+    assert load_checkpoint(tmp_path / "last.pt")["step"] == 6 and (tmp_path / "last.pt.damaged").is_file()
+    assert load_checkpoint(tmp_path / "previous.pt")["step"] == 4  # the run's own again, not the damaged file
+    flip_a_bit(tmp_path / "last.pt")
+    flip_a_bit(tmp_path / "previous.pt")
+    with pytest.raises(UsageError, match="no previous.pt|previous.pt: damaged"):
+        run(config(spool, tmp_path, steps=8, resume=True))
+
+
 def test_resume_refuses_another_phase_and_init_another_shape(spool, tmp_path):
     run(config(spool, tmp_path, steps=1))
     with pytest.raises(ValueError, match="phase 1, not 2"):

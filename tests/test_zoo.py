@@ -175,3 +175,20 @@ def test_a_model_file_starts_a_training_run(zoo):
     assert all(p.dtype == torch.float32 for p in model.parameters())
     with pytest.raises(ValueError, match="'tiny' arch model, expected 'compact'"):
         load_checkpoint(folder / "box.pt", arch="compact")
+
+
+def test_a_model_file_with_a_flipped_bit_is_refused_by_models_and_infer_naming_it(tmp_path):
+    # torch.load itself reads such a file: the flipped bit becomes a changed weight, silently
+    folder = tmp_path / "models"
+    folder.mkdir()
+    damaged = folder / "box.pt"
+    data = bytearray(shipped_path("box").read_bytes())
+    data[len(data) // 2] ^= 0x01
+    damaged.write_bytes(bytes(data))
+    assert torch.load(damaged, map_location="cpu", weights_only=False)["shape"] == "box"  # what it guards against
+    for args in (["models", "--folder", str(folder)],
+                 ["infer", "examples/building.png", "--checkpoint", str(damaged), "--json", "-"]):
+        result = runner.invoke(app, args)
+        lines = [line for line in result.output.splitlines() if line.strip()]
+        assert result.exit_code == 2 and len(lines) == 1, result.output
+        assert f"{damaged}: damaged: " in lines[0] and "CRC-32" in lines[0], lines[0]

@@ -39,7 +39,7 @@ from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, wei
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.monitor.progress import Progress
 from cuboidtrain.train.monitor.status import TrainerStatus, TrainingFailed
-from cuboidtrain.train.preflight import LAST, check_paths
+from cuboidtrain.train.preflight import LAST, PREVIOUS, check_paths
 from cuboidtrain.train.startup import Setup, set_up
 from cuboidtrain.train.stop_and_wait import Backoff, StopRequest, finished, idle_pause, unusable_reason
 from shared.errors import UsageError
@@ -359,7 +359,7 @@ def _checkpoint(s: Session, step: int, kept: int | None) -> int:
     if s.ranks.main:
         try:
             save_checkpoint(path, s.setup.model, s.config, step, s.setup.optimizer, s.setup.sampler.snapshot(),
-                            s.progress.metrics())
+                            s.progress.metrics(), previous=s.out / PREVIOUS if kept != step else None)
         except OSError as exc:  # the temporary file is closed and removed: the disk has its space back
             what = (f"out of space writing {path} at step {step}" if exc.errno in (errno.ENOSPC, errno.EDQUOT)
                     else f"cannot write {path} at step {step} ({exc.strerror or exc})")

@@ -14,6 +14,7 @@ from shared.errors import UsageError, check_writable
 from shared.spool import SpoolError, check_spool
 
 LAST = "last.pt"  # OUT/last.pt: the run's newest checkpoint
+PREVIOUS = "previous.pt"  # OUT/previous.pt: the one before it, for a resume that finds last.pt damaged
 
 
 def least_batch(model: CuboidNet, device: torch.device) -> int:

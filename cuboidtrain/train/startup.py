@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -9,14 +10,14 @@ import torch
 from torch.utils.data import DataLoader
 
 from cuboidtrain.allocator import keep_freed_memory
-from cuboidtrain.models.checkpoint import load_checkpoint, set_rng_state
+from cuboidtrain.models.checkpoint import DamagedFile, load_checkpoint, set_rng_state
 from cuboidtrain.models.networks import CuboidNet, build_model
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.data.loader import make_loader
 from cuboidtrain.data.sampler import EpochSampler, loader_state, spool_names
 from cuboidtrain.train.distributed import Ranks, wrap
 from cuboidtrain.train.run_files import drop_records_after, repair_jsonl, sweep_orphans
-from cuboidtrain.train.preflight import LAST, least_batch
+from cuboidtrain.train.preflight import LAST, PREVIOUS, least_batch
 from cuboidtrain.train.stop_and_wait import StopRequest, leave_signals_to_main
 from shared.errors import UsageError
 from shared.files import write_json
@@ -55,13 +56,30 @@ class Setup:
     kept: int | None
 
 
+def resumable(config: TrainConfig) -> dict:
+    """The checkpoint `--resume` continues: OUT/last.pt, or where its bytes are damaged (a flipped
+    bit, a torn copy) the one before it, OUT/previous.pt, saying so; DamagedFile when both are."""
+    last, previous = Path(config.out) / LAST, Path(config.out) / PREVIOUS
+    try:
+        return load_checkpoint(last, config.shape, config.size, config.arch)
+    except DamagedFile as damaged:
+        if not previous.is_file():
+            raise DamagedFile(f"{damaged}, and there is no {PREVIOUS} to fall back to") from None
+        resume = load_checkpoint(previous, config.shape, config.size, config.arch)
+        # set aside, not deleted (to look at), and never linked as the next previous.pt
+        os.replace(last, last.with_name(LAST + ".damaged"))
+        log.warning("%s; resuming from %s (step %d) instead; the damaged file is now %s.damaged",
+                    damaged, previous, resume["step"], LAST)
+        return resume
+
+
 def build_state(config: TrainConfig, device: torch.device) -> Start:
     """Model, optimizer, first step and a checkpoint to resume from (None for a fresh run)."""
     torch.manual_seed(config.seed)
     model = build_model(config.shape, config.size, config.seed, config.heatmap_sigma, config.arch)
     resume = None
     if config.resume:
-        resume = load_checkpoint(Path(config.out) / LAST, config.shape, config.size, config.arch)
+        resume = resumable(config)
         if resume["config"]["phase"] != config.phase:
             raise UsageError(f"--resume: {config.out}/{LAST} is phase {resume['config']['phase']}, not {config.phase}")
         model.load_state_dict(resume["model"])
@@ -116,6 +134,7 @@ def prepare_out(config: TrainConfig, step: int) -> None:
     write_json(out / "config.json", config.resolved().to_dict(), indent=2)
     if config.overwrite:  # asked to start over: no step of the old run is resumed after a crash
         (out / LAST).unlink(missing_ok=True)
+        (out / PREVIOUS).unlink(missing_ok=True)
     # steps after the start (a checkpoint, or 0) are trained again: record them once
     drop_records_after(out / "metrics.jsonl", step)
 
