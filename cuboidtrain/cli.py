@@ -63,6 +63,7 @@ def run(
     overwrite: bool = typer.Option(TRAIN.overwrite, envvar="CUBOIDTRAIN_OVERWRITE", help="Start over in an --out that holds a run, replacing its last.pt and metrics.jsonl (without it, or --resume, such a run is refused)."),
     checkpoint_every: int = typer.Option(TRAIN.checkpoint_every, envvar="CUBOIDTRAIN_CHECKPOINT_EVERY", help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
     log_every: int = typer.Option(TRAIN.log_every, envvar="CUBOIDTRAIN_LOG_EVERY", help="Steps between records in OUT/metrics.jsonl."),
+    ledger: bool = typer.Option(TRAIN.ledger, "--ledger", envvar="CUBOIDTRAIN_LEDGER", help="Write OUT/ledger.jsonl: every step's samples, by name and payload CRC-32 (which bytes each step trained on)."),
     loader_workers: Optional[int] = typer.Option(TRAIN.loader_workers, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool (default: 2; on CUDA a quarter of the cores, 2 to 6)."),
     seed: int = typer.Option(TRAIN.seed, envvar="CUBOIDTRAIN_SEED", help="Seed of the initial weights and the epoch order."),
     device: str = typer.Option(TRAIN.device, envvar="CUBOIDTRAIN_DEVICE", help="auto (CUDA when present), cpu, cuda or cuda:N."),
@@ -80,7 +81,7 @@ def run(
         epochs=epochs, batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
         alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
         out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
-        resume=resume, overwrite=overwrite, checkpoint_every=checkpoint_every, log_every=log_every, loader_workers=loader_workers,
+        resume=resume, overwrite=overwrite, checkpoint_every=checkpoint_every, log_every=log_every, ledger=ledger, loader_workers=loader_workers,
         seed=seed, device=device, threads=threads, amp=amp, dashboard=dashboard, val_spool=str(val_spool) if val_spool else None,
         val_every=val_every, val_samples=val_samples,
     ).validate()

@@ -138,8 +138,13 @@ def to_record(sample: Sample) -> dict:
 
 
 def decode_record(data: bytes, verify: bool = True) -> dict:
-    """Bytes -> the raw record (format, version and the payload's fields), checked for format,
-    version, checksum and every field, masks still packed. `verify=False` skips the checksum
+    """Bytes -> the raw record; see `decode_checked`, whose record it is."""
+    return decode_checked(data, verify)[0]
+
+
+def decode_checked(data: bytes, verify: bool = True) -> tuple[dict, int]:
+    """Bytes -> the raw record (format, version and the payload's fields) and the payload's CRC-32,
+    checked for format, version, checksum and every field, masks still packed. `verify=False` skips the checksum
     alone (benchmarks/speed/bench_checksum.py measures what it costs; nothing else passes it).
 
     Raises ValueError naming what was found and what was expected; DamagedSample (a
@@ -156,14 +161,15 @@ def decode_record(data: bytes, verify: bool = True) -> dict:
     payload, written = outer.get("payload"), outer.get("crc32")
     if not isinstance(payload, bytes) or not _integer(written):
         raise CorruptSample("checksum", "missing", f"a payload of {type(payload).__name__} and a CRC of {written!r}")
-    if verify and (found := zlib.crc32(payload)) != written:
+    found = zlib.crc32(payload) if verify else written
+    if found != written:
         raise DamagedSample(found, written)
     fields = _unpack(payload, "payload")
     if not isinstance(fields, dict):
         raise CorruptSample("payload", "not a map", f"a {type(fields).__name__}")
     record = {"format": FORMAT, "version": VERSION, **fields}
     check_record(record)
-    return record
+    return record, found
 
 
 def _unpack(data: bytes, what: str):
@@ -280,6 +286,7 @@ class PackedSample:
     noisy: bytes
     clean: bytes
     record: dict
+    crc32: int  # the payload's CRC-32 as read (the one written, where checked): what a trainer's ledger keeps
 
     def noisy_mask(self) -> np.ndarray:
         """The noisy mask's (size, size) uint8 0/1 pixels."""
@@ -292,11 +299,11 @@ class PackedSample:
 
 def decode_packed(data: bytes, verify: bool = True) -> PackedSample:
     """Bytes -> PackedSample, every field checked once (`decode_record`). Raises ValueError."""
-    record = decode_record(data, verify)
+    record, crc = decode_checked(data, verify)
     geometry = get_shape(record["shape"])
     keypoints = np.frombuffer(record["keypoints"], KEYPOINT_DTYPE).reshape(geometry.num_keypoints, 2)
     return PackedSample(record["shape"], record["size"], keypoints, geometry.ratio_vector(record["ratios"]),
-                        record["noisy"], record["clean"], record)
+                        record["noisy"], record["clean"], record, crc)
 
 
 def packed_rows(samples: list[PackedSample], key: str, size: int) -> np.ndarray:

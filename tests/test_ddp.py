@@ -90,7 +90,7 @@ def test_a_sample_vanishing_on_one_rank_decides_the_batch_for_every_rank():
 
     def batch(kept: int, vanished: int) -> LoaderBatch:
         return LoaderBatch([f"{i}.cub" for i in range(kept)], {**dict.fromkeys(SKIP_REASONS, 0), "vanished": vanished},
-                           [f"gone-{i}.cub" for i in range(vanished)])
+                           [f"gone-{i}.cub" for i in range(vanished)], [0] * kept)
 
     def facts(mine: LoaderBatch, theirs: LoaderBatch, rank: int):
         peer = (*theirs.skipped.values(), float(len(theirs.names) < 2))

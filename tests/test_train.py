@@ -161,6 +161,26 @@ def test_a_damaged_last_checkpoint_is_refused_and_resume_falls_back_to_the_previ
         run(config(spool, tmp_path, steps=8, resume=True))
 
 
+def test_the_ledger_lists_each_step_s_samples_by_name_and_checksum_across_a_resume(spool, tmp_path):
+    import zlib
+
+    import msgpack
+
+    from cuboidtrain.train.ledger import read_ledger
+
+    run(config(spool, tmp_path, steps=2, ledger=True))
+    with open(tmp_path / "ledger.jsonl", "a") as torn:
+        torn.write('{"step": 3, "rank": 0, "samp')  # a trainer killed mid-line
+    run(config(spool, tmp_path, steps=4, ledger=True, resume=True))
+    lines = read_ledger(tmp_path / "ledger.jsonl")
+    assert [line["step"] for line in lines] == [1, 2, 3, 4] and all(len(line["samples"]) == 4 for line in lines)
+    written = {name: msgpack.unpackb((spool / name).read_bytes())["crc32"] for name in enumerate_spool(spool)}
+    payloads = {name: zlib.crc32(msgpack.unpackb((spool / name).read_bytes())["payload"]) for name in written}
+    for name, crc in (sample for line in lines for sample in line["samples"]):
+        assert crc == written[name] == payloads[name]
+    assert len({name for line in lines for name, _ in line["samples"]}) == 12  # 16 reads of 12 samples: an epoch and more
+
+
 def test_resume_refuses_another_phase_and_init_another_shape(spool, tmp_path):
     run(config(spool, tmp_path, steps=1))
     with pytest.raises(ValueError, match="phase 1, not 2"):

@@ -57,6 +57,7 @@ class LoaderBatch:
     names: list[str]  # the samples kept, in the batch's order
     skipped: dict[str, int]  # samples skipped by reason (SKIP_REASONS)
     vanished: list[str]  # evicted before they were read: the trainer's census counts them
+    crcs: list[int]  # each kept sample's payload CRC-32, as read and checked (the trainer's --ledger)
     noisy: torch.Tensor | None = None
     clean: torch.Tensor | None = None
     keypoints: torch.Tensor | None = None
@@ -125,7 +126,8 @@ class SpoolBatches(Dataset):
                 sample, framing = item
                 sources.append(Source(sample.unpacked(), framing or identity_framing(self.size)))
         tensors = collate_batch(items, self.size) if items else {}
-        return LoaderBatch(kept, skipped, vanished, **tensors, sources=sources if self.keep_sources else None)
+        crcs = [sample.crc32 for sample, _ in items]
+        return LoaderBatch(kept, skipped, vanished, crcs, **tensors, sources=sources if self.keep_sources else None)
 
     def _read(self, name: str) -> tuple[str | None, tuple[PackedSample, Framing | None] | None]:
         """(skip reason or None, the sample to batch with its framing: None where it stays at its size)."""

@@ -36,6 +36,7 @@ from cuboidtrain.models.networks import CuboidNet
 from cuboidtrain.train.agreement import BatchFacts, batch_facts, divergence, global_losses, stale
 from cuboidtrain.train.config import TrainConfig
 from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, weights_digest
+from cuboidtrain.train.ledger import Ledger
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.monitor.progress import Progress
 from cuboidtrain.train.monitor.status import TrainerStatus, TrainingFailed
@@ -96,6 +97,7 @@ class Session:
     census: SpoolCensus
     freshness: FreshnessMeter
     started: float  # monotonic s
+    ledger: Ledger | None  # --ledger: each step's samples
 
     @property
     def out(self) -> Path:
@@ -192,9 +194,10 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
     # The spool's count, arrival rate and evictions come from the listings the sampler makes
     # anyway: an inotify watcher's thread took the GIL for every publish (issue 14).
     census = SpoolCensus(config.spool)
+    ledger = Ledger.in_folder(Path(config.out), ranks.rank) if config.ledger else None
     with Progress(config, device, census, dashboard, ranks.rank, ranks.world, stop=stop) as progress, \
-            workers_stopped(setup.loader):
-        session = Session(config, ranks, device, stop, setup, progress, census, freshness, started)
+            workers_stopped(setup.loader), contextlib.closing(ledger) if ledger else contextlib.nullcontext():
+        session = Session(config, ranks, device, stop, setup, progress, census, freshness, started, ledger)
         _listen(session)
         progress.begin(setup.step, setup.sampler)
         position = train_epochs(session, Position(setup.step, setup.kept))
@@ -270,6 +273,8 @@ def train_one_step(s: Session, position: Position, batch: LoaderBatch, waited: f
         group["lr"] = learning_rate(config, position.step, schedule_seconds(config, s.ranks, s.started))
     losses = train_step(setup.model, setup.optimizer, x, config, s.device, setup.losses_of)
     step = position.step + 1
+    if s.ledger is not None:
+        s.ledger.record(step, batch.names, batch.crcs)
     # 3. account and report
     age, reuse = s.freshness.observe(batch.names)
     result = global_losses(s.ranks, losses, len(batch.names))

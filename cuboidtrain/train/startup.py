@@ -131,6 +131,8 @@ def prepare_out(config: TrainConfig, step: int) -> None:
     if swept:
         log.info("swept %d temporary files left in %s by a killed trainer", swept, out)
     repair_jsonl(out / "metrics.jsonl")
+    for ledger in out.glob("ledger*.jsonl"):  # --ledger's, whether or not this run keeps one
+        repair_jsonl(ledger)
     write_json(out / "config.json", config.resolved().to_dict(), indent=2)
     if config.overwrite:  # asked to start over: no step of the old run is resumed after a crash
         (out / LAST).unlink(missing_ok=True)
