@@ -286,11 +286,18 @@ def spool_summary(spool: Path) -> tuple[int, int, float | None, float | None]:
 
 
 def write_metadata(config: GenConfig) -> None:
-    """Record the latest generator's config beside the samples (atomically)."""
+    """Record the latest generator's config beside the samples (atomically). On a full disk the
+    record is left as it was, with a warning: the workers wait for space as they always do, and a
+    generator restarted onto a full disk must not need a hand (the soak found it exiting)."""
     from shared.sample import FORMAT, VERSION
 
     meta = {"format": FORMAT, "version": VERSION, "generator": config.to_dict(), "written": time.time()}
-    write_json(config.spool / META_NAME, meta, indent=2, default=str)
+    try:
+        write_json(config.spool / META_NAME, meta, indent=2, default=str)
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        log.warning("disk full under %s: its %s not updated; generating once there is space", config.spool, META_NAME)
 
 
 def _install_stop_handlers(stop: threading.Event) -> dict:

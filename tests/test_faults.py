@@ -157,6 +157,36 @@ def test_a_really_full_tmpfs_backs_off_and_publishing_resumes_when_space_returns
         subprocess.run(["umount", str(disk)])
 
 
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root")
+def test_a_generator_started_on_a_full_disk_waits_for_space_and_then_publishes(tmp_path):
+    # It used to exit on its first write (the spool's SPOOL.json), so a restart needed a hand.
+    disk, log = tmp_path / "disk", tmp_path / "generator.log"
+    if not _mount_tmpfs(disk, "96k"):
+        pytest.skip("cannot mount a tmpfs here")
+    proc = None
+    try:
+        ballast = disk / ".ballast"
+        with open(ballast, "wb", buffering=0) as f, pytest.raises(OSError, match="No space left"):
+            while True:
+                f.write(b"\0" * 4096)
+        with open(log, "w") as out:
+            proc = subprocess.Popen([sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(disk), "--limit", "0",
+                                     "--max-samples", "5", "--workers", "1", "--size", str(SIZE), "--no-dashboard"],
+                                    cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        deadline = time.monotonic() + 60
+        while "backing off" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert proc.poll() is None, log.read_text()  # waiting, not gone
+        ballast.unlink()
+        proc.wait(timeout=60)
+        assert proc.returncode == 0 and len(enumerate_spool(disk)) == 5, log.read_text()
+        assert "disk full" in log.read_text() and "space again" in log.read_text()
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        subprocess.run(["umount", str(disk)])
+
+
 def _settled(read, within: float, quiet: float = 1.5) -> int:
     """read()'s value once it has not changed for `quiet` seconds."""
     deadline, value, since = time.monotonic() + within, None, time.monotonic()

@@ -1,40 +1,51 @@
-"""Soak: a generator and a trainer on one rotating spool, SIGKILLed at random moments, many times.
+"""Soak: a generator and a trainer on one rotating spool, SIGKILLed at random moments, many times,
+while a saboteur damages published samples and the spool's disk is held full for part of the run.
 
-Each cycle waits a random time, then SIGKILLs the trainer, the generator or both (the
-whole process group: loader and generation workers too), checks what they left, and
-restarts them (the trainer with --resume once it has a checkpoint). Meanwhile a watcher
-lists the spool every 0.1 s. Prints JSON:
+Each cycle waits a random time (mostly short, so kills land in start-up, mid-step and mid-publish;
+now and then long, so the trainer trains past its checkpoint), then SIGKILLs the trainer, the
+generator or both (the whole process group: loader and generation workers too), checks what they
+left, and restarts them (the trainer with --resume once it has a checkpoint). Meanwhile:
 
-* torn: corrupt samples found by a census of the spool after every kill, plus corrupt
-  samples the trainer skipped (it decodes every sample it reads); must be 0;
-* lost published: samples that vanished while an older one was still there (eviction
-  is oldest first, and one generator worker keeps that order strict); must be 0;
-* checkpoints: last.pt loads after every kill, and its step never goes backwards;
-* temporary files left in the run folder by a kill, and whether the next start swept them;
-* resumes: restarts that trained past their checkpoint before the next kill, and a final
-  --resume run that must finish, with metrics.jsonl holding each step once, in order.
+* a watcher lists the spool every 0.1 s (a sample vanishing while an older one is still there
+  was lost: eviction is oldest first);
+* a saboteur damages a published sample every --sabotage-every s: flips 1-3 bits in place,
+  truncates it, or replaces it with foreign bytes, and notes the CRC-32 it was written with;
+* the spool is a tmpfs of --tmpfs-mb (the run makes it; root), and for --full-share of the
+  cycles a ballast file holds it full: the generator's writes fail with ENOSPC and back off.
 
-    nice -n 10 .venv/bin/python benchmarks/soak/soak_faults.py --cycles 15 --workdir /tmp/cuboid-soak
+The trainer runs with --ledger, so every step's samples are listed by name and payload CRC-32:
+a damaged sample trained on would show as a damaged name with a CRC other than the one written.
+Prints a JSON line per cycle, then the report (RELIABILITY.md gives the last one's table):
+
+    nice -n 10 .venv/bin/python benchmarks/soak/soak_faults.py --cycles 1000 --workdir /tmp/cuboid-soak
 """
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
+import zlib
+from collections import Counter
 from pathlib import Path
 
-from cuboidtrain.models.checkpoint import load_checkpoint
-from shared.inspect import inspect_spool
+import msgpack
+
+from cuboidtrain.models.checkpoint import DamagedFile, load_checkpoint
+from cuboidtrain.train.ledger import read_ledger
+from shared.sample import decode_record
 from shared.spool import enumerate_spool
 
 ROOT = Path(__file__).resolve().parents[2]
+KINDS = ("flip", "truncate", "foreign")
 
 
 class SpoolWatch(threading.Thread):
@@ -74,18 +85,93 @@ class SpoolWatch(threading.Thread):
         return sum(self.last_seq.values())
 
 
+class Saboteur(threading.Thread):
+    """Damages a random published sample every `every` s and checks that the readers' decoder
+    refuses it. `damaged`: name -> (kind, the CRC-32 it was written with)."""
+
+    def __init__(self, spool: Path, every: float, rng: random.Random):
+        super().__init__(daemon=True)
+        self.spool, self.every, self.rng = spool, every, rng
+        self.damaged: dict[str, tuple[str, int]] = {}
+        self.refused: Counter = Counter()  # kind -> damaged files the decoder refused
+        self.accepted: list[str] = []  # damaged files the decoder took: must stay empty
+        self.no_space = 0  # foreign replacements the full disk refused
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.wait(self.every):
+            names = [n for n in enumerate_spool(self.spool) if n not in self.damaged]
+            if names:
+                self.damage(self.rng.choice(names), self.rng.choice(KINDS))
+
+    def damage(self, name: str, kind: str) -> None:
+        path = self.spool / name
+        try:
+            data = path.read_bytes()
+            written = msgpack.unpackb(data)["crc32"]
+            if kind == "flip":
+                with open(path, "r+b") as f:
+                    for bit in self.rng.sample(range(len(data) * 8), self.rng.randint(1, 3)):
+                        f.seek(bit // 8)
+                        f.write(bytes([f.read(1)[0] ^ (0x80 >> bit % 8)]))
+                        f.seek(bit // 8)
+            elif kind == "truncate":
+                os.truncate(path, self.rng.randrange(len(data)))
+            else:  # foreign bytes under the sample's name, as a bad copy would leave them
+                tmp = path.with_name(f".sabotage-{name}")
+                tmp.write_bytes(b"\x89PNG\r\n\x1a\n" + os.urandom(self.rng.randint(8, len(data))))
+                os.replace(tmp, path)
+            damaged = path.read_bytes()
+        except FileNotFoundError:  # evicted meanwhile
+            return
+        except OSError as exc:
+            if exc.errno != errno.ENOSPC:
+                raise
+            self.no_space += 1
+            return
+        self.damaged[name] = (kind, written)
+        try:
+            decode_record(damaged)
+            self.accepted.append(name)
+        except ValueError:
+            self.refused[kind] += 1
+
+
+class Ballast:
+    """A file that fills the spool's disk (writes fail with ENOSPC) until it is removed."""
+
+    def __init__(self, disk: Path):
+        self.path = disk / ".ballast"
+
+    def fill(self) -> None:
+        with open(self.path, "ab", buffering=0) as f:
+            for size in (1 << 16, 1 << 12, 1):  # down to the last byte: a sample's page must find none
+                try:
+                    while True:
+                        f.write(b"\0" * size)
+                except OSError as exc:
+                    if exc.errno != errno.ENOSPC:
+                        raise
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
 def start(command: list[str], log: Path) -> subprocess.Popen:
     with open(log, "a") as f:
         return subprocess.Popen(command, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
                                 env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
 
 
-def kill_group(proc: subprocess.Popen) -> None:
+def kill_group(proc: subprocess.Popen) -> bool:
+    """SIGKILL the process group; True when its leader had already ended on its own."""
+    ended = proc.poll() is not None
     try:
         os.killpg(proc.pid, signal.SIGKILL)
     except ProcessLookupError:
         pass
     proc.wait()
+    return ended
 
 
 def status_of(run: Path) -> dict:
@@ -95,12 +181,63 @@ def status_of(run: Path) -> dict:
         return {}
 
 
-def _logged_steps(run: Path) -> list[int]:
-    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    return [r["step"] for r in records if "D_R" in r]
+def census(spool: Path, damaged: dict) -> tuple[int, int]:
+    """(files the decoder refuses that no saboteur touched: torn; damaged files refused) now."""
+    torn = refused = 0
+    for name in enumerate_spool(spool):
+        try:
+            data = (spool / name).read_bytes()
+        except FileNotFoundError:
+            continue
+        try:
+            decode_record(data)
+        except ValueError:
+            if name in damaged:
+                refused += 1
+            else:
+                torn += 1
+    return torn, refused
 
 
-def main() -> None:
+def checkpoint_step(run: Path) -> int | str:
+    """The step --resume would continue (last.pt, or previous.pt where last.pt is damaged); 0: none."""
+    for name in ("last.pt", "previous.pt"):
+        if (run / name).exists():
+            try:
+                return load_checkpoint(run / name)["step"]
+            except DamagedFile:
+                continue
+            except ValueError as exc:
+                return f"unreadable: {exc}"
+    return 0
+
+
+def audit(run: Path, damaged: dict) -> dict:
+    """The ledger against the saboteur's notes: steps, samples read, damaged samples read before
+    their damage (the CRC written) and after it (any other CRC: trained on damaged bytes)."""
+    lines = read_ledger(run / "ledger.jsonl") if (run / "ledger.jsonl").exists() else []
+    read = [(name, crc) for line in lines for name, crc in line["samples"]]
+    before = sum(1 for name, crc in read if name in damaged and crc == damaged[name][1])
+    after = [name for name, crc in read if name in damaged and crc != damaged[name][1]]
+    return {"ledger_steps": len(lines), "samples_read": len(read), "damaged_read_before_damage": before,
+            "damaged_samples_trained_on": len(after), "damaged_trained_names": sorted(set(after))[:10]}
+
+
+def enospc_counts(log: Path) -> tuple[int, int]:
+    text = log.read_text(errors="replace") if log.exists() else ""
+    return len(re.findall(r"disk full under .*, backing off", text)), len(re.findall(r"space again under", text))
+
+
+def mount_tmpfs(where: Path, megabytes: int) -> None:
+    where.mkdir(parents=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={megabytes}m", "tmpfs", str(where)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"--tmpfs-mb {megabytes}: cannot mount a tmpfs at {where} ({done.stderr.strip()}); "
+                         f"run as root, or --tmpfs-mb 0 for no full disk")
+
+
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cycles", type=int, default=15)
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/cuboid-soak"))
@@ -108,99 +245,147 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=32)
     parser.add_argument("--batch-size", type=int, default=4)
     parser.add_argument("--checkpoint-every", type=int, default=3)
-    parser.add_argument("--delay", type=float, nargs=2, default=(2.0, 9.0), help="kill after this many s (uniform)")
+    parser.add_argument("--short", type=float, nargs=2, default=(0.3, 2.0), help="a short cycle kills after this many s")
+    parser.add_argument("--long", type=float, nargs=2, default=(6.0, 14.0), help="a long cycle kills after this many s")
+    parser.add_argument("--long-share", type=float, default=0.3, help="share of the cycles that are long")
+    parser.add_argument("--max-rate", type=float, default=50.0, help="the generator's samples/s (0: as fast as it can)")
+    parser.add_argument("--sabotage-every", type=float, default=0.3, help="s between damaged samples (0: none)")
+    parser.add_argument("--tmpfs-mb", type=int, default=8, help="the spool's disk (0: the workdir's, never full)")
+    parser.add_argument("--full-share", type=float, default=0.2, help="share of the cycles with the spool's disk full")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = parse_args()
     rng = random.Random(args.seed)
-    shutil.rmtree(args.workdir, ignore_errors=True)
+    if args.workdir.exists():
+        subprocess.run(["umount", str(args.workdir / "spool")], capture_output=True)
+        shutil.rmtree(args.workdir)
     spool, run, logs = args.workdir / "spool", args.workdir / "run", args.workdir / "logs"
     logs.mkdir(parents=True)
+    if args.tmpfs_mb:
+        mount_tmpfs(spool, args.tmpfs_mb)
+    try:
+        report = soak(args, rng, spool, run, logs)
+    finally:
+        if args.tmpfs_mb:
+            subprocess.run(["umount", "-l", str(spool)], capture_output=True)
+    print(json.dumps(report, indent=2))
+
+
+def soak(args, rng: random.Random, spool: Path, run: Path, logs: Path) -> dict:
     gen_cmd = [sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(spool), "--limit", str(args.limit),
                "--size", str(args.size), "--workers", "1", "--no-dashboard"]
+    gen_cmd += ["--max-rate", str(args.max_rate)] if args.max_rate else []
     train_cmd = [sys.executable, "-m", "cuboidtrain", "run", "--spool", str(spool), "--size", str(args.size),
-                 "--batch-size", str(args.batch_size), "--threads", "1", "--loader-workers", "1", "--out", str(run),
-                 "--checkpoint-every", str(args.checkpoint_every), "--log-every", "1", "--no-dashboard"]
+                 "--arch", "tiny", "--batch-size", str(args.batch_size), "--threads", "1", "--loader-workers", "1",
+                 "--out", str(run), "--checkpoint-every", str(args.checkpoint_every), "--log-every", "1",
+                 "--ledger", "--no-dashboard"]
     resume = lambda: ["--resume"] if (run / "last.pt").exists() else []  # noqa: E731
 
     generator = start(gen_cmd, logs / "generator.log")
-    while not spool.is_dir() or len(enumerate_spool(spool)) < args.batch_size:
+    while len(enumerate_spool(spool)) < 4 * args.batch_size:
         time.sleep(0.1)
-    watch = SpoolWatch(spool)
+    watch, saboteur, ballast = SpoolWatch(spool), Saboteur(spool, args.sabotage_every, rng), Ballast(spool)
     watch.start()
+    if args.sabotage_every:
+        saboteur.start()
     trainer = start(train_cmd, logs / "trainer.log")
-    cycles, ckpt_steps, torn_read, trained = [], [0], 0, 0
+    full = full_cycles(args, rng)
+    cycles, ckpt_steps, trainer_skips, trained = [], [0], Counter(), 0
+    needed_a_hand = Counter()
+    freed_at: list[int] = []  # samples published when each full spell ended; more later: publishing resumed
     started_at = time.time()
     for cycle in range(args.cycles):
-        time.sleep(rng.uniform(*args.delay))
+        if args.tmpfs_mb and cycle in full and cycle - 1 not in full:
+            ballast.fill()
+        if cycle not in full and cycle - 1 in full:
+            ballast.remove()
+            freed_at.append(watch.published())
+        long = rng.random() < args.long_share
+        time.sleep(rng.uniform(*(args.long if long else args.short)))
         victim = rng.choice(["trainer", "generator", "both"])
         before = status_of(run)
+        record = {"cycle": cycle, "killed": victim, "long": long, "disk_full": cycle in full}
         if victim in ("trainer", "both"):
-            kill_group(trainer)
+            needed_a_hand["trainer"] += kill_group(trainer)
         if victim in ("generator", "both"):
-            kill_group(generator)
-        time.sleep(0.3)
-        record = {"cycle": cycle, "killed": victim, "spool_corrupt": inspect_spool(spool)["corrupt"]}
+            needed_a_hand["generator"] += kill_group(generator)
+        time.sleep(0.2)
+        record["torn"], record["damaged_in_spool_refused"] = census(spool, saboteur.damaged)
         if victim in ("trainer", "both"):
             ours = before.get("pid") == trainer.pid  # the killed trainer had started and reported
             record["trainer_step_at_kill"] = before.get("step") if ours else None
             record["resumed_and_trained"] = bool(ours and before.get("step", 0) > ckpt_steps[-1])
-            torn_read += (before.get("skipped") or {}).get("corrupt", 0) if ours else 0
+            trainer_skips.update(before.get("skipped") or {} if ours else {})
             trained += max(0, before.get("step", 0) - ckpt_steps[-1]) if ours else 0
-            try:
-                step = load_checkpoint(run / "last.pt")["step"] if (run / "last.pt").exists() else 0
-                record["checkpoint"] = step
-            except ValueError as exc:
-                record["checkpoint"], step = f"unreadable: {exc}", -1
-            record["step_went_back"] = step < ckpt_steps[-1]
-            ckpt_steps.append(step)
-            leftovers = sorted(p.name for p in run.glob(".tmp-*"))
-            record["temp_files_left"] = len(leftovers)
+            step = checkpoint_step(run)
+            record["checkpoint"] = step
+            record["step_went_back"] = isinstance(step, int) and step < ckpt_steps[-1]
+            ckpt_steps.append(step if isinstance(step, int) else -1)
             trainer = start(train_cmd + resume(), logs / "trainer.log")
-            deadline = time.monotonic() + 120
-            while status_of(run).get("pid") != trainer.pid and time.monotonic() < deadline:
-                time.sleep(0.2)
-            record["temp_files_swept_on_restart"] = not any((run / name).exists() for name in leftovers)
         if victim in ("generator", "both"):
             generator = start(gen_cmd, logs / "generator.log")
         cycles.append(record)
         print(json.dumps(record), flush=True)
+    ballast.remove()
+    return final_report(args, locals())
 
-    # The end: the trainer finishes a --resume run a few steps past its checkpoint, the generator stops cleanly.
-    kill_group(trainer)
-    final_from = load_checkpoint(run / "last.pt")["step"] if (run / "last.pt").exists() else 0
-    final = subprocess.run(train_cmd + resume() + ["--steps", str(final_from + 4)], cwd=ROOT, capture_output=True,
-                           text=True, env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
+
+def full_cycles(args, rng: random.Random) -> set[int]:
+    """Two runs of cycles, together --full-share of them, in which the spool's disk is held full."""
+    span = int(args.cycles * args.full_share / 2)
+    if span == 0:
+        return set()
+    starts = (args.cycles // 4, (args.cycles * 5) // 8)
+    return {c for first in starts for c in range(first, min(first + span, args.cycles))}
+
+
+def final_report(args, s: dict) -> dict:
+    """The end: the trainer finishes a --resume run a few steps past its checkpoint, the generator stops cleanly."""
+    run, spool, logs, saboteur, watch, cycles = s["run"], s["spool"], s["logs"], s["saboteur"], s["watch"], s["cycles"]
+    saboteur.halt.set()
+    kill_group(s["trainer"])
+    final_from = checkpoint_step(run)
+    final_from = final_from if isinstance(final_from, int) else 0
+    final = subprocess.run(s["train_cmd"] + s["resume"]() + ["--steps", str(final_from + 4)], cwd=ROOT,
+                           capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
     final_status = status_of(run)
-    torn_read += (final_status.get("skipped") or {}).get("corrupt", 0)
-    generator.send_signal(signal.SIGTERM)
-    generator.wait(timeout=60)
-    time.sleep(0.5)
+    s["trainer_skips"].update(final_status.get("skipped") or {})
+    s["generator"].send_signal(signal.SIGTERM)
+    s["generator"].wait(timeout=60)
     watch.halt.set()
     watch.join()
-    census = inspect_spool(spool)
+    torn_end, refused_end = census(spool, saboteur.damaged)
     trainer_kills = [c for c in cycles if "checkpoint" in c]
-    print(json.dumps({
-        "cycles": args.cycles, "seconds": round(time.time() - started_at), "limit": args.limit, "size": args.size,
-        "kills": {"trainer": sum(c["killed"] == "trainer" for c in cycles),
-                  "generator": sum(c["killed"] == "generator" for c in cycles),
-                  "both": sum(c["killed"] == "both" for c in cycles)},
+    backoffs, recoveries = enospc_counts(logs / "generator.log")
+    kinds = Counter(kind for kind, _ in saboteur.damaged.values())
+    return {
+        "cycles": args.cycles, "seconds": round(time.time() - s["started_at"]), "limit": args.limit, "size": args.size,
+        "kills": dict(Counter(c["killed"] for c in cycles)),
+        "cycles_with_the_disk_full": sum(c["disk_full"] for c in cycles),
         "samples_published_at_least": watch.published(),
-        "samples_trained_on_at_least": (trained + final_status.get("step", 0) - final_from) * args.batch_size,
-        "torn": sum(c["spool_corrupt"] for c in cycles) + census["corrupt"] + torn_read,
+        "files_damaged": {"all": len(saboteur.damaged), **kinds},
+        "damaged_refused_by_the_decoder": dict(saboteur.refused),
+        "damaged_accepted_by_the_decoder": len(saboteur.accepted),
+        "damaged_in_the_spool_at_the_end_refused": refused_end,
+        "trainer_skipped": dict(s["trainer_skips"]),
+        **audit(run, saboteur.damaged),
+        "torn": sum(c["torn"] for c in cycles) + torn_end,
         "lost_published": len(watch.lost),
-        "checkpoint_unreadable": sum(isinstance(c["checkpoint"], str) for c in trainer_kills),
-        "checkpoint_step_went_back": sum(c["step_went_back"] for c in trainer_kills),
-        "checkpoint_steps": ckpt_steps[1:],
+        "restarts_that_needed_a_hand": dict(s["needed_a_hand"]),
+        "checkpoints_lost": sum(isinstance(c["checkpoint"], str) or c["step_went_back"] for c in trainer_kills),
         "trainer_restarts": len(trainer_kills),
         "restarts_that_trained_past_their_checkpoint": sum(c["resumed_and_trained"] for c in trainer_kills),
-        "temp_files_left_by_kills": sum(c["temp_files_left"] for c in trainer_kills),
-        "temp_files_not_swept_by_restart": sum(not c["temp_files_swept_on_restart"] for c in trainer_kills),
+        "steps_trained_between_kills": s["trained"],
+        "enospc_backoffs": backoffs, "enospc_recoveries_logged": recoveries,
+        "full_spells_after_which_publishing_resumed": f"{sum(watch.published() > n for n in s['freed_at'])} of "
+                                                      f"{len(s['freed_at'])}",
+        "sabotage_refused_by_a_full_disk": saboteur.no_space,
         "final_resume": {"exit": final.returncode, "from_step": final_from, "state": final_status.get("state"),
                          "step": final_status.get("step")},
-        "final_census": {k: census[k] for k in ("samples", "corrupt", "temporary", "foreign")},
-        "run_folder_temp_files_at_end": len(list(run.glob(".tmp-*"))),
-        "metrics_steps_once_each_in_order": _logged_steps(run) == list(range(1, final_status.get("step", 0) + 1)),
-    }, indent=2))
+    }
 
 
 if __name__ == "__main__":
