@@ -1,0 +1,96 @@
+"""What the samples' checksums cost (issue 39): the loader's and the generator's samples/s on one core,
+with the CRC-32 and without, interleaved and repeated in one process (medians; this machine is shared).
+
+* the loader: one worker's part of the input path (`SpoolBatches`: read, decode, check, collate),
+  over the same spool, with the payload's CRC-32 verified (`verify=True`, what every reader does)
+  and skipped (`verify=False`, which only this benchmark passes), for each --sizes spool;
+* the generator: draw and encode (`make_sample` then `shared.sample.encode`, with its CRC-32)
+  against draw and pack the same record with no checksum (format 1's single msgpack map).
+
+    .venv/bin/python benchmarks/speed/bench_checksum.py --json bench-checksum.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import msgpack
+import torch
+
+from cuboidgen.config import PAPER, STREET
+from cuboidgen.occluders import OccluderLibrary
+from cuboidgen.synth import make_sample
+from cuboidtrain.data.loader import SpoolBatches
+from shared.sample import encode, to_record
+from shared.spool import SpoolWriter, enumerate_spool
+
+
+def loader_rate(spool: Path, size: int, verify: bool, batch: int) -> float:
+    """Samples/s of one pass of `SpoolBatches` over the whole spool."""
+    reader, names = SpoolBatches(spool, "box", size, verify=verify), enumerate_spool(spool)
+    started = time.perf_counter()
+    for at in range(0, len(names), batch):
+        reader[names[at : at + batch]]
+    return len(names) / (time.perf_counter() - started)
+
+
+def generator_rate(size: int, count: int, checksum: bool, library) -> float:
+    """Samples/s of drawing and encoding `count` samples, with the CRC-32 or as format 1 packed them."""
+    started = time.perf_counter()
+    for seed in range(count):
+        sample = make_sample("box", PAPER if seed % 2 else STREET, size, seed, library)
+        encode(sample) if checksum else msgpack.packb(to_record(sample), use_bin_type=True)
+    return count / (time.perf_counter() - started)
+
+
+def ratio_rows(measure, repeats: int) -> dict:
+    """Interleaved repeats of measure(True) and measure(False): medians and their ratio."""
+    on, off = [], []
+    for _ in range(repeats):
+        on.append(measure(True))
+        off.append(measure(False))
+    with_, without = statistics.median(on), statistics.median(off)
+    return {"with_per_s": round(with_), "without_per_s": round(without), "ratio": round(with_ / without, 3)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256], help="the spools' px")
+    parser.add_argument("--samples", type=int, default=1000, help="samples a spool")
+    parser.add_argument("--draws", type=int, default=150, help="samples the generator draws a repeat")
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--core", type=int, default=0, help="the CPU this process is pinned to")
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    args = parser.parse_args()
+    os.sched_setaffinity(0, {args.core})
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    library = OccluderLibrary.builtin(variants_per_kind=4, seed=0)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.sizes:
+            spool = Path(tmp) / f"spool-{size}"
+            with SpoolWriter(spool, limit=0) as writer:
+                for seed in range(args.samples):
+                    writer.publish(encode(make_sample("box", PAPER if seed % 2 else STREET, size, seed, library)))
+            loader_rate(spool, size, True, args.batch)  # warm: the page cache, first-call allocations
+            rows.append({"stage": "loader", "px": size,
+                         **ratio_rows(lambda verify: loader_rate(spool, size, verify, args.batch), args.repeats)})
+            rows.append({"stage": "generator", "px": size,
+                         **ratio_rows(lambda checksum: generator_rate(size, args.draws, checksum, library), args.repeats)})
+    for row in rows:
+        print(f"{row['stage']:9} {row['px']:4} px  with {row['with_per_s']:7,}/s  without {row['without_per_s']:7,}/s  "
+              f"ratio {row['ratio']:.3f}")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()
