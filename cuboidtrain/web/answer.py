@@ -43,6 +43,9 @@ class PageRequest:
     data: bytes
     name: str
     options: FitOptions = field(default_factory=lambda: FitOptions(cuboid=True))
+    # The explanation panel (`infer --explain`): matplotlib takes 1-3 s to draw it, 10-30 times the
+    # fit, so the page asks for the answer without it first and for the panel in a second request.
+    explain: bool = True
 
 
 def start_worker() -> None:
@@ -93,12 +96,13 @@ def answer_and_fit(request: PageRequest):
     with tempfile.TemporaryDirectory(prefix="cuboid-page-") as folder, contextlib.chdir(folder):
         Path(name).write_bytes(request.data)
         view = ViewCapture()
-        explainer, mesher = Explainer(Path(".explain")), MeshWriter(Path(".mesh"))  # no name starts with "."
+        mesher = MeshWriter(Path(".mesh"))  # no upload's name starts with "."
+        explainer = Explainer(Path(".explain")) if request.explain else None
         outcomes = fitter.outcomes([name], explain=Writers.of(view, explainer, mesher))
         [record] = to_records(outcomes[:1], options)
         answer = {"record": record, "panel": None, "mesh": None, "view": view.view}
         if record["error"] is None:
-            answer["panel"] = read_b64(explainer.written[0]) if explainer.written else None
+            answer["panel"] = read_b64(explainer.written[0]) if explainer is not None and explainer.written else None
             answer["mesh"] = mesher.written[0].read_text(encoding="utf-8") if mesher.written else None
     return answer, (outcomes[0] if record["error"] is None else None)
 
@@ -150,13 +154,13 @@ def box_view(fit) -> dict:
                                                "shallower": band[1].tolist(), "deeper": band[2].tolist()}}
 
 
-def fit_generated(shape: str, scene: str, size: int, seed: int, options: FitOptions) -> dict:
+def fit_generated(shape: str, scene: str, size: int, seed: int, options: FitOptions, explain: bool = True) -> dict:
     """A generated mask (`experiments.generated_mask`) fitted as an upload, with its truth and the
     fit's errors against it (`geometry.accuracy.against_truth`)."""
     from cuboidtrain.experiments.generated_mask import draw_generated
 
     drawn = draw_generated(shape, scene, size, seed)
-    answer, fit = answer_and_fit(PageRequest(drawn.png, drawn.truth["mask"], options))
+    answer, fit = answer_and_fit(PageRequest(drawn.png, drawn.truth["mask"], options, explain))
     answer["truth"] = drawn.truth
     if fit is not None:
         answer["errors"] = truth_errors(fit, drawn.scored)

@@ -7,7 +7,8 @@
     POST /api/example/NAME?...    a shipped example (examples/)
     POST /api/generated?...       a mask drawn by the generator, fitted with its truth beside it
 
-The options are query parameters named as `infer`'s (`shape`, `invert`, `threshold`,
+`explain=0` leaves the explanation panel out of the answer (the page asks for it in a second
+request: it takes 10-30 times the fit to draw). The options are query parameters named as `infer`'s (`shape`, `invert`, `threshold`,
 `label_id`, `focal_px`, `principal_x`, `principal_y`), read into `FitOptions` with
 `cuboid=True`, as `infer` has them. A bad option or an upload over the limit is a 400 or 413
 whose JSON `error` is one line; an input that cannot be fitted is a record with its `error`,
@@ -67,7 +68,7 @@ def make_app(config: ServeConfig, on_ready=lambda: None, pool: FitPool | None = 
         except UsageError as error:
             return refused(error, 413 if "limit" in str(error) else 400)
         name = request.query_params.get("name") or "mask.png"
-        return await answered(request, fit_upload, PageRequest(data, name, options))
+        return await answered(request, fit_upload, PageRequest(data, name, options, flag(request.query_params, "explain", True)))
 
     async def example(request: Request) -> Response:
         name = request.path_params["name"]
@@ -78,7 +79,7 @@ def make_app(config: ServeConfig, on_ready=lambda: None, pool: FitPool | None = 
         except UsageError as error:
             return refused(error, 400)
         data = (EXAMPLES / name).read_bytes()
-        return await answered(request, fit_upload, PageRequest(data, name, options))
+        return await answered(request, fit_upload, PageRequest(data, name, options, flag(request.query_params, "explain", True)))
 
     async def generated(request: Request) -> Response:
         query = request.query_params
@@ -89,9 +90,10 @@ def make_app(config: ServeConfig, on_ready=lambda: None, pool: FitPool | None = 
         except UsageError as error:
             return refused(error, 400)
         return await answered(request, fit_generated, query.get("gen_shape", "mix"), query.get("scene", "paper"),
-                              size, seed, options)
+                              size, seed, options, flag(query, "explain", True))
 
     routes = [Route("/", lambda request: FileResponse(STATIC / "index.html")),
+              Route("/favicon.ico", lambda request: Response(status_code=204)),
               Route("/vendor/plotly.min.js", lambda request: FileResponse(plotly_js(), media_type="text/javascript")),
               Route("/api/info", info), Route("/api/fit", fit, methods=["POST"]),
               Route("/api/example/{name}", example, methods=["POST"]),
@@ -166,8 +168,8 @@ def page_options(query) -> FitOptions:
     return options.validate()
 
 
-def flag(query, name: str) -> bool:
-    value = query.get(name, "0").lower()
+def flag(query, name: str, default: bool = False) -> bool:
+    value = query.get(name, "1" if default else "0").lower()
     if value not in ("0", "1", "true", "false", "on", "off", ""):
         raise UsageError(f"--{name.replace('_', '-')} {value!r}: expected on or off")
     return value in ("1", "true", "on")

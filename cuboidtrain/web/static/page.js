@@ -66,32 +66,50 @@ function query() {
   return q;
 }
 
+function request(explain) {
+  const q = query();
+  q.set("explain", explain ? "1" : "0");
+  if (source.kind === "file") { q.set("name", source.name); return ["/api/fit?" + q, source.file]; }
+  if (source.kind === "example") return [`/api/example/${encodeURIComponent(source.name)}?` + q, null];
+  for (const k of ["gen_shape", "scene", "size", "seed"]) q.set(k, source[k]);
+  return ["/api/generated?" + q, null];
+}
+
+async function ask(explain) {
+  const [url, body] = request(explain);
+  try {
+    return await (await fetch(url, {method: "POST", body: body})).json();
+  } catch (err) {
+    return {error: `no answer from the server (${err})`};
+  }
+}
+
+let asked = 0;  // the latest fit asked for: an older answer arriving late is dropped
+
 async function fit() {
   if (!source) return;
-  const q = query();
-  let url, body = null;
-  if (source.kind === "file") { q.set("name", source.name); url = "/api/fit?" + q; body = source.file; }
-  else if (source.kind === "example") url = `/api/example/${encodeURIComponent(source.name)}?` + q;
-  else { for (const k of ["gen_shape", "scene", "size", "seed"]) q.set(k, source[k]); url = "/api/generated?" + q; }
+  const mine = ++asked;
   const name = source.kind === "generated" ? `generated ${source.scene} seed ${source.seed}` : source.name;
   $("status").textContent = `fitting ${name} ...`;
   document.body.dataset.state = "fitting";
   const t0 = performance.now();
-  let answer;
-  try {
-    const response = await fetch(url, {method: "POST", body: body});
-    answer = await response.json();
-  } catch (err) {
-    answer = {error: `no answer from the server (${err})`};
-  }
+  // The answer first, the explanation panel (10-30 times the fit to draw) in a second request.
+  const answer = await ask(false);
+  if (mine !== asked) return;
   const ms = performance.now() - t0;
   const error = answer.error || (answer.record && answer.record.error);
   if (error) { showError(error); $("status").textContent = `${name}: refused in ${ms.toFixed(0)} ms`; return; }
   last = answer;
   $("error").hidden = true;
-  $("status").textContent = `${name}: answered in ${ms.toFixed(0)} ms`;
+  $("status").textContent = `${name}: answered in ${ms.toFixed(0)} ms; drawing the explanation ...`;
   show(answer);
   document.body.dataset.state = "answered";
+  const explained = await ask(true);
+  if (mine !== asked) return;
+  $("panel").src = explained.panel ? `data:image/png;base64,${explained.panel}` : "";
+  $("panel").alt = explained.panel ? "explanation panel" : "no explanation panel";
+  $("status").textContent = `${name}: answered in ${ms.toFixed(0)} ms, explained in ${(performance.now() - t0).toFixed(0)} ms`;
+  document.body.dataset.state = "explained";
 }
 
 function showError(message) {
@@ -137,7 +155,8 @@ function cell(value, digits) {
 
 function row(name, value, sd, digits = 3, key = name) {
   const spread = sd === null || sd === undefined ? "" : ` ± ${sd.toFixed(digits)}`;
-  const shown = typeof value === "number" ? value.toFixed(digits) + spread : (value === null ? "-" : String(value));
+  const shown = typeof value === "number" ? (Number.isInteger(value) ? String(value) : value.toFixed(digits)) + spread
+    : (value === null ? "-" : String(value));
   const data = typeof value === "number" ? ` data-value="${value}"` : "";
   const sdData = typeof sd === "number" ? ` data-sd="${sd}"` : "";
   return `<tr data-key="${key}"><td>${name}</td><td${data}${sdData}>${shown}</td></tr>`;
@@ -193,7 +212,7 @@ function show(answer) {
   link($("download-record"), JSON.stringify([r], null, 2) + "\n", "application/json", `${stem}.json`);
   $("download-mesh").hidden = !answer.mesh;
   if (answer.mesh) link($("download-mesh"), answer.mesh, "text/plain", `${stem}.obj`);
-  $("panel").src = answer.panel ? `data:image/png;base64,${answer.panel}` : "";
+  $("panel").removeAttribute("src");
   draw3d(view.box3d);
 }
 
