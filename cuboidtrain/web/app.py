@@ -32,7 +32,6 @@ from starlette.staticfiles import StaticFiles
 from cuboidtrain.experiments.generated_mask import GENERATED_SHAPES, MASK_SIZES
 from cuboidtrain.fit.options import FIT_SHAPES, FitOptions
 from cuboidtrain.web.answer import PageRequest, fit_generated, fit_upload
-from cuboidtrain.web.server import FitPool, ServeConfig
 from shared.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -42,12 +41,12 @@ SCENES = ("paper", "paper-clean", "street")  # cuboidgen's scenes (cuboidgen.con
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
-def make_app(config: ServeConfig, on_ready=lambda: None, pool: FitPool | None = None) -> Starlette:
-    """The app; its pool of `config.workers` fitting processes starts (and warms) with it and stops with it."""
+def make_app(config, pool, on_ready=lambda: None) -> Starlette:
+    """The app for a `server.ServeConfig`; `pool` (a `server.FitPool`) warms up as it starts and stops with it."""
 
     @asynccontextmanager
     async def lifespan(app):
-        app.state.pool = pool or FitPool(config.workers)
+        app.state.pool = pool
         await app.state.pool.warm_up()
         on_ready()
         try:

@@ -95,7 +95,8 @@ def serve(config: ServeConfig, announce=print) -> None:
 
     from cuboidtrain.web.app import make_app
 
-    app = make_app(config, on_ready=lambda: announce(f"cuboid-fit page at {config.address} (Ctrl-C stops it)"))
+    pool = FitPool(config.workers)
+    app = make_app(config, pool, on_ready=lambda: announce(f"cuboid-fit page at {config.address} (Ctrl-C stops it)"))
     server = uvicorn.Server(uvicorn.Config(app, host=config.host, port=config.port, log_level="warning",
                                            access_log=False, lifespan="on"))
     try:
