@@ -237,6 +237,25 @@ def stopped_line(tally, records: int | None, request) -> str:
 
 
 @app.command()
+def serve(
+    host: str = typer.Option("127.0.0.1", metavar="ADDRESS", help="The address to listen on: 127.0.0.1 is this machine only; 0.0.0.0 every interface (anyone who can reach it may fit masks)."),
+    port: int = typer.Option(8765, min=1, max=65535, help="The port to listen on."),
+    workers: int = typer.Option(2, min=1, help="Fitting processes, each with the shipped models and one torch thread: answers at once."),
+    max_upload_mb: float = typer.Option(32.0, metavar="MB", help="The largest upload taken, in MB (10^6 bytes); a larger one is refused in one line."),
+) -> None:
+    """A local page to try the shipped models: drop a mask, see the fit and its explanation, turn the box in 3D.
+
+    Fits as `infer` does (the same Fitter and options, the cuboid fit on). Needs the web extra:
+    pip install 'cuboid-fit[web]'. Ctrl-C stops it.
+    """
+    from cuboidtrain.web.server import ServeConfig, serve as run_server  # the web extra: only here
+
+    setup_logging()
+    run_server(ServeConfig(host=host, port=port, workers=workers, max_upload_mb=max_upload_mb), announce=typer.echo)
+    console.print("stopped", highlight=False)
+
+
+@app.command()
 def export(
     checkpoint: Optional[Path] = typer.Option(None, metavar="CKPT", help="A trained model (cuboidtrain run's last.pt, or a model file); default: the shipped model of --shape."),
     shape: ShapeChoice = SHIPPED_SHAPE,

@@ -112,3 +112,35 @@ def one_torch_thread():
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+def start_page_server(*options: str):
+    """`cuboidtrain serve --workers 1 OPTIONS` on a free 127.0.0.1 port, once it says its address:
+    (the address `http://127.0.0.1:PORT/`, the process)."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    root = Path(__file__).resolve().parents[1]
+    server = subprocess.Popen([sys.executable, "-m", "cuboidtrain", "serve", "--port", str(port), "--workers", "1",
+                               *options], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = server.stdout.readline()
+    assert line.startswith(f"cuboid-fit page at http://127.0.0.1:{port}/"), (line, server.stderr.read()[-2000:])
+    return f"http://127.0.0.1:{port}/", server
+
+
+@pytest.fixture(scope="session")
+def page_server():
+    """The page's server for its tests (tests/test_web.py, tests/test_web_browser.py), uploads up to 2 MB;
+    stopped with Ctrl-C at the end."""
+    import signal
+
+    pytest.importorskip("starlette", reason="the web extra is not installed (pip install 'cuboid-fit[web]')")
+    address, server = start_page_server("--max-upload-mb", "2")
+    yield address, server
+    if server.poll() is None:
+        server.send_signal(signal.SIGINT)
+        server.wait(30)

@@ -167,11 +167,13 @@ def test_no_import_cycles():
 
 # cuboidtrain's layers, lowest first: the solver knows no network, the networks know no fit, the
 # fit path knows neither the data floor nor the runners and the trainer; the experiments stand on
-# all of them and the command line on everything. Each may import any lower floor (and shared).
+# all of them, the page (`serve`) on the experiments (its generated masks), and the command line on
+# everything. Each may import any lower floor (and shared).
 # A package's own `__init__` (the root `cuboidtrain`) is its name alone: the key matches no submodule.
 FLOORS = {"cuboidtrain": 0, "cuboidtrain.allocator": 0, "cuboidtrain.geometry": 1, "cuboidtrain.models": 2,
           "cuboidtrain.fit": 3, "cuboidtrain.data": 4, "cuboidtrain.localize": 4, "cuboidtrain.infer": 5,
-          "cuboidtrain.train": 5, "cuboidtrain.experiments": 6, "cuboidtrain.cli": 7, "cuboidtrain.__main__": 8}
+          "cuboidtrain.train": 5, "cuboidtrain.experiments": 6, "cuboidtrain.web": 7, "cuboidtrain.cli": 8,
+          "cuboidtrain.__main__": 9}
 
 
 def floor(module: str) -> tuple[str, int] | None:

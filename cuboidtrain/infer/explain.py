@@ -44,7 +44,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 from cuboidtrain.fit.fitter import no_explanation  # noqa: E402
 from cuboidtrain.geometry.silhouette import model_silhouette  # noqa: E402
 from cuboidtrain.infer.inputs import OutputNames  # noqa: E402
-from cuboidtrain.infer.mesh import camera_box  # noqa: E402
+from cuboidtrain.infer.mesh import camera_box, depth_band  # noqa: E402
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
@@ -251,7 +251,7 @@ def _box3d_tile(ax, fit: Fit) -> None:
     for a, b in geometry.edges:
         colour = FRONT_COLOUR if a in front and b in front else BACK_COLOUR
         ax.plot(*show[[a, b]].T, color=colour, linewidth=1.8, zorder=3)
-    depth_sd = _depth_bounds(ax, fit, geometry, corners)
+    depth_sd = _depth_bounds(ax, fit, box, corners)
     for k, point in enumerate(show):
         ax.text(*point, f" {k}", fontsize=7, color="white", weight="bold", zorder=10,
                 bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
@@ -315,22 +315,16 @@ def _box3d_tile(ax, fit: Fit) -> None:
                  fontsize=9)
 
 
-def _depth_bounds(ax, fit: Fit, geometry: Shape, corners: np.ndarray) -> float | None:
-    """The box at plus and minus one sd of its depth, dashed: scaled about its centre along its depth
-    axis by exp(+-s), s the sd of log depth (the error bars' own scale: `uncertainty.spread`), so a
-    wide one stays a box (times and over exp(s), never a negative depth); s returned, None
-    without error bars."""
-    spread = fit.cuboid.fit.spread
-    if spread is None:
+def _depth_bounds(ax, fit: Fit, box, corners: np.ndarray) -> float | None:
+    """The box at plus and minus one sd of its depth, dashed (`mesh.depth_band`, of the box as drawn:
+    `corners`); s, the sd of log depth, returned, None without error bars."""
+    band = depth_band(replace(box, corners=corners), fit.ratios, fit.cuboid.fit.spread)
+    if band is None:
         return None
-    relative = float(spread.ratios[0] / geometry.ratio_vector(fit.ratios)[0])
-    front, back = geometry.having("FRONT"), geometry.having("BACK")
-    axis = corners[back].mean(axis=0) - corners[front].mean(axis=0)  # FRONT -> BACK, one depth long
-    side = np.zeros(len(corners))
-    side[back], side[front] = 0.5, -0.5
-    for sign in (-1.0, 1.0):
-        moved = (corners + (math.exp(sign * relative) - 1.0) * side[:, None] * axis) @ DISPLAY.T
-        for a, b in geometry.edges:
+    relative, *bounds = band
+    for moved in bounds:
+        moved = moved @ DISPLAY.T
+        for a, b in box.shape.edges:
             ax.plot(*moved[[a, b]].T, color="#444444", linewidth=0.8, linestyle=(0, (3, 2)), zorder=3)
     return relative
 

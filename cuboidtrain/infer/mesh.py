@@ -101,6 +101,22 @@ def camera_box(fit: CuboidFit) -> CameraBox:
                      principal=(float(p[9]), float(p[10])), nominal=nominal)
 
 
+def depth_band(box: CameraBox, ratios: dict, spread) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """The box at minus and plus one sd of its depth: (s, shallower (N, 3), deeper (N, 3)), `box.corners`
+    scaled about the box's centre along its depth axis by exp(-s) and exp(+s), s the sd of log depth
+    (the error bars' own scale, `spread.ratios[0]` over depth/height), so a wide band stays a box (never
+    a negative depth). None without error bars (`spread` None). The panel's 3D tile and the page draw it."""
+    if spread is None:
+        return None
+    relative = float(spread.ratios[0] / box.shape.ratio_vector(ratios)[0])
+    front, back = box.shape.having("FRONT"), box.shape.having("BACK")
+    axis = box.corners[back].mean(axis=0) - box.corners[front].mean(axis=0)  # FRONT -> BACK, one depth long
+    side = np.zeros(len(box.corners))
+    side[back], side[front] = 0.5, -0.5
+    shallower, deeper = ((box.corners + (math.exp(sign * relative) - 1.0) * side[:, None] * axis) for sign in (-1.0, 1.0))
+    return relative, shallower, deeper
+
+
 def obj_text(box: CameraBox, header: Sequence[str] = ()) -> str:
     """The OBJ file's text: `header` lines as comments, the camera, the vertices, the faces (numbers written
     exactly: repr of a float64)."""

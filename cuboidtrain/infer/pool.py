@@ -76,10 +76,10 @@ def warm_up(workers: int) -> None:
     """Start the fork server the workers come from (it imports torch and the Fitter), so that
     it does while this process reads its inputs and loads its own models. Nothing for 1 worker."""
     if workers > 1:
-        _context()
+        worker_context()
 
 
-def _context():
+def worker_context():
     """Never fork this process (torch has threads here): a fork server where there is one, else
     spawn (Windows), each worker importing torch itself. The server is started once a process,
     with one thread for OpenMP and BLAS: numpy's BLAS would otherwise start a thread a core at
@@ -139,7 +139,7 @@ def _ctrl_c_ignored():
 
 def _pooled(jobs, checkpoints, options, workers, explain: Callable | None = None, stop=()) -> Iterator[Group]:
     chunks = [list(jobs[i:i + CHUNK]) for i in range(0, len(jobs), CHUNK)]
-    context = _context()
+    context = worker_context()
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
                              initargs=(checkpoints, options, os.getpid(), explain)) as pool:
         pending, queued = set(), iter(chunks)
