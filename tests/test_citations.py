@@ -292,3 +292,11 @@ def test_the_declared_options_are_what_help_accepts(name):
     shown = subprocess.run([sys.executable, str(script), "--help"], cwd=ROOT, capture_output=True, text=True,
                            env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60, check=True).stdout
     assert set(re.findall(r"(?<![\w-])--[a-z][\w-]*", shown)) | {"-h"} == set(script_options(script))
+
+
+def test_the_measurement_pages_are_references_with_contents_not_logs():
+    # issue 36: BENCHMARKS.md had grown to a 113 KB diary; today's figures only, each area findable
+    for page, most in (("BENCHMARKS.md", 40_000), ("RELIABILITY.md", 40_000)):
+        text = (ROOT / page).read_text(encoding="utf-8")
+        assert len(text.encode()) <= most, f"{page}: {len(text.encode()):,} bytes, at most {most:,}"
+        assert "\n## Contents\n" in text, f"{page}: no table of contents"
