@@ -479,6 +479,46 @@ def models_pack(
                   f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False)
 
 
+campaign_app = typer.Typer(add_completion=False, help="The GPU campaign (docs/training.md, \"A GPU lease\"): one standing run that each lease continues.")
+app.add_typer(campaign_app, name="campaign")
+
+
+@campaign_app.command("lease")
+def campaign_lease(
+    out: Path = typer.Option(..., envvar="OUT", metavar="DIR", help="The folder the lent machine sends back ($OUT): the state's parts, lease.json, eval.json."),
+    campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder: plan.json, the standing state, log.jsonl."),
+    minutes: float = typer.Option(9.0, help="The whole command's minutes, smoke check to the last file; training ends the plan's eval_minutes before."),
+    device: str = typer.Option("cuda", help="cuda (the smoke check fails in seconds without it), cuda:N or cpu."),
+    work: Path = typer.Option(Path("/tmp/campaign-work"), metavar="DIR", help="Spools, run folders and logs (emptied first; not sent back)."),
+    lease_steps: Optional[int] = typer.Option(None, help="Train at most this many steps a shape (a deterministic stop, for tests)."),
+    spool: Optional[Path] = typer.Option(None, metavar="DIR", help="Train every shape on this frozen spool instead of starting generators (tests)."),
+    evaluate: bool = typer.Option(True, "--evaluate/--no-evaluate", help="Score the result and the shipped models on bench_accuracy's sets."),
+    commit: Optional[str] = typer.Option(None, envvar="COMMIT", help="The commit the tree is (the lent machine has no .git)."),
+    threads: Optional[int] = typer.Option(None, help="Each trainer's CPU threads for torch."),
+    eval_threads: Optional[int] = typer.Option(None, help="bench_accuracy's threads (default: half the cores)."),
+) -> None:
+    """Run one lease: smoke check, generators, the standing run resumed until the deadline, state and log row into OUT, evaluation."""
+    from cuboidtrain.campaign.lease import LeaseOptions, run_lease
+
+    setup_logging()
+    row = run_lease(LeaseOptions(out=out, campaign=campaign, work=work, minutes=minutes, device=device, lease_steps=lease_steps,
+                                 spool=spool, evaluate=evaluate, commit=commit, threads=threads, eval_threads=eval_threads))
+    console.print(json_text(row), highlight=False, soft_wrap=True)
+
+
+@campaign_app.command("apply")
+def campaign_apply(
+    returned: Path = typer.Argument(..., metavar="DIR", help="What the lease sent back (the device's files_at, or a folder below it holding lease.json)."),
+    campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder to update."),
+) -> None:
+    """Take a lease's state, log row and evaluation into the campaign folder (once per lease)."""
+    from cuboidtrain.campaign.apply import apply_lease
+
+    row = apply_lease(returned, campaign)
+    console.print(f"{campaign}: lease {row['lease']} applied ({row['steps']} steps, {row['minutes_trained']} min trained "
+                  f"on {row['device']}); commit campaign/ now", highlight=False)
+
+
 @app.command()
 def version() -> None:
     """Print the package version."""
