@@ -487,7 +487,7 @@ app.add_typer(campaign_app, name="campaign")
 def campaign_lease(
     out: Path = typer.Option(..., envvar="OUT", metavar="DIR", help="The folder the lent machine sends back ($OUT): the state's parts, lease.json, eval.json."),
     campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder: plan.json, the standing state, log.jsonl."),
-    minutes: float = typer.Option(9.0, help="The whole command's minutes, smoke check to the last file; training ends the plan's eval_minutes before."),
+    minutes: float = typer.Option(9.5, help="The whole command's minutes, smoke check to the last file; training ends the plan's eval_minutes before."),
     device: str = typer.Option("cuda", help="cuda (the smoke check fails in seconds without it), cuda:N or cpu."),
     work: Path = typer.Option(Path("/tmp/campaign-work"), metavar="DIR", help="Spools, run folders and logs (emptied first; not sent back)."),
     lease_steps: Optional[int] = typer.Option(None, help="Train at most this many steps a shape (a deterministic stop, for tests)."),
@@ -495,7 +495,7 @@ def campaign_lease(
     evaluate: bool = typer.Option(True, "--evaluate/--no-evaluate", help="Score the result and the shipped models on bench_accuracy's sets."),
     commit: Optional[str] = typer.Option(None, envvar="COMMIT", help="The commit the tree is (the lent machine has no .git)."),
     threads: Optional[int] = typer.Option(None, help="Each trainer's CPU threads for torch."),
-    eval_threads: Optional[int] = typer.Option(None, help="bench_accuracy's threads (default: half the cores)."),
+    eval_threads: Optional[int] = typer.Option(None, help="bench_accuracy's threads (default: 4)."),
 ) -> None:
     """Run one lease: smoke check, generators, the standing run resumed until the deadline, state and log row into OUT, evaluation."""
     from cuboidtrain.campaign.lease import LeaseOptions, run_lease
@@ -503,7 +503,7 @@ def campaign_lease(
     setup_logging()
     row = run_lease(LeaseOptions(out=out, campaign=campaign, work=work, minutes=minutes, device=device, lease_steps=lease_steps,
                                  spool=spool, evaluate=evaluate, commit=commit, threads=threads, eval_threads=eval_threads))
-    console.print(json_text(row), highlight=False, soft_wrap=True)
+    typer.echo(json_text(row))  # the log row, one line on stdout
 
 
 @campaign_app.command("apply")

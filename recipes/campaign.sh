@@ -18,7 +18,7 @@
 set -uo pipefail
 OUT=${OUT:?OUT: the folder the lent machine sends back}
 PY=${PY:-python3}
-MINUTES=${MINUTES:-9} DEVICE=${DEVICE:-cuda} CAMPAIGN=${CAMPAIGN:-campaign} WORK=${WORK:-/tmp/campaign-work}
+MINUTES=${MINUTES:-9.5} DEVICE=${DEVICE:-cuda} CAMPAIGN=${CAMPAIGN:-campaign} WORK=${WORK:-/tmp/campaign-work}
 mkdir -p "$OUT"
 if compgen -G ".whl/*.whl" > /dev/null; then  # packages the lent machine lacks, carried as wheels
     "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1

@@ -22,7 +22,8 @@ from cuboidtrain.campaign.plan import CampaignPlan, PhasePlan
 log = logging.getLogger(__name__)
 
 LEAST_PHASE_S = 30.0  # s: a next phase starts only with at least this much of the lease left
-OVERRUN_S = 60.0  # s past its deadline a trainer is asked to stop (SIGTERM), and as long again before it is killed
+OVERRUN_S = 30.0  # s past its deadline a trainer is asked to stop (SIGTERM), and as long again before it is killed: the state must be written inside the command's 10 minutes
+STARTUP_S = 15.0  # s: a trainer's start (imports, CUDA, loader workers) before its --max-minutes clock starts
 CHECKPOINT_EVERY = 500  # steps: a trainer killed mid-lease loses at most this many (about a minute on an H100)
 
 
@@ -114,7 +115,7 @@ def _start(plan: CampaignPlan, course: Course, spool: Path, device: str, deadlin
         return False
     folder = course.folder
     folder.mkdir(parents=True, exist_ok=True)
-    command = trainer_command(plan, course, spool, device, left / 60, threads, log_every)
+    command = trainer_command(plan, course, spool, device, (left - STARTUP_S) / 60, threads, log_every)
     log.info("%s: phase %s from step %d to %d, at most %.1f min%s", course.shape, course.phase.phase, course.step,
              course.phase.steps, left / 60, "" if course.steps_left is None else f" or {course.steps_left} steps")
     course.process = subprocess.Popen(command, stdout=open(folder / "trainer.log", "a"), stderr=subprocess.STDOUT)
