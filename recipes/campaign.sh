@@ -26,5 +26,10 @@ if compgen -G ".whl/*.whl" > /dev/null; then  # packages the lent machine lacks,
 fi
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/lease.log") 2>&1
+tee_pid=$!
 "$PY" -m cuboidtrain campaign lease --out "$OUT" --campaign "$CAMPAIGN" --minutes "$MINUTES" --device "$DEVICE" \
     --work "$WORK" ${COMMIT:+--commit "$COMMIT"} "$@"
+status=$?
+exec >&- 2>&-  # tee sees the end of its input and writes the log's last lines before OUT is sent back
+wait "$tee_pid" 2>/dev/null
+exit $status

@@ -109,10 +109,11 @@ def train_until(plan: CampaignPlan, courses: list[Course], spools: dict[str, Pat
 def _start(plan: CampaignPlan, course: Course, spool: Path, device: str, deadline: float,
            threads: int | None, log_every: int) -> bool:
     """Start the course's next trainer, if it has a phase to train, steps and time left, and its last did not fail."""
-    left = deadline - time.monotonic()
-    if (course.phase is None or (course.segments and course.segments[-1].failed) or left < LEAST_PHASE_S
-            and course.segments or course.steps_left == 0):
-        return False
+    left, last = deadline - time.monotonic(), course.segments[-1] if course.segments else None
+    if course.phase is None or course.steps_left == 0:
+        return False  # the plan's phases, or this lease's steps, are done
+    if last is not None and (last.failed or left < LEAST_PHASE_S or last.to_step == last.from_step and last.phase == course.phase.phase):
+        return False  # a trainer failed, too little time is left for another, or one ended without a step
     folder = course.folder
     folder.mkdir(parents=True, exist_ok=True)
     command = trainer_command(plan, course, spool, device, (left - STARTUP_S) / 60, threads, log_every)
