@@ -45,6 +45,7 @@ def run(
     arch: str = typer.Option(TRAIN.arch, envvar="CUBOIDTRAIN_ARCH", help="Architecture of R, S and T: compact (the shipped models'), slim (narrower, for 128 px inputs), paper (three ResNet-18s, Table 3), tiny (tests)."),
     reframe: bool = typer.Option(TRAIN.reframe, "--reframe/--no-reframe", envvar="CUBOIDTRAIN_REFRAME", help="Frame each sample as infer frames a mask (its visible pieces), from a spool of any size; --no-reframe: train on the spool's own framing, whose size must be --size."),
     steps: Optional[int] = typer.Option(TRAIN.steps, envvar="CUBOIDTRAIN_STEPS", help="Train until this step (neither --steps nor --epochs: until stopped)."),
+    stop_at: Optional[int] = typer.Option(TRAIN.stop_at, envvar="CUBOIDTRAIN_STOP_AT", help="Stop, with a checkpoint, after this step, the schedule still running to --steps (one share of a longer run: a campaign's lease)."),
     epochs: Optional[int] = typer.Option(TRAIN.epochs, envvar="CUBOIDTRAIN_EPOCHS", help="Or this many epochs over the spool."),
     batch_size: int = typer.Option(TRAIN.batch_size, envvar="CUBOIDTRAIN_BATCH_SIZE", help="Samples per step."),
     lr: float = typer.Option(TRAIN.lr, envvar="CUBOIDTRAIN_LR", help="Adam learning rate."),
@@ -78,7 +79,7 @@ def run(
     setup_logging()
     config = TrainConfig(
         phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe, steps=steps,
-        epochs=epochs, batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
+        stop_at=stop_at, epochs=epochs, batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
         alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
         out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),
         resume=resume, overwrite=overwrite, checkpoint_every=checkpoint_every, log_every=log_every, ledger=ledger, loader_workers=loader_workers,
@@ -495,6 +496,46 @@ def models_pack(
     card = pack(checkpoint, out, scene, figures, recipe, half, pdm_spool)
     console.print(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "
                   f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False)
+
+
+campaign_app = typer.Typer(add_completion=False, help="The GPU campaign (docs/training.md, \"A GPU lease\"): one standing run that each lease continues.")
+app.add_typer(campaign_app, name="campaign")
+
+
+@campaign_app.command("lease")
+def campaign_lease(
+    out: Path = typer.Option(..., envvar="OUT", metavar="DIR", help="The folder the lent machine sends back ($OUT): the state's parts, lease.json, eval.json."),
+    campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder: plan.json, the standing state, log.jsonl."),
+    minutes: float = typer.Option(9.5, help="The whole command's minutes, smoke check to the last file; training ends the plan's eval_minutes before."),
+    device: str = typer.Option("cuda", help="cuda (the smoke check fails in seconds without it), cuda:N or cpu."),
+    work: Path = typer.Option(Path("/tmp/campaign-work"), metavar="DIR", help="Spools, run folders and logs (emptied first; not sent back)."),
+    lease_steps: Optional[int] = typer.Option(None, help="Train at most this many steps a shape (a deterministic stop, for tests)."),
+    spool: Optional[Path] = typer.Option(None, metavar="DIR", help="Train every shape on this frozen spool instead of starting generators (tests)."),
+    evaluate: bool = typer.Option(True, "--evaluate/--no-evaluate", help="Score the result and the shipped models on bench_accuracy's sets."),
+    commit: Optional[str] = typer.Option(None, envvar="COMMIT", help="The commit the tree is (the lent machine has no .git)."),
+    threads: Optional[int] = typer.Option(None, help="Each trainer's CPU threads for torch."),
+    eval_threads: Optional[int] = typer.Option(None, help="bench_accuracy's threads (default: 4)."),
+) -> None:
+    """Run one lease: smoke check, generators, the standing run resumed until the deadline, state and log row into OUT, evaluation."""
+    from cuboidtrain.campaign.lease import LeaseOptions, run_lease
+
+    setup_logging()
+    row = run_lease(LeaseOptions(out=out, campaign=campaign, work=work, minutes=minutes, device=device, lease_steps=lease_steps,
+                                 spool=spool, evaluate=evaluate, commit=commit, threads=threads, eval_threads=eval_threads))
+    typer.echo(json_text(row))  # the log row, one line on stdout
+
+
+@campaign_app.command("apply")
+def campaign_apply(
+    returned: Path = typer.Argument(..., metavar="DIR", help="What the lease sent back (the device's files_at, or a folder below it holding lease.json)."),
+    campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder to update."),
+) -> None:
+    """Take a lease's state, log row and evaluation into the campaign folder (once per lease)."""
+    from cuboidtrain.campaign.apply import apply_lease
+
+    row = apply_lease(returned, campaign)
+    console.print(f"{campaign}: lease {row['lease']} applied ({row['steps']} steps, {row['minutes_trained']} min trained "
+                  f"on {row['device']}); commit campaign/ now", highlight=False)
 
 
 @app.command()

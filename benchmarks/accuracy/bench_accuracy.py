@@ -93,6 +93,15 @@ SEEDS = {("box", "paper-clean"): 14, ("box", "paper"): 15, ("box", "street"): 16
 TARGETS = {"paper-clean": 2.0, "paper": 3.0, "street": 3.0, "selection": 0.95, "latency_ms": 30.0}
 
 
+def cuboidgen_command() -> list[str]:
+    """`cuboidgen` beside this interpreter (a venv), else the module run by it (a lent GPU machine has
+    the project on PYTHONPATH, not installed: `cuboidtrain campaign lease` evaluates there)."""
+    script = Path(sys.executable).parent / "cuboidgen"
+    if script.is_file():
+        return [str(script)]
+    return [sys.executable, "-c", "import sys; from cuboidgen.cli import main; sys.argv[0] = 'cuboidgen'; main()"]
+
+
 def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
     """The seeded 256 px validation spool of (shape, scene), its first `samples` samples the seeded
     sequence's. One that holds fewer is drawn afresh, not topped up: a second draw with the same
@@ -100,7 +109,7 @@ def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
     spool = root / f"val-{scene}-{shape}-256"
     if not spool.is_dir() or len(enumerate_spool(spool)) < samples:
         shutil.rmtree(spool, ignore_errors=True)
-        subprocess.run([str(Path(sys.executable).parent / "cuboidgen"), "run", "--spool", str(spool), "--shape", shape,
+        subprocess.run([*cuboidgen_command(), "run", "--spool", str(spool), "--shape", shape,
                         "--size", "256", "--scene", scene, "--seed", str(SEEDS[shape, scene]), "--limit", "0",
                         "--max-samples", str(samples), "--workers", "1", "--no-dashboard"],
                        check=True, capture_output=True)

@@ -36,6 +36,7 @@ class TrainConfig:
     arch: str = "compact"  # a name in cuboidtrain.models.networks.ARCHS: paper (three ResNet-18s), compact, tiny
     reframe: bool = True  # frame each sample as `infer` frames a mask (its visible pieces); any spool size
     steps: int | None = number(None, lo=1, integer=True, optional=True)  # train until this step (a run's steps count from 0; --resume continues the count)
+    stop_at: int | None = number(None, lo=1, integer=True, optional=True)  # stop (with a checkpoint) after this step, the schedule still running to --steps: one share of a longer run (a campaign's lease)
     epochs: int | None = number(None, lo=1, integer=True, optional=True)  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
     batch_size: int = number(32, lo=1, hi=MAX_BATCH, integer=True)
     lr: float = number(1e-3, lo=0, lo_open=True, hi=1)  # Adam

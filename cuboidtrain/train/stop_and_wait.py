@@ -72,7 +72,9 @@ def leave_signals_to_main(_worker_id: int) -> None:
 
 
 def finished(config: TrainConfig, step: int, epoch: int, started: float | None = None) -> bool:
-    """Whether --steps, --epochs or --max-minutes are done after `step`, in epoch `epoch`."""
+    """Whether --steps, --stop-at, --epochs or --max-minutes are done after `step`, in epoch `epoch`."""
+    if config.stop_at is not None and step >= config.stop_at:
+        return True
     if config.max_minutes is not None and started is not None and time.monotonic() - started > config.max_minutes * 60:
         return True
     if config.steps is not None:
