@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import functools
+import importlib.abc
+import importlib.util
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -97,16 +100,60 @@ def centred(scene=PAPER, **changes):
     return replace(scene, margin=(0.125, 0.125), centre_jitter=0.0, **changes)
 
 
+class _OneTorchThread(importlib.abc.MetaPathFinder):
+    """Tiny 32-64 px models gain nothing from a second intra-op thread, and on a busy 2-core
+    machine its barrier waits made a forward pass ~50x slower (4.8 s, not 0.1 s). So torch runs
+    the tests at one thread, set the moment something imports it: the tests that never import
+    torch (the generator's, the spool's, ...) never pay for loading it."""
+
+    def __init__(self):
+        self.before: int | None = None  # torch's own thread count, restored at the end
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != "torch":
+            return None
+        sys.meta_path.remove(self)  # once: the spec is found by the finders after this one
+        spec = importlib.util.find_spec(fullname)
+        if spec is not None and spec.loader is not None:
+            spec.loader = _ThenOneThread(spec.loader, self)
+        return spec
+
+    def loaded(self, torch) -> None:
+        self.before = torch.get_num_threads()
+        torch.set_num_threads(1)
+
+
+class _ThenOneThread(importlib.abc.Loader):
+    """torch's own loader, then one intra-op thread; the module keeps its own loader."""
+
+    def __init__(self, loader, hook: _OneTorchThread):
+        self.loader, self.hook = loader, hook
+
+    def __getattr__(self, name):
+        return getattr(self.loader, name)
+
+    def create_module(self, spec):
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module):
+        module.__spec__.loader = module.__loader__ = self.loader  # torch as if loaded plainly
+        self.loader.exec_module(module)
+        self.hook.loaded(module)
+
+
+ONE_TORCH_THREAD = _OneTorchThread()
+if "torch" in sys.modules:  # loaded before the tests' conftest (by a plugin): set it now
+    ONE_TORCH_THREAD.loaded(sys.modules["torch"])
+else:
+    sys.meta_path.insert(0, ONE_TORCH_THREAD)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def one_torch_thread():
-    # Tiny 32-64 px models gain nothing from a second intra-op thread, and on a busy
-    # 2-core machine its barrier waits made a forward pass ~50x slower (4.8 s, not 0.1 s).
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
+    """torch's thread count restored after the session, where a test loaded torch (conftest's hook set it to 1)."""
     yield
-    torch.set_num_threads(before)
+    if ONE_TORCH_THREAD.before is not None:
+        sys.modules["torch"].set_num_threads(ONE_TORCH_THREAD.before)
 
 
 @pytest.fixture

@@ -3,6 +3,7 @@ and resumed ends with the records of an uninterrupted run, none twice; a pool of
 the records of one process; without a terminal, progress is plain log lines and a summary."""
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -24,19 +25,22 @@ from tests.conftest import write_mask_pngs
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refiner passes: ~0.1 s a mask
+COUNT, BAD = 24, 12  # masks, and the one that is no image
 
 
 @pytest.fixture(scope="module")
 def masks(tmp_path_factory) -> list[str]:
-    """40 generated masks of 64 to 128 px, box and twobox, and one file that is no image."""
+    """24 generated masks of 64 to 128 px, box and twobox, and one file that is no image."""
     folder = tmp_path_factory.mktemp("masks")
-    paths = write_mask_pngs(folder, 40)
-    (folder / "m020.png").write_text("not a picture")  # an unreadable input among them
+    paths = write_mask_pngs(folder, COUNT)
+    Path(paths[BAD]).write_text("not a picture")  # an unreadable input among them
     return paths
 
 
-def reference(paths, options, workers=1) -> list[dict]:
-    """An uninterrupted run's records, in this process (one torch thread, as the workers have)."""
+@functools.cache
+def reference(paths: tuple[str, ...], options, workers=1) -> list[dict]:
+    """An uninterrupted run's records, in this process (one torch thread, as the workers have);
+    computed once for the tests that compare with the same run."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -64,18 +68,18 @@ def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp
     run.send_signal(signal.SIGKILL)
     run.wait()
     kept = read_records(out)
-    assert 8 <= len(kept) < len(masks), "killed mid-way"
+    assert 8 <= len(kept) < COUNT, "killed mid-way"
     with out.open("a") as torn:  # as if the kill had come mid-write
-        torn.write('{"index": 39, "input": "')
+        torn.write(f'{{"index": {COUNT - 1}, "input": "')
     resumed = subprocess.run(infer_command(folder, out), cwd=ROOT, env=env, capture_output=True, text=True)
-    assert resumed.returncode == 1, resumed.stderr  # m020 is no image
-    assert f"holds {len(kept)} of the 40 inputs" in resumed.stderr
+    assert resumed.returncode == 1, resumed.stderr  # one is no image
+    assert f"holds {len(kept)} of the {COUNT} inputs" in resumed.stderr
     records = read_records(out)
-    assert [r["index"] for r in records] == list(range(40))  # each input once, the torn line gone
-    assert out.read_text().count("\n") == 40
-    expected = reference(masks, SLOW)
+    assert [r["index"] for r in records] == list(range(COUNT))  # each input once, the torn line gone
+    assert out.read_text().count("\n") == COUNT
+    expected = reference(tuple(masks), SLOW)
     assert [{k: v for k, v in r.items() if k != "index"} for r in records] == expected
-    assert records[20]["error"] and sum(r["error"] is not None for r in records) == 1
+    assert records[BAD]["error"] and sum(r["error"] is not None for r in records) == 1
 
 
 def descendants(pid: int) -> list[int]:
@@ -114,7 +118,7 @@ def test_two_workers_killed_leave_no_process_behind_and_resume_to_one_process_s_
     run.send_signal(signal.SIGKILL)
     run.wait()
     kept = len(read_records(out))
-    assert 8 <= kept < 40, "killed mid-way"
+    assert 8 <= kept < COUNT, "killed mid-way"
     assert len(under) >= 3
     deadline = time.monotonic() + 10  # a worker looks for its parent every second
     while time.monotonic() < deadline and any(map(running, under)):
@@ -122,22 +126,22 @@ def test_two_workers_killed_leave_no_process_behind_and_resume_to_one_process_s_
     assert not [pid for pid in under if running(pid)], "workers outlived a killed infer"
     resumed = subprocess.run(infer_command(folder, out, "--workers", "2"), cwd=ROOT, env=env, capture_output=True,
                              text=True, timeout=120)
-    assert resumed.returncode == 1 and f"holds {kept} of the 40 inputs" in resumed.stderr  # m020 is no image
+    assert resumed.returncode == 1 and f"holds {kept} of the {COUNT} inputs" in resumed.stderr  # one is no image
     records = read_records(out)
-    assert [r["index"] for r in records] == list(range(40))
-    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(masks, SLOW)
+    assert [r["index"] for r in records] == list(range(COUNT))
+    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(tuple(masks), SLOW)
 
 
 def test_two_workers_give_the_records_of_one_process(masks):
     options = FitOptions(device="cpu")
-    assert reference(masks[:16], options, workers=2) == reference(masks[:16], options)
+    assert reference(tuple(masks[:16]), options, workers=2) == reference(tuple(masks[:16]), options)
 
 
 def test_without_a_terminal_progress_is_log_lines_and_a_summary(tmp_path, masks, monkeypatch, caplog):
     monkeypatch.setattr("cuboidtrain.infer.reporting.LOG_SECONDS", 0.0)
     console = Console(file=(tmp_path / "console.txt").open("w"), width=300)
     checkpoints = default_checkpoints(None)
-    batch = Batch(tuple(masks[15:25]), tuple(checkpoints), FitOptions(device="cpu"), jsonl=tmp_path / "o.jsonl",
+    batch = Batch(tuple(masks[BAD - 5:BAD + 5]), tuple(checkpoints), FitOptions(device="cpu"), jsonl=tmp_path / "o.jsonl",
                   keep=False)
     with caplog.at_level("INFO", logger="cuboidtrain.infer.reporting"):
         records, tally = run_batch(batch, Fitter.from_files(checkpoints, FitOptions(device="cpu")), console)
@@ -169,15 +173,15 @@ def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun
     lines = [line for line in full.stderr.splitlines() if line.startswith("error:")]
     assert full.returncode == 2 and "Traceback" not in full.stderr, full.stderr
     kept = read_records(out)
-    assert 4 <= len(kept) < 40 and out.stat().st_size <= 8 * 1024
+    assert 4 <= len(kept) < COUNT and out.stat().st_size <= 8 * 1024
     assert lines == [f"error: --jsonl {out}: file size limit reached after {len(kept)} records (all kept); "
                      f"expected free space: make some and rerun to resume"]
     assert out.read_bytes().endswith(b"\n") and out.read_bytes().count(b"\n") == len(kept)  # whole records only
     resumed = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
-    assert resumed.returncode == 1 and f"holds {len(kept)} of the 40 inputs" in resumed.stderr  # m020 is no image
+    assert resumed.returncode == 1 and f"holds {len(kept)} of the {COUNT} inputs" in resumed.stderr  # one is no image
     records = read_records(out)
-    assert [r["index"] for r in records] == list(range(40))
-    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(masks, FitOptions(device="cpu"))
+    assert [r["index"] for r in records] == list(range(COUNT))
+    assert [{k: v for k, v in r.items() if k != "index"} for r in records] == reference(tuple(masks), FitOptions(device="cpu"))
 
 
 def test_a_pipe_from_two_workers_ends_when_infer_does(masks):

@@ -163,14 +163,16 @@ def library():
     return LIBRARY
 
 
-def sample_is_sound(scene: SceneConfig, size: int = 32) -> None:
+def sample_is_sound(scene: SceneConfig, size: int = 32, refusal_ok: bool = True) -> None:
     """Accepted scenes draw samples with finite keypoints on the image (margin 0 reaches its far edge),
-    or are refused in one line when their boxes cannot be put in front of the camera."""
+    or (with `refusal_ok`) are refused in one line when their boxes cannot be put in front of the camera."""
     for shape in ("box", "twobox"):
         try:
             sample = make_sample(shape, scene, size, 7, library())
         except UsageError as exc:
             assert str(exc).startswith(f"scene {scene.name!r}: ")
+            if not refusal_ok:
+                raise AssertionError(f"the preset {scene.name!r} is refused: {exc}") from exc
             return
         k = sample.keypoints
         assert np.isfinite(k).all() and k.min() >= -1e-6 and k.max() <= size + 1e-6, (scene, k)
@@ -244,8 +246,14 @@ def test_a_scene_whose_boxes_reach_behind_the_camera_is_refused_not_looped_on():
 
 @pytest.mark.parametrize("preset", list(SCENES.values()), ids=list(SCENES))
 def test_presets_are_valid(preset):
-    preset.validate()
-    sample_is_sound(preset)
+    """A preset is never refused: it validates and draws sound samples of both shapes, at two sizes."""
+    from cuboidgen.scene import check_drawable
+    from shared.shapes import SHAPES, get_shape
+
+    assert preset.validate() == preset
+    check_drawable(preset, [get_shape(name) for name in SHAPES], 256)  # as `cuboidgen run` checks at start-up
+    for size in (32, 256):
+        sample_is_sound(preset, size, refusal_ok=False)
 
 
 # ---- the command lines: one line naming the option ------------------------------------------
