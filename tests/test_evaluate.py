@@ -171,7 +171,7 @@ def test_evaluate_skips_and_counts_other_samples(tmp_path):
     result = evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"))
     # the 64 px box is framed at the model's size as infer frames a mask: evaluated, not skipped
     assert result.samples == 4
-    assert result.skipped == {"vanished": 0, "corrupt": 1, "other_shape": 1, "other_size": 0, "cut_off": 0}
+    assert result.skipped == {"vanished": 0, "damaged": 0, "corrupt": 1, "other_shape": 1, "other_size": 0, "cut_off": 0}
     first_two = evaluate(model, spool, sigma=1.0, options=FitOptions(device="cpu"), batch_size=1, max_samples=2)
     assert first_two.samples == 2  # the first two box samples, past the others
 

@@ -161,10 +161,10 @@ def test_cli_rejects_a_file_that_is_not_a_checkpoint(tmp_path, exported):
     result = runner.invoke(app, ["export", "--checkpoint", str(tmp_path / "bad.pt"), "--onnx", str(tmp_path / "o.onnx")])
     one_line_error(result, "bad.pt: cannot read it: not a cuboid-fit checkpoint")
     assert "Unpickling" not in result.output  # what it is not, not what pickle tripped on
-    ckpt, _ = exported["box", 1]  # a torch file cut short: damaged, and torch says how
+    ckpt, _ = exported["box", 1]  # a torch file cut short: damaged, and the check of its archive says so
     (tmp_path / "cut.pt").write_bytes(ckpt.read_bytes()[:4096])
     result = runner.invoke(app, ["export", "--checkpoint", str(tmp_path / "cut.pt"), "--onnx", str(tmp_path / "o.onnx")])
-    one_line_error(result, "cut.pt: cannot read it (")
+    one_line_error(result, "cut.pt: damaged: the archive does not read (")
     assert "not a cuboid-fit checkpoint" not in result.output
 
 

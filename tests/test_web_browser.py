@@ -41,7 +41,7 @@ def browser():
     driver.quit()
 
 
-def wait_for(driver, state: str, seconds: float = 60) -> None:
+def wait_for(driver, state: str, seconds: float = 240) -> None:  # a loaded 2-core VM took over 60 s once
     from selenium.webdriver.support.ui import WebDriverWait
 
     WebDriverWait(driver, seconds).until(lambda d: d.execute_script("return document.body.dataset.state") in (

@@ -17,6 +17,7 @@ from cuboidtrain.campaign.lease import EVAL, LEASE
 from cuboidtrain.campaign.state import MANIFEST, ShapeState, append_log, read_log, read_state, state_digest, write_manifest
 from cuboidtrain.models.zoo import git_commit
 from shared.errors import UsageError
+from shared.files import write_json
 
 
 def find_lease(returned: Path) -> Path:
@@ -78,4 +79,4 @@ def keep_shipped_figures(folder: Path, campaign: Path) -> None:
         return
     shipped = json.loads((folder / EVAL).read_text()).get("shipped")
     if shipped:
-        (campaign / SHIPPED_EVAL).write_text(json.dumps(shipped, indent=1) + "\n")
+        write_json(campaign / SHIPPED_EVAL, shipped, indent=1)

@@ -9,6 +9,7 @@ measured once and kept in campaign/eval-shipped.json.
 from __future__ import annotations
 
 import json
+import math
 import logging
 import subprocess
 import sys
@@ -48,7 +49,19 @@ def bench(models: dict[str, Path], samples: int, spools: Path, threads: int, tim
         log.warning("evaluation of %s failed: %s", ", ".join(map(str, models.values())),
                     (done.stderr.strip().splitlines() or ["no message"])[-1])
         return None
-    return json.loads(out.read_text())
+    return finite(json.loads(out.read_text()))  # Python's json reads NaN; the one writer refuses it
+
+
+def finite(data):
+    """`data` with every NaN or Infinity (a figure with nothing to measure, as coverage of a model
+    with no error bars) as None, the way the infer record writes one."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {key: finite(value) for key, value in data.items()}
+    if isinstance(data, list):
+        return [finite(value) for value in data]
+    return data
 
 
 def shipped_figures(campaign: Path, plan: CampaignPlan) -> dict | None:

@@ -10,7 +10,6 @@ evaluation starts, so a lease cut short at its end still returns its training.
 from __future__ import annotations
 
 import datetime as dt
-import json
 import logging
 import os
 import shutil
@@ -27,6 +26,7 @@ from cuboidtrain.campaign.smoke import smoke_check
 from cuboidtrain.campaign.state import read_log, read_state, restore, state_digest, store
 from cuboidtrain.campaign.training import Course, train_until
 from cuboidtrain.models.zoo import git_commit
+from shared.files import json_text, write_json
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ def run_lease(options: LeaseOptions) -> dict:
         row["eval"] = evaluate(plan, campaign, checkpoints, work, out, lease, deadline, options.eval_threads)
         row["minutes"] = round((time.monotonic() - started) / 60, 2)
         write_lease(out, row, entries)
-    log.info("lease %d: %s", lease, json.dumps(row))
+    log.info("lease %d: %s", lease, json_text(row))
     return row
 
 
@@ -170,7 +170,7 @@ def lease_row(plan: CampaignPlan, lease: int, base: str, clock: dt.datetime, dev
 def write_lease(out: Path, row: dict, entries: dict) -> Path:
     path = out / LEASE
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"row": row, "state": {s: vars(e) for s, e in entries.items()}}, indent=2, default=list) + "\n")
+    tmp.write_text(json_text({"row": row, "state": {s: vars(e) for s, e in entries.items()}}, indent=2, default=list) + "\n")
     os.replace(tmp, path)
     return path
 
@@ -185,6 +185,6 @@ def evaluate(plan: CampaignPlan, campaign: Path, checkpoints: dict[str, Path], w
     kept = shipped_figures(campaign, plan)
     theirs = kept or bench(shipped_models(plan), plan.eval_samples, spools, threads, deadline - time.monotonic() - 5,
                            work / "bench-shipped.json")
-    (out / EVAL).write_text(json.dumps({"campaign": ours, "shipped": theirs, "shipped_from": SHIPPED_EVAL if kept else "this lease"},
-                                       indent=1) + "\n")
+    write_json(out / EVAL, {"campaign": ours, "shipped": theirs, "shipped_from": SHIPPED_EVAL if kept else "this lease"},
+               indent=1)
     return compare(ours, theirs)

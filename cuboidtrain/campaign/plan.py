@@ -13,6 +13,7 @@ from pathlib import Path
 
 from shared.errors import UsageError
 from shared.shapes import SHAPES
+from shared.files import write_json
 
 PLAN = "plan.json"
 # What comes back from a lease (the device tool): at most 8 files of 16 MiB; the state folder holds
@@ -101,5 +102,5 @@ def load_plan(campaign: Path) -> CampaignPlan:
 def save_plan(campaign: Path, plan: CampaignPlan) -> Path:
     path = Path(campaign) / PLAN
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(plan.to_dict(), indent=2) + "\n")
+    write_json(path, plan.to_dict(), indent=2)
     return path

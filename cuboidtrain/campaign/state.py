@@ -21,6 +21,7 @@ import torch
 
 from cuboidtrain.campaign.plan import PART_BYTES, STATE_BYTES, CampaignPlan
 from shared.errors import UsageError
+from shared.files import json_text, write_json
 
 MANIFEST = "state.json"
 LOG = "log.jsonl"
@@ -66,7 +67,7 @@ def state_digest(campaign: Path) -> str:
 
 def write_manifest(folder: Path, shapes: dict[str, ShapeState]) -> Path:
     path = Path(folder) / MANIFEST
-    path.write_text(json.dumps({"version": VERSION, "shapes": {s: asdict(e) for s, e in shapes.items()}}, indent=2) + "\n")
+    write_json(path, {"version": VERSION, "shapes": {s: asdict(e) for s, e in shapes.items()}}, indent=2)
     return path
 
 
@@ -135,5 +136,5 @@ def read_log(campaign: Path) -> list[dict]:
 def append_log(campaign: Path, row: dict) -> Path:
     path = Path(campaign) / LOG
     with open(path, "a") as f:
-        f.write(json.dumps(row, separators=(", ", ": ")) + "\n")
+        f.write(json_text(row, what=str(path)) + "\n")
     return path

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from shared.files import json_text
 
 LEDGER = "ledger.jsonl"
 
@@ -28,7 +29,7 @@ class Ledger:
 
     def record(self, step: int, names: list[str], crcs: list[int]) -> None:
         line = {"step": step, "rank": self.rank, "samples": [[n, c] for n, c in zip(names, crcs)]}
-        self._file.write(json.dumps(line) + "\n")
+        self._file.write(json_text(line) + "\n")
         self._file.flush()
 
     def close(self) -> None:
