@@ -113,8 +113,9 @@ class Saboteur(threading.Thread):
                 with open(path, "r+b") as f:
                     for bit in self.rng.sample(range(len(data) * 8), self.rng.randint(1, 3)):
                         f.seek(bit // 8)
-                        f.write(bytes([f.read(1)[0] ^ (0x80 >> bit % 8)]))
-                        f.seek(bit // 8)
+                        byte = f.read(1)[0] ^ (0x80 >> bit % 8)
+                        f.seek(bit // 8)  # the read moved on: write the flipped byte where it was read
+                        f.write(bytes([byte]))
             elif kind == "truncate":
                 os.truncate(path, self.rng.randrange(len(data)))
             else:  # foreign bytes under the sample's name, as a bad copy would leave them
@@ -129,6 +130,8 @@ class Saboteur(threading.Thread):
                 raise
             self.no_space += 1
             return
+        if damaged == data:  # the writer recycled the file meanwhile: not damaged after all
+            return
         self.damaged[name] = (kind, written)
         try:
             decode_record(damaged)
@@ -137,11 +140,19 @@ class Saboteur(threading.Thread):
             self.refused[kind] += 1
 
 
-class Ballast:
-    """A file that fills the spool's disk (writes fail with ENOSPC) until it is removed."""
+class Ballast(threading.Thread):
+    """A file that keeps the spool's disk full (writes fail with ENOSPC) while `full` is set: it
+    takes back, every 0.1 s, what truncated or deleted files gave up meanwhile."""
 
     def __init__(self, disk: Path):
+        super().__init__(daemon=True)
         self.path = disk / ".ballast"
+        self.full, self.halt = threading.Event(), threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.wait(0.1):
+            if self.full.is_set():
+                self.fill()
 
     def fill(self) -> None:
         with open(self.path, "ab", buffering=0) as f:
@@ -154,6 +165,8 @@ class Ballast:
                         raise
 
     def remove(self) -> None:
+        self.full.clear()
+        time.sleep(0.2)  # a fill under way ends
         self.path.unlink(missing_ok=True)
 
 
@@ -289,6 +302,7 @@ def soak(args, rng: random.Random, spool: Path, run: Path, logs: Path) -> dict:
         time.sleep(0.1)
     watch, saboteur, ballast = SpoolWatch(spool), Saboteur(spool, args.sabotage_every, rng), Ballast(spool)
     watch.start()
+    ballast.start()
     if args.sabotage_every:
         saboteur.start()
     trainer = start(train_cmd, logs / "trainer.log")
@@ -299,7 +313,7 @@ def soak(args, rng: random.Random, spool: Path, run: Path, logs: Path) -> dict:
     started_at = time.time()
     for cycle in range(args.cycles):
         if args.tmpfs_mb and cycle in full and cycle - 1 not in full:
-            ballast.fill()
+            ballast.full.set()
         if cycle not in full and cycle - 1 in full:
             ballast.remove()
             freed_at.append(watch.published())
@@ -346,6 +360,7 @@ def final_report(args, s: dict) -> dict:
     """The end: the trainer finishes a --resume run a few steps past its checkpoint, the generator stops cleanly."""
     run, spool, logs, saboteur, watch, cycles = s["run"], s["spool"], s["logs"], s["saboteur"], s["watch"], s["cycles"]
     saboteur.halt.set()
+    s["ballast"].halt.set()
     kill_group(s["trainer"])
     final_from = checkpoint_step(run)
     final_from = final_from if isinstance(final_from, int) else 0
