@@ -4,6 +4,7 @@ from __future__ import annotations
 import functools
 import importlib.abc
 import importlib.util
+import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -16,6 +17,13 @@ from cuboidgen.occluders import OccluderLibrary
 from cuboidgen.synth import make_sample
 from shared.sample import encode
 from shared.spool import SpoolWriter
+
+# A suite started in the background of a non-interactive shell (`make test &`, nohup) inherits
+# SIGINT ignored, and so would every command a test starts: Python installs its Ctrl-C handler
+# only where SIGINT is not ignored, and the tests of Ctrl-C would see it do nothing. A handler
+# here (not an ignore) lets the commands the tests start begin with SIGINT's default again.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 SIZE = 48  # px: tests stay tiny
 # The registry's test architecture (cuboidtrain.models.networks): the compact design at a few
