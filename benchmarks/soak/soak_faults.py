@@ -35,6 +35,7 @@ import threading
 import time
 import zlib
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgpack
@@ -287,17 +288,43 @@ def main() -> None:
     print(json.dumps(report, indent=2))
 
 
-def soak(args, rng: random.Random, spool: Path, run: Path, logs: Path) -> dict:
-    gen_cmd = [sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(spool), "--limit", str(args.limit),
-               "--size", str(args.size), "--workers", "1", "--no-dashboard"]
-    gen_cmd += ["--max-rate", str(args.max_rate)] if args.max_rate else []
-    train_cmd = [sys.executable, "-m", "cuboidtrain", "run", "--spool", str(spool), "--size", str(args.size),
-                 "--arch", "tiny", "--batch-size", str(args.batch_size), "--threads", "1", "--loader-workers", "1",
-                 "--out", str(run), "--checkpoint-every", str(args.checkpoint_every), "--log-every", "1",
-                 "--ledger", "--no-dashboard"]
-    resume = lambda: ["--resume"] if (run / "last.pt").exists() else []  # noqa: E731
+@dataclass
+class Daemons:
+    """The two daemons' commands and their processes now (each restart replaces its process)."""
 
-    generator = start(gen_cmd, logs / "generator.log")
+    generate: list[str]
+    train: list[str]
+    run: Path  # the trainer's --out
+    generator: subprocess.Popen | None = None
+    trainer: subprocess.Popen | None = None
+
+    def resume(self) -> list[str]:
+        return ["--resume"] if (self.run / "last.pt").exists() else []
+
+
+@dataclass
+class Tally:
+    """What the cycles counted, for the report."""
+
+    cycles: list[dict] = field(default_factory=list)
+    checkpoint_steps: list[int] = field(default_factory=lambda: [0])
+    trainer_skips: Counter = field(default_factory=Counter)
+    needed_a_hand: Counter = field(default_factory=Counter)
+    trained: int = 0  # steps the killed trainers had trained past their checkpoint
+    freed_at: list[int] = field(default_factory=list)  # samples published when each full spell ended
+    started_at: float = field(default_factory=time.time)
+
+
+def soak(args, rng: random.Random, spool: Path, run: Path, logs: Path) -> dict:
+    generate = [sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(spool), "--limit", str(args.limit),
+                "--size", str(args.size), "--workers", "1", "--no-dashboard"]
+    generate += ["--max-rate", str(args.max_rate)] if args.max_rate else []
+    train = [sys.executable, "-m", "cuboidtrain", "run", "--spool", str(spool), "--size", str(args.size),
+             "--arch", "tiny", "--batch-size", str(args.batch_size), "--threads", "1", "--loader-workers", "1",
+             "--out", str(run), "--checkpoint-every", str(args.checkpoint_every), "--log-every", "1",
+             "--ledger", "--no-dashboard"]
+    daemons = Daemons(generate, train, run)
+    daemons.generator = start(daemons.generate, logs / "generator.log")
     while len(enumerate_spool(spool)) < 4 * args.batch_size:
         time.sleep(0.1)
     watch, saboteur, ballast = SpoolWatch(spool), Saboteur(spool, args.sabotage_every, rng), Ballast(spool)
@@ -305,46 +332,50 @@ def soak(args, rng: random.Random, spool: Path, run: Path, logs: Path) -> dict:
     ballast.start()
     if args.sabotage_every:
         saboteur.start()
-    trainer = start(train_cmd, logs / "trainer.log")
-    full = full_cycles(args, rng)
-    cycles, ckpt_steps, trainer_skips, trained = [], [0], Counter(), 0
-    needed_a_hand = Counter()
-    freed_at: list[int] = []  # samples published when each full spell ended; more later: publishing resumed
-    started_at = time.time()
+    daemons.trainer = start(daemons.train, logs / "trainer.log")
+    full, tally = full_cycles(args, rng), Tally()
     for cycle in range(args.cycles):
         if args.tmpfs_mb and cycle in full and cycle - 1 not in full:
             ballast.full.set()
         if cycle not in full and cycle - 1 in full:
             ballast.remove()
-            freed_at.append(watch.published())
+            tally.freed_at.append(watch.published())
         long = rng.random() < args.long_share
         time.sleep(rng.uniform(*(args.long if long else args.short)))
-        victim = rng.choice(["trainer", "generator", "both"])
-        before = status_of(run)
-        record = {"cycle": cycle, "killed": victim, "long": long, "disk_full": cycle in full}
-        if victim in ("trainer", "both"):
-            needed_a_hand["trainer"] += kill_group(trainer)
-        if victim in ("generator", "both"):
-            needed_a_hand["generator"] += kill_group(generator)
-        time.sleep(0.2)
-        record["torn"], record["damaged_in_spool_refused"] = census(spool, saboteur.damaged)
-        if victim in ("trainer", "both"):
-            ours = before.get("pid") == trainer.pid  # the killed trainer had started and reported
-            record["trainer_step_at_kill"] = before.get("step") if ours else None
-            record["resumed_and_trained"] = bool(ours and before.get("step", 0) > ckpt_steps[-1])
-            trainer_skips.update(before.get("skipped") or {} if ours else {})
-            trained += max(0, before.get("step", 0) - ckpt_steps[-1]) if ours else 0
-            step = checkpoint_step(run)
-            record["checkpoint"] = step
-            record["step_went_back"] = isinstance(step, int) and step < ckpt_steps[-1]
-            ckpt_steps.append(step if isinstance(step, int) else -1)
-            trainer = start(train_cmd + resume(), logs / "trainer.log")
-        if victim in ("generator", "both"):
-            generator = start(gen_cmd, logs / "generator.log")
-        cycles.append(record)
+        record = kill_and_restart(rng.choice(["trainer", "generator", "both"]), daemons, tally, spool, logs, saboteur)
+        record |= {"cycle": cycle, "long": long, "disk_full": cycle in full}
+        tally.cycles.append(record)
         print(json.dumps(record), flush=True)
     ballast.remove()
-    return final_report(args, locals())
+    return final_report(args, spool, logs, daemons, tally, watch, saboteur, ballast)
+
+
+def kill_and_restart(victim: str, daemons: Daemons, tally: Tally, spool: Path, logs: Path, saboteur: Saboteur) -> dict:
+    """One cycle's kill: SIGKILL to `victim` ("trainer", "generator" or "both"), what it left, its restart."""
+    run, before = daemons.run, status_of(daemons.run)
+    record = {"killed": victim}
+    if victim in ("trainer", "both"):
+        tally.needed_a_hand["trainer"] += kill_group(daemons.trainer)
+    if victim in ("generator", "both"):
+        tally.needed_a_hand["generator"] += kill_group(daemons.generator)
+    time.sleep(0.2)
+    record["torn"], record["damaged_in_spool_refused"] = census(spool, saboteur.damaged)
+    if victim in ("trainer", "both"):
+        kept = tally.checkpoint_steps[-1]
+        ours = before.get("pid") == daemons.trainer.pid  # the killed trainer had started and reported
+        record["trainer_step_at_kill"] = before.get("step") if ours else None
+        record["resumed_and_trained"] = bool(ours and before.get("step", 0) > kept)
+        if ours:
+            tally.trainer_skips.update(before.get("skipped") or {})
+            tally.trained += max(0, before.get("step", 0) - kept)
+        step = checkpoint_step(run)
+        record["checkpoint"] = step
+        record["step_went_back"] = isinstance(step, int) and step < kept
+        tally.checkpoint_steps.append(step if isinstance(step, int) else -1)
+        daemons.trainer = start(daemons.train + daemons.resume(), logs / "trainer.log")
+    if victim in ("generator", "both"):
+        daemons.generator = start(daemons.generate, logs / "generator.log")
+    return record
 
 
 def full_cycles(args, rng: random.Random) -> set[int]:
@@ -356,20 +387,21 @@ def full_cycles(args, rng: random.Random) -> set[int]:
     return {c for first in starts for c in range(first, min(first + span, args.cycles))}
 
 
-def final_report(args, s: dict) -> dict:
+def final_report(args, spool: Path, logs: Path, daemons: Daemons, tally: Tally, watch: SpoolWatch, saboteur: Saboteur,
+                 ballast: Ballast) -> dict:
     """The end: the trainer finishes a --resume run a few steps past its checkpoint, the generator stops cleanly."""
-    run, spool, logs, saboteur, watch, cycles = s["run"], s["spool"], s["logs"], s["saboteur"], s["watch"], s["cycles"]
+    run, cycles = daemons.run, tally.cycles
     saboteur.halt.set()
-    s["ballast"].halt.set()
-    kill_group(s["trainer"])
+    ballast.halt.set()
+    kill_group(daemons.trainer)
     final_from = checkpoint_step(run)
     final_from = final_from if isinstance(final_from, int) else 0
-    final = subprocess.run(s["train_cmd"] + s["resume"]() + ["--steps", str(final_from + 4)], cwd=ROOT,
+    final = subprocess.run(daemons.train + daemons.resume() + ["--steps", str(final_from + 4)], cwd=ROOT,
                            capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
     final_status = status_of(run)
-    s["trainer_skips"].update(final_status.get("skipped") or {})
-    s["generator"].send_signal(signal.SIGTERM)
-    s["generator"].wait(timeout=60)
+    tally.trainer_skips.update(final_status.get("skipped") or {})
+    daemons.generator.send_signal(signal.SIGTERM)
+    daemons.generator.wait(timeout=60)
     watch.halt.set()
     watch.join()
     torn_end, refused_end = census(spool, saboteur.damaged)
@@ -377,7 +409,7 @@ def final_report(args, s: dict) -> dict:
     backoffs, recoveries = enospc_counts(logs / "generator.log")
     kinds = Counter(kind for kind, _ in saboteur.damaged.values())
     return {
-        "cycles": args.cycles, "seconds": round(time.time() - s["started_at"]), "limit": args.limit, "size": args.size,
+        "cycles": args.cycles, "seconds": round(time.time() - tally.started_at), "limit": args.limit, "size": args.size,
         "kills": dict(Counter(c["killed"] for c in cycles)),
         "cycles_with_the_disk_full": sum(c["disk_full"] for c in cycles),
         "samples_published_at_least": watch.published(),
@@ -385,18 +417,18 @@ def final_report(args, s: dict) -> dict:
         "damaged_refused_by_the_decoder": dict(saboteur.refused),
         "damaged_accepted_by_the_decoder": len(saboteur.accepted),
         "damaged_in_the_spool_at_the_end_refused": refused_end,
-        "trainer_skipped": dict(s["trainer_skips"]),
+        "trainer_skipped": dict(tally.trainer_skips),
         **audit(run, saboteur.damaged),
         "torn": sum(c["torn"] for c in cycles) + torn_end,
         "lost_published": len(watch.lost),
-        "restarts_that_needed_a_hand": dict(s["needed_a_hand"]),
+        "restarts_that_needed_a_hand": dict(tally.needed_a_hand),
         "checkpoints_lost": sum(isinstance(c["checkpoint"], str) or c["step_went_back"] for c in trainer_kills),
         "trainer_restarts": len(trainer_kills),
         "restarts_that_trained_past_their_checkpoint": sum(c["resumed_and_trained"] for c in trainer_kills),
-        "steps_trained_between_kills": s["trained"],
+        "steps_trained_between_kills": tally.trained,
         "enospc_backoffs": backoffs, "enospc_recoveries_logged": recoveries,
-        "full_spells_after_which_publishing_resumed": f"{sum(watch.published() > n for n in s['freed_at'])} of "
-                                                      f"{len(s['freed_at'])}",
+        "full_spells_after_which_publishing_resumed": f"{sum(watch.published() > n for n in tally.freed_at)} of "
+                                                      f"{len(tally.freed_at)}",
         "sabotage_refused_by_a_full_disk": saboteur.no_space,
         "final_resume": {"exit": final.returncode, "from_step": final_from, "state": final_status.get("state"),
                          "step": final_status.get("step")},
