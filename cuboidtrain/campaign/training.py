@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cuboidtrain.campaign.plan import CampaignPlan, PhasePlan
+from cuboidtrain.train.monitor.status import read_status
 
 log = logging.getLogger(__name__)
 
@@ -154,10 +155,10 @@ def _finish(plan: CampaignPlan, course: Course, code: int) -> None:
 def _reached(folder: Path, before: int) -> int:
     """The step the run folder's checkpoint holds, as its status says (`before` if it says none)."""
     try:
-        last = json.loads((folder / "status.json").read_text()).get("last_checkpoint") or {}
-        return int(last.get("step") or before)
-    except (OSError, ValueError, AttributeError):
+        last = read_status(folder).last_checkpoint
+    except (OSError, ValueError):  # no status.json yet, or a torn one
         return before
+    return (last.step if last is not None else None) or before
 
 
 def pace(metrics: Path, after: int) -> tuple[float | None, float | None]:
