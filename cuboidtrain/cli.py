@@ -247,7 +247,7 @@ def serve(
     """A local page to try the shipped models: drop a mask, see the fit and its explanation, turn the box in 3D.
 
     Fits as `infer` does (the same Fitter and options, the cuboid fit on). Needs the web extra:
-    pip install 'cuboid-fit\[web]'. Ctrl-C stops it.
+    pip install 'cuboid-fit\\[web]'. Ctrl-C stops it.
     """
     from cuboidtrain.web.server import ServeConfig, serve as run_server  # the web extra: only here
 

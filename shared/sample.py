@@ -21,8 +21,8 @@ import numpy as np
 from shared.shapes import RATIO_KEYS, SHAPES, get_shape
 
 FORMAT = "cuboid-fit/sample"
-# 2: the payload carries its CRC-32 (zlib's: in the standard library, about 1 GB/s, so 17 us for a
-# 256 px sample). A version 1 sample had none: it is refused, not read unchecked, since nothing
+# 2: the payload carries its CRC-32 (zlib's, in the standard library: 4 us for a 256 px sample's
+# 17 KB here, 13-15% of the bare loader's time a sample at 256 px: BENCHMARKS.md). A version 1 sample had none: it is refused, not read unchecked, since nothing
 # could tell a flipped bit in it from a real mask; a spool is drawn afresh in minutes.
 VERSION = 2
 KEYPOINT_DTYPE = "<f8"  # little-endian float64, (N, 2) px row-major
