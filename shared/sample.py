@@ -22,10 +22,10 @@ from shared.shapes import RATIO_KEYS, SHAPES, get_shape
 
 FORMAT = "cuboid-fit/sample"
 # 3: the payload carries its XXH3-64 (xxhash's xxh3_64, seed 0): 0.4 us for a 256 px sample's 17 KB
-# here, and the loader keeps 0.96-0.99x of its samples/s without it (0.99x at 64 px), the generator
-# 0.97-0.98x. Version 2 carried zlib's CRC-32, 4.2 us: the loader kept 0.87-0.88x at 256 px, against
-# the 0.95x asked (issue 39; BENCHMARKS.md, "The samples' checksums"). The CRC found every single
-# flipped bit for certain; XXH3-64 misses a change, one bit or many, with odds of 2^-64.
+# here; the loader keeps 0.96-0.99x of its samples/s without it at 256 px (0.98-0.99x at 64), the
+# generator 0.96-0.99x. Version 2 carried zlib's CRC-32, 4.2 us: the loader kept 0.87-0.88x at 256
+# px, against the 0.95x asked (issue 39; BENCHMARKS.md, "The samples' checksums"). The CRC found
+# every single flipped bit for certain; XXH3-64 misses a change, one bit or many, with odds of 2^-64.
 # Older versions are refused, not read unchecked: a spool is drawn afresh in minutes.
 VERSION = 3
 REFUSED_VERSIONS = {1: "version 1 carried no checksum", 2: "version 2's checksum was a CRC-32"}
