@@ -7,10 +7,14 @@ with the checksum and without, interleaved and repeated in one process (medians;
 * the generator: draw and encode (`make_sample` then `shared.sample.encode`, with its checksum)
   against draw and pack the same record with no checksum (format 1's single msgpack map);
 * `--hashes`: instead, the microseconds a payload of each spool takes each candidate hash that
-  imports here (how format 3's XXH3-64 was chosen; the others are not dependencies).
+  imports here (how format 3's XXH3-64 was chosen; the others are not dependencies: install them
+  beside, e.g. `pip install --target /tmp/hashes google-crc32c crc32c mmh3 blake3 cityhash`).
 
-    .venv/bin/python benchmarks/speed/bench_checksum.py --json bench-checksum.json
-    .venv/bin/python benchmarks/speed/bench_checksum.py --hashes
+`--cpu-time` counts the process's CPU seconds, so that a machine busy with other work slows both
+sides alike rather than whichever it preempted.
+
+    .venv/bin/python benchmarks/speed/bench_checksum.py --repeats 9 --cpu-time --json bench-checksum.json
+    PYTHONPATH=.:/tmp/hashes .venv/bin/python benchmarks/speed/bench_checksum.py --hashes --cpu-time --repeats 9
 """
 from __future__ import annotations
 
