@@ -64,7 +64,7 @@ def run(
     overwrite: bool = typer.Option(TRAIN.overwrite, envvar="CUBOIDTRAIN_OVERWRITE", help="Start over in an --out that holds a run, replacing its last.pt and metrics.jsonl (without it, or --resume, such a run is refused)."),
     checkpoint_every: int = typer.Option(TRAIN.checkpoint_every, envvar="CUBOIDTRAIN_CHECKPOINT_EVERY", help="Steps between checkpoints (OUT/last.pt, replaced atomically)."),
     log_every: int = typer.Option(TRAIN.log_every, envvar="CUBOIDTRAIN_LOG_EVERY", help="Steps between records in OUT/metrics.jsonl."),
-    ledger: bool = typer.Option(TRAIN.ledger, "--ledger", envvar="CUBOIDTRAIN_LEDGER", help="Write OUT/ledger.jsonl: every step's samples, by name and payload CRC-32 (which bytes each step trained on)."),
+    ledger: bool = typer.Option(TRAIN.ledger, "--ledger", envvar="CUBOIDTRAIN_LEDGER", help="Write OUT/ledger.jsonl: every step's samples, by name and payload checksum (which bytes each step trained on)."),
     loader_workers: Optional[int] = typer.Option(TRAIN.loader_workers, envvar="CUBOIDTRAIN_LOADER_WORKERS", help="DataLoader worker processes reading the spool (default: 2; on CUDA a quarter of the cores, 2 to 6)."),
     seed: int = typer.Option(TRAIN.seed, envvar="CUBOIDTRAIN_SEED", help="Seed of the initial weights and the epoch order."),
     device: str = typer.Option(TRAIN.device, envvar="CUBOIDTRAIN_DEVICE", help="auto (CUDA when present), cpu, cuda or cuda:N."),

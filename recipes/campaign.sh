@@ -11,7 +11,7 @@
 # (campaign/plan.json, campaign/state.json) resumed side by side until MINUTES less the plan's
 # eval_minutes; the new state (in parts of at most 15 MB), lease.json (the log row) and then
 # eval.json (bench_accuracy's sets, the campaign's models and the shipped ones) into OUT, with this
-# script's output as OUT/lease.log. Carried wheels in .whl/ (watchdog) are installed first.
+# script's output as OUT/lease.log. Carried wheels in .whl/ (watchdog, xxhash) are installed first.
 #
 # On the CPU with tiny settings (tests/test_campaign.py runs it so):
 #   OUT=/tmp/lease DEVICE=cpu CAMPAIGN=/tmp/tiny-campaign MINUTES=2 PY=.venv/bin/python recipes/campaign.sh --lease-steps 2

@@ -2,8 +2,8 @@
 
 This module is the only code that turns samples into bytes and back (STYLE.md).
 A sample is one msgpack map: its format, its version, and its payload (the sample's fields,
-itself a msgpack map) with the payload's CRC-32, so that a bit flipped after writing (a disk, a
-network file system, a copy) is found on read rather than trained on. Masks are bit-packed (`np.packbits`, row-major,
+itself a msgpack map) with the payload's checksum (XXH3-64), so that a bit flipped after writing (a
+disk, a network file system, a copy) is found on read rather than trained on. Masks are bit-packed (`np.packbits`, row-major,
 BIT_ORDER within a byte), keypoints are little-endian float64, so a 256x256
 sample is about 17 KB. Heat maps are not stored: they are a function of the
 keypoints and the trainer renders them on its device, where it also unpacks the
@@ -12,19 +12,23 @@ masks (in torch, by BIT_SHIFTS: the bit order is stated here and nowhere else).
 from __future__ import annotations
 
 import math
-import zlib
 from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
+import xxhash
 
 from shared.shapes import RATIO_KEYS, SHAPES, get_shape
 
 FORMAT = "cuboid-fit/sample"
-# 2: the payload carries its CRC-32 (zlib's, in the standard library: 4 us for a 256 px sample's
-# 17 KB here, 13-15% of the bare loader's time a sample at 256 px: BENCHMARKS.md). A version 1 sample had none: it is refused, not read unchecked, since nothing
-# could tell a flipped bit in it from a real mask; a spool is drawn afresh in minutes.
-VERSION = 2
+# 3: the payload carries its XXH3-64 (xxhash's xxh3_64, seed 0): 0.4 us for a 256 px sample's 17 KB
+# here; the loader keeps 0.96-0.99x of its samples/s without it at 256 px (0.98-0.99x at 64), the
+# generator 0.96-0.99x. Version 2 carried zlib's CRC-32, 4.2 us: the loader kept 0.87-0.88x at 256
+# px, against the 0.95x asked (issue 39; BENCHMARKS.md, "The samples' checksums"). The CRC found
+# every single flipped bit for certain; XXH3-64 misses a change, one bit or many, with odds of 2^-64.
+# Older versions are refused, not read unchecked: a spool is drawn afresh in minutes.
+VERSION = 3
+REFUSED_VERSIONS = {1: "version 1 carried no checksum", 2: "version 2's checksum was a CRC-32"}
 KEYPOINT_DTYPE = "<f8"  # little-endian float64, (N, 2) px row-major
 BIT_ORDER = "big"  # np.packbits' default: a byte's first pixel is its most significant bit
 # The right shift that brings each of a byte's 8 pixels, first pixel first, down to bit 0:
@@ -51,11 +55,11 @@ class CorruptSample(ValueError):
 
 
 class DamagedSample(CorruptSample):
-    """A sample whose payload no longer has the CRC-32 it was written with: its bytes changed
+    """A sample whose payload no longer has the checksum it was written with: its bytes changed
     after writing (bit rot, a torn copy). Readers skip and count it under its own reason."""
 
     def __init__(self, found: int, written: int):
-        super().__init__("checksum", "mismatch", f"CRC-32 {found:08x}, written as {written:08x}")
+        super().__init__("checksum", "mismatch", f"XXH3-64 {found:016x}, written as {written:016x}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,17 +102,22 @@ def unpack_mask(packed: bytes, size: int) -> np.ndarray:
 
 
 def encode(sample: Sample) -> bytes:
-    """Sample -> bytes: the payload (its fields) and the payload's CRC-32, in one map."""
+    """Sample -> bytes: the payload (its fields) and the payload's checksum, in one map."""
     return pack_record(to_record(sample))
 
 
 def pack_record(record: dict) -> bytes:
     """A record as `decode_record` gives it -> bytes, its payload (every key but the format and
-    version) with its CRC-32. Unchecked: `encode` checks the record first (`to_record`); tests
+    version) with its checksum. Unchecked: `encode` checks the record first (`to_record`); tests
     write records a reader must refuse through it."""
     outer = {key: record[key] for key in ("format", "version") if key in record}
     payload = msgpack.packb({key: value for key, value in record.items() if key not in outer}, use_bin_type=True)
-    return msgpack.packb({**outer, "crc32": zlib.crc32(payload), "payload": payload}, use_bin_type=True)
+    return msgpack.packb({**outer, "checksum": checksum(payload), "payload": payload}, use_bin_type=True)
+
+
+def checksum(payload: bytes) -> int:
+    """The payload's checksum as a sample carries it: XXH3-64 (seed 0), an unsigned 64-bit int."""
+    return xxhash.xxh3_64_intdigest(payload)
 
 
 def to_record(sample: Sample) -> dict:
@@ -143,12 +152,12 @@ def decode_record(data: bytes, verify: bool = True) -> dict:
 
 
 def decode_checked(data: bytes, verify: bool = True) -> tuple[dict, int]:
-    """Bytes -> the raw record (format, version and the payload's fields) and the payload's CRC-32,
+    """Bytes -> the raw record (format, version and the payload's fields) and the payload's checksum,
     checked for format, version, checksum and every field, masks still packed. `verify=False` skips the checksum
     alone (benchmarks/speed/bench_checksum.py measures what it costs; nothing else passes it).
 
     Raises ValueError naming what was found and what was expected; DamagedSample (a
-    CorruptSample) when the payload's CRC-32 is not the one written.
+    CorruptSample) when the payload's checksum is not the one written.
     """
     outer = _unpack(data, "sample")
     if not isinstance(outer, dict) or outer.get("format") != FORMAT:
@@ -156,12 +165,12 @@ def decode_checked(data: bytes, verify: bool = True) -> tuple[dict, int]:
         raise ValueError(f"not a cuboid-fit sample: format {found!r}, expected {FORMAT!r}")
     version = outer.get("version")
     if type(version) is not int or version != VERSION:  # True == 1 in Python: the type too
-        why = " (version 1 carried no checksum: draw the spool afresh)" if version == 1 else ""
+        why = f" ({REFUSED_VERSIONS[version]}: draw the spool afresh)" if version in REFUSED_VERSIONS else ""
         raise ValueError(f"sample format version {version!r} is not supported: expected {VERSION}{why}")
-    payload, written = outer.get("payload"), outer.get("crc32")
+    payload, written = outer.get("payload"), outer.get("checksum")
     if not isinstance(payload, bytes) or not _integer(written):
-        raise CorruptSample("checksum", "missing", f"a payload of {type(payload).__name__} and a CRC of {written!r}")
-    found = zlib.crc32(payload) if verify else written
+        raise CorruptSample("checksum", "missing", f"a payload of {type(payload).__name__} and a checksum of {written!r}")
+    found = checksum(payload) if verify else written
     if found != written:
         raise DamagedSample(found, written)
     fields = _unpack(payload, "payload")
@@ -286,7 +295,7 @@ class PackedSample:
     noisy: bytes
     clean: bytes
     record: dict
-    crc32: int  # the payload's CRC-32 as read (the one written, where checked): what a trainer's ledger keeps
+    checksum: int  # the payload's checksum as read (the one written, where checked): what a trainer's ledger keeps
 
     def noisy_mask(self) -> np.ndarray:
         """The noisy mask's (size, size) uint8 0/1 pixels."""
@@ -299,11 +308,11 @@ class PackedSample:
 
 def decode_packed(data: bytes, verify: bool = True) -> PackedSample:
     """Bytes -> PackedSample, every field checked once (`decode_record`). Raises ValueError."""
-    record, crc = decode_checked(data, verify)
+    record, written = decode_checked(data, verify)
     geometry = get_shape(record["shape"])
     keypoints = np.frombuffer(record["keypoints"], KEYPOINT_DTYPE).reshape(geometry.num_keypoints, 2)
     return PackedSample(record["shape"], record["size"], keypoints, geometry.ratio_vector(record["ratios"]),
-                        record["noisy"], record["clean"], record, crc)
+                        record["noisy"], record["clean"], record, written)
 
 
 def packed_rows(samples: list[PackedSample], key: str, size: int) -> np.ndarray:

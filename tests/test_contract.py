@@ -105,10 +105,10 @@ def test_sample_fields_and_params_are_documented(shape):
     outer = msgpack.unpackb(data)
     record = decode_record(data)
     # two tables: the file's map, then its payload's fields (the same keys, in encoding order)
-    documented = documented_keys("Sample format (version 2)")
+    documented = documented_keys("Sample format (version 3)")
     assert documented == list(outer) + list(msgpack.unpackb(outer["payload"]))
     assert list(record) == ["format", "version", *msgpack.unpackb(outer["payload"])]
-    params_row = next(r for r in table_rows(section("Sample format (version 2)")) if r[0] == "`params`")
+    params_row = next(r for r in table_rows(section("Sample format (version 3)")) if r[0] == "`params`")
     named = set(re.findall(r"`([a-z_]+)`", params_row[2]))
     assert set(record["params"]) - {"eye_height"} <= named
     assert "eye_height" in named  # standing scenes (street) add it

@@ -1,4 +1,6 @@
 """The sample byte format: round trips, size, and clear errors for corrupt or foreign bytes."""
+import zlib
+
 import msgpack
 import numpy as np
 import pytest
@@ -274,7 +276,7 @@ def flipped(data: bytes, bit: int) -> bytes:
 
 def test_every_single_flipped_bit_of_a_sample_is_refused(library):
     # A 16 px sample is a few hundred bytes: every one of its bits, flipped alone, is caught,
-    # most by the payload's CRC-32 (DamagedSample), the rest (the map's own bytes) as corrupt.
+    # most by the payload's checksum (DamagedSample), the rest (the map's own bytes) as corrupt.
     data = encode(build_sample(2, size=16, library=library))
     damaged = 0
     for bit in range(len(data) * 8):
@@ -282,6 +284,25 @@ def test_every_single_flipped_bit_of_a_sample_is_refused(library):
             decode_record(flipped(data, bit))
         damaged += isinstance(refused.value, DamagedSample)
     assert damaged > len(data) * 8 * 0.8  # the payload is most of the file
+
+
+ENCODED: dict[tuple, bytes] = {}  # the property's samples, drawn once across its examples
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 3), shape=st.sampled_from(["box", "twobox"]), size=st.sampled_from([17, 64, 256]),
+       data=st.data())
+def test_any_single_flipped_bit_of_the_payload_is_a_checksum_mismatch(library, seed, shape, size, data):
+    key = (seed, shape, size)
+    if key not in ENCODED:
+        ENCODED[key] = encode(build_sample(seed, shape, size=size, library=library))
+    written = ENCODED[key]
+    payload = msgpack.unpackb(written)["payload"]
+    start = written.rindex(payload)  # a msgpack bin's bytes lie in the file as they are
+    bit = data.draw(st.integers(0, len(payload) * 8 - 1))
+    with pytest.raises(DamagedSample) as refused:
+        decode_record(flipped(written, start * 8 + bit))
+    assert refused.value.reason == "checksum: mismatch" and "\n" not in str(refused.value)
 
 
 def test_a_flipped_bit_in_a_mask_is_a_checksum_mismatch_with_its_own_reason(library):
@@ -292,8 +313,25 @@ def test_a_flipped_bit_in_a_mask_is_a_checksum_mismatch_with_its_own_reason(libr
     assert decode_record(flipped(data, len(data) * 4), verify=False)["shape"] == "box"  # unchecked, it would pass
 
 
-def test_a_version_1_sample_is_refused_saying_it_carried_no_checksum(library):
-    record = {**to_record(build_sample(0, library=library)), "version": 1}
-    old = msgpack.packb(record, use_bin_type=True)  # version 1: the fields in the one map, no checksum
-    with pytest.raises(ValueError, match="version 1 is not supported: expected 2 .*no checksum"):
-        decode_record(old)
+def version_1_bytes(record: dict) -> bytes:
+    """What version 1's encoder wrote: the fields in the one map, no checksum."""
+    return msgpack.packb({**record, "version": 1}, use_bin_type=True)
+
+
+def version_2_bytes(record: dict) -> bytes:
+    """What version 2's encoder wrote: the payload (the fields but format and version) with zlib's CRC-32."""
+    payload = msgpack.packb({k: v for k, v in record.items() if k not in ("format", "version")}, use_bin_type=True)
+    return msgpack.packb({"format": record["format"], "version": 2, "crc32": zlib.crc32(payload), "payload": payload},
+                         use_bin_type=True)
+
+
+@pytest.mark.parametrize("old, why", [
+    (version_1_bytes, r"\(version 1 carried no checksum: draw the spool afresh\)"),
+    (version_2_bytes, r"\(version 2's checksum was a CRC-32: draw the spool afresh\)"),
+])
+def test_an_older_version_is_refused_in_one_line_saying_why(library, old, why):
+    data = old(to_record(build_sample(0, library=library)))
+    version = msgpack.unpackb(data)["version"]
+    with pytest.raises(ValueError, match=rf"^sample format version {version} is not supported: expected {VERSION} {why}$") as refused:
+        decode_record(data)
+    assert not isinstance(refused.value, DamagedSample) and "\n" not in str(refused.value)  # old, not damaged

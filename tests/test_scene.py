@@ -130,8 +130,8 @@ def builtin_library():
 def test_same_seed_same_bytes_as_recorded(builtin_library):
     """Every recorded "shape/scene/size/seed" encodes to the bytes it did when recorded (before the
     camera moved to shared/camera.py): a refactor of the generator must not change a sample. The
-    digests are of format 1's bytes (the record in one map, no checksum): format 2 wraps the same
-    fields in a payload with its CRC-32, and the samples themselves did not change."""
+    digests are of format 1's bytes (the record in one map, no checksum): formats 2 and 3 wrap the
+    same fields in a payload with its checksum, and the samples themselves did not change."""
     recorded = json.loads(GENERATOR_DIGESTS.read_text())
     assert len(recorded) == 72  # box, twobox, mix x three scenes x 64, 256 px x four seeds
     changed = []

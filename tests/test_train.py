@@ -162,9 +162,8 @@ def test_a_damaged_last_checkpoint_is_refused_and_resume_falls_back_to_the_previ
 
 
 def test_the_ledger_lists_each_step_s_samples_by_name_and_checksum_across_a_resume(spool, tmp_path):
-    import zlib
-
     import msgpack
+    import xxhash
 
     from cuboidtrain.train.ledger import read_ledger
 
@@ -174,10 +173,10 @@ def test_the_ledger_lists_each_step_s_samples_by_name_and_checksum_across_a_resu
     run(config(spool, tmp_path, steps=4, ledger=True, resume=True))
     lines = read_ledger(tmp_path / "ledger.jsonl")
     assert [line["step"] for line in lines] == [1, 2, 3, 4] and all(len(line["samples"]) == 4 for line in lines)
-    written = {name: msgpack.unpackb((spool / name).read_bytes())["crc32"] for name in enumerate_spool(spool)}
-    payloads = {name: zlib.crc32(msgpack.unpackb((spool / name).read_bytes())["payload"]) for name in written}
-    for name, crc in (sample for line in lines for sample in line["samples"]):
-        assert crc == written[name] == payloads[name]
+    written = {name: msgpack.unpackb((spool / name).read_bytes())["checksum"] for name in enumerate_spool(spool)}
+    payloads = {name: xxhash.xxh3_64_intdigest(msgpack.unpackb((spool / name).read_bytes())["payload"]) for name in written}
+    for name, checksum in (sample for line in lines for sample in line["samples"]):
+        assert checksum == written[name] == payloads[name]
     assert len({name for line in lines for name, _ in line["samples"]}) == 12  # 16 reads of 12 samples: an epoch and more
 
 

@@ -9,12 +9,12 @@ left, and restarts them (the trainer with --resume once it has a checkpoint). Me
 * a watcher lists the spool every 0.1 s (a sample vanishing while an older one is still there
   was lost: eviction is oldest first);
 * a saboteur damages a published sample every --sabotage-every s: flips 1-3 bits in place,
-  truncates it, or replaces it with foreign bytes, and notes the CRC-32 it was written with;
+  truncates it, or replaces it with foreign bytes, and notes the checksum it was written with;
 * the spool is a tmpfs of --tmpfs-mb (the run makes it; root), and for --full-share of the
   cycles a ballast file holds it full: the generator's writes fail with ENOSPC and back off.
 
-The trainer runs with --ledger, so every step's samples are listed by name and payload CRC-32:
-a damaged sample trained on would show as a damaged name with a CRC other than the one written.
+The trainer runs with --ledger, so every step's samples are listed by name and payload checksum:
+a damaged sample trained on would show as a damaged name with a checksum other than the one written.
 Prints a JSON line per cycle, then the report (RELIABILITY.md gives the last one's table):
 
     nice -n 10 .venv/bin/python benchmarks/soak/soak_faults.py --cycles 1000 --workdir /tmp/cuboid-soak
@@ -88,7 +88,7 @@ class SpoolWatch(threading.Thread):
 
 class Saboteur(threading.Thread):
     """Damages a random published sample every `every` s and checks that the readers' decoder
-    refuses it. `damaged`: name -> (kind, the CRC-32 it was written with)."""
+    refuses it. `damaged`: name -> (kind, the checksum it was written with)."""
 
     def __init__(self, spool: Path, every: float, rng: random.Random):
         super().__init__(daemon=True)
@@ -109,7 +109,7 @@ class Saboteur(threading.Thread):
         path = self.spool / name
         try:
             data = path.read_bytes()
-            written = msgpack.unpackb(data)["crc32"]
+            written = msgpack.unpackb(data)["checksum"]
             if kind == "flip":
                 with open(path, "r+b") as f:
                     for bit in self.rng.sample(range(len(data) * 8), self.rng.randint(1, 3)):
@@ -228,11 +228,11 @@ def checkpoint_step(run: Path) -> int | str:
 
 def audit(run: Path, damaged: dict) -> dict:
     """The ledger against the saboteur's notes: steps, samples read, damaged samples read before
-    their damage (the CRC written) and after it (any other CRC: trained on damaged bytes)."""
+    their damage (the checksum written) and after it (any other: trained on damaged bytes)."""
     lines = read_ledger(run / "ledger.jsonl") if (run / "ledger.jsonl").exists() else []
-    read = [(name, crc) for line in lines for name, crc in line["samples"]]
-    before = sum(1 for name, crc in read if name in damaged and crc == damaged[name][1])
-    after = [name for name, crc in read if name in damaged and crc != damaged[name][1]]
+    read = [(name, checksum) for line in lines for name, checksum in line["samples"]]
+    before = sum(1 for name, checksum in read if name in damaged and checksum == damaged[name][1])
+    after = [name for name, checksum in read if name in damaged and checksum != damaged[name][1]]
     return {"ledger_steps": len(lines), "samples_read": len(read), "damaged_read_before_damage": before,
             "damaged_samples_trained_on": len(after), "damaged_trained_names": sorted(set(after))[:10]}
 

@@ -30,7 +30,7 @@ from cuboidtrain.fit.options import DEFAULT_MARGIN
 from shared.sample import DamagedSample, PackedSample, Sample, collate, decode_packed, packed_rows
 from shared.spool import enumerate_spool, read_sample_bytes
 
-# damaged: a sample whose payload lost the CRC-32 it was written with (bit rot); corrupt: any other fault
+# damaged: a sample whose payload lost the checksum it was written with (bit rot); corrupt: any other fault
 SKIP_REASONS = ("vanished", "damaged", "corrupt", "other_shape", "other_size", "cut_off")
 REFRAME_MODES = ("never", "always", "other-sizes")
 
@@ -57,7 +57,7 @@ class LoaderBatch:
     names: list[str]  # the samples kept, in the batch's order
     skipped: dict[str, int]  # samples skipped by reason (SKIP_REASONS)
     vanished: list[str]  # evicted before they were read: the trainer's census counts them
-    crcs: list[int]  # each kept sample's payload CRC-32, as read and checked (the trainer's --ledger)
+    checksums: list[int]  # each kept sample's payload checksum, as read and checked (the trainer's --ledger)
     noisy: torch.Tensor | None = None
     clean: torch.Tensor | None = None
     keypoints: torch.Tensor | None = None
@@ -126,8 +126,8 @@ class SpoolBatches(Dataset):
                 sample, framing = item
                 sources.append(Source(sample.unpacked(), framing or identity_framing(self.size)))
         tensors = collate_batch(items, self.size) if items else {}
-        crcs = [sample.crc32 for sample, _ in items]
-        return LoaderBatch(kept, skipped, vanished, crcs, **tensors, sources=sources if self.keep_sources else None)
+        checksums = [sample.checksum for sample, _ in items]
+        return LoaderBatch(kept, skipped, vanished, checksums, **tensors, sources=sources if self.keep_sources else None)
 
     def _read(self, name: str) -> tuple[str | None, tuple[PackedSample, Framing | None] | None]:
         """(skip reason or None, the sample to batch with its framing: None where it stays at its size)."""

@@ -55,7 +55,7 @@ class TrainConfig:
     overwrite: bool = False  # start over in an OUT that holds a run (its last.pt, metrics.jsonl); else refused
     checkpoint_every: int = number(500, lo=1, integer=True)  # steps
     log_every: int = number(10, lo=1, integer=True)  # steps between metrics.jsonl records
-    ledger: bool = False  # OUT/ledger.jsonl: every step's samples, by name and payload CRC-32 (cuboidtrain.train.ledger)
+    ledger: bool = False  # OUT/ledger.jsonl: every step's samples, by name and payload checksum (cuboidtrain.train.ledger)
     loader_workers: int | None = number(None, lo=0, hi=max_processes(), integer=True, optional=True, unit=PER_CORE)  # DataLoader processes reading the spool; None: `workers_on`
     seed: int = number(0, lo=0, hi=MAX_SEED, integer=True)
     device: str = "auto"  # auto: cuda when present, else cpu

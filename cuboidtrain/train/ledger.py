@@ -1,9 +1,9 @@
 """Which bytes each step trained on: OUT/ledger.jsonl, one line a step (`--ledger`).
 
-A line is {"step": N, "rank": R, "samples": [[name, crc32], ...]}: each sample of the step's batch on
-this rank by its spool name and its payload's CRC-32 as read (and checked: `shared.sample`). An
+A line is {"step": N, "rank": R, "samples": [[name, checksum], ...]}: each sample of the step's batch
+on this rank by its spool name and its payload's checksum as read (and checked: `shared.sample`). An
 audit (benchmarks/soak/soak_faults.py) compares them with the files a saboteur damaged: a sample
-read after its damage would carry another CRC than the one written. Lines are appended and
+read after its damage would carry another checksum than the one written. Lines are appended and
 flushed, not synced: a killed trainer may leave a torn last line, which start-up cuts
 (`run_files.repair_jsonl`); the steps after a resumed checkpoint are trained, and so listed, again.
 """
@@ -27,8 +27,8 @@ class Ledger:
     def in_folder(cls, out: Path, rank: int = 0) -> "Ledger":
         return cls(out / (LEDGER if rank == 0 else f"ledger-rank{rank}.jsonl"), rank)
 
-    def record(self, step: int, names: list[str], crcs: list[int]) -> None:
-        line = {"step": step, "rank": self.rank, "samples": [[n, c] for n, c in zip(names, crcs)]}
+    def record(self, step: int, names: list[str], checksums: list[int]) -> None:
+        line = {"step": step, "rank": self.rank, "samples": [[n, c] for n, c in zip(names, checksums)]}
         self._file.write(json_text(line) + "\n")
         self._file.flush()
 

@@ -274,7 +274,7 @@ def train_one_step(s: Session, position: Position, batch: LoaderBatch, waited: f
     losses = train_step(setup.model, setup.optimizer, x, config, s.device, setup.losses_of)
     step = position.step + 1
     if s.ledger is not None:
-        s.ledger.record(step, batch.names, batch.crcs)
+        s.ledger.record(step, batch.names, batch.checksums)
     # 3. account and report
     age, reuse = s.freshness.observe(batch.names)
     result = global_losses(s.ranks, losses, len(batch.names))
