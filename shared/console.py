@@ -6,12 +6,15 @@ import os
 import select
 import sys
 from enum import Enum
+from typing import get_args
 
 import typer
 from rich.markup import escape
 from rich.console import Console
 from rich.logging import RichHandler
-from typer.core import TyperGroup
+# typer's own copy of click (typer._click): the exceptions a command line meets are these
+from typer._click.exceptions import BadOptionUsage, BadParameter, ClickException
+from typer.core import TyperGroup, TyperOption
 
 from shared.errors import UsageError
 
@@ -71,10 +74,15 @@ class Commands(TyperGroup):
         return result
 
     def invoke(self, ctx):
+        words = [*ctx._protected_args, *ctx.args]  # the subcommand's, before it parses them (and may fail)
         try:
             return super().invoke(ctx)
-        except typer.BadParameter as exc:
-            exc.message = plain_message(exc.message)
+        except (BadParameter, BadOptionUsage) as exc:
+            option = several_values_option(exc, self.get_command(ctx, words[0]) if words else None)
+            if option is not None:  # `--principal-px 320 mask.png`: the file taken as Y, or nothing after it
+                fail(several_values_message(option, words))
+            if isinstance(exc, BadParameter):
+                exc.message = plain_message(exc.message)
             raise
         except (UsageError, OSError) as exc:
             if isinstance(exc, BrokenPipeError) and reader_gone():
@@ -123,6 +131,29 @@ def flush_or_quit() -> None:
         quit_quietly()
     except (OSError, ValueError):  # closed, or not ours to report
         pass
+
+
+NUMBER_WORDS = {2: "two", 3: "three", 4: "four"}
+
+
+def several_values_option(exc: ClickException, command) -> TyperOption | None:
+    """The option of several values (`--principal-px X Y`) of `command` that `exc` is about, else None."""
+    option = getattr(exc, "param", None)
+    if option is None and isinstance(exc, BadOptionUsage) and command is not None:
+        option = next((p for p in command.params if exc.option_name in p.opts), None)
+    return option if isinstance(option, TyperOption) and option.nargs > 1 else None
+
+
+def several_values_message(option: TyperOption, words: list[str]) -> str:
+    """`--principal-px 320 mask.png: expected two numbers X Y`: the option as typed, the words it
+    took (up to its count, none of them another option), and what it needs."""
+    at = max((k for k, w in enumerate(words) if w in option.opts), default=None)  # its last use: the bad one
+    name, taken = (option.opts[0], []) if at is None else (words[at], words[at + 1:at + 1 + option.nargs])
+    taken = taken[:next((k for k, w in enumerate(taken) if w.startswith("--")), len(taken))]
+    kinds = set(get_args(option.type_descriptor.annotation))
+    what = "numbers" if kinds and kinds <= {int, float} else "values"
+    count = NUMBER_WORDS.get(option.nargs, str(option.nargs))
+    return f"{' '.join([name, *taken])}: expected {count} {what} {option.metavar or ''}".rstrip()
 
 
 def plain_message(message: str) -> str:

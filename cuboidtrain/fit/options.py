@@ -111,6 +111,17 @@ class FitOptions:
             return None
         return KnownCamera.of(focal, principal)
 
+    def check_cameras_match(self, inputs: list[str]) -> None:
+        """Every `cameras` entry names one of the run's inputs, by its path as given or its file name
+        (`camera_for`'s lookup): an entry that names none is a typo or a stale file, and its input
+        would be fitted camera-free with nothing said. A one-line UsageError naming it."""
+        names = set(inputs) | {PurePath(path).name for path in inputs}
+        unmatched = [name for name, _ in self.cameras if name not in names]
+        if unmatched:
+            others = f" (and {len(unmatched) - 1} other entries)" if len(unmatched) > 1 else ""
+            raise UsageError(f"--camera: {unmatched[0]!r}{others} matches no input; expected each entry to be "
+                             f"an input's path as given or its file name")
+
     @cached_property
     def _camera_table(self) -> dict[str, KnownCamera]:
         """`cameras` as a lookup: built once, not once an input (a city's file maps thousands)."""

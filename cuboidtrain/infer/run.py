@@ -63,6 +63,7 @@ def infer(request: InferRequest, console) -> InferResult:
     options = request.options.validate()
     check_request(request, options)
     inputs = gather_inputs(list(request.paths), request.from_list, request.glob)  # nothing to fit: before the models
+    options.check_cameras_match(inputs)
     if request.cluster is None:
         from cuboidtrain.infer.pool import warm_up
 
