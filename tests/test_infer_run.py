@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 
 import cv2
 import numpy as np
@@ -89,6 +90,17 @@ def test_each_input_s_warnings_reach_this_process_s_log_once_in_process_and_from
     expected = [f"{inputs[0]}: {w}" for w in outcomes[0].warnings] + [outcomes[1].reason]
     assert any("border" in w for w in outcomes[0].warnings)
     assert sorted(said) == sorted(expected)
+
+
+def test_the_summary_s_counts_add_up_when_an_input_fails(masks, tmp_path):
+    command = CliRunner().invoke(app, ["infer", str(tmp_path / "nothere.png"), masks[0], "--device", "cpu",
+                                       "--json", str(tmp_path / "out.json")])
+    assert command.exit_code == 1, command.output
+    [summary] = [line for line in command.output.splitlines() if " masks; fitted " in line]
+    found = re.search(r"^(\d+) masks; fitted (\d+) in .*; (\d+) failed$", summary)
+    assert found, summary
+    total, fitted, failed = map(int, found.groups())
+    assert (total, fitted, failed) == (2, 1, 1)
 
 
 def test_a_fit_whose_numbers_are_not_finite_is_a_failure_naming_the_field(masks, monkeypatch):
