@@ -203,6 +203,7 @@ def infer(
     focal_px: Optional[float] = typer.Option(None, metavar="F", help="The camera's focal length in the inputs' pixels, where known: held by the cuboid fit (the record says so). With the camera given, depth/height is several times more accurate (BENCHMARKS.md).", rich_help_panel=CAMERA),
     principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given).", rich_help_panel=CAMERA),
     camera: Optional[Path] = typer.Option(None, metavar="FILE", help='Each input\'s camera: a JSON object mapping its path as given (or its file name) to {"focal_px": F, "principal_px": [X, Y]}; over --focal-px and --principal-px.', rich_help_panel=CAMERA),
+    photo: list[Path] = typer.Option([], metavar="PHOTO", help="The photo each mask was cut from, in the same order (repeat it): its EXIF focal length sets the camera, loosely (the record says exif); under --focal-px, --principal-px and --camera. A photo without it changes nothing.", rich_help_panel=CAMERA),
     json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl).", rich_help_panel=OUTPUT),
     jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run.", rich_help_panel=OUTPUT),
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here.", rich_help_panel=OUTPUT),
@@ -226,7 +227,7 @@ def infer(
     request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
                            options=options, json_out="-" if json_out is None and jsonl is None else json_out,
                            jsonl=jsonl, workers=workers, cluster=cluster, explain=explain, overlay=tuple(overlay),
-                           mesh=mesh)
+                           photos=tuple(photo), mesh=mesh)
     result = run_infer(request, console)
     if result.pictures is not None:
         console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False)
