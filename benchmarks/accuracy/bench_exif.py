@@ -10,7 +10,9 @@ lens; the mask is a crop of it at its scale, so the principal point stays fitted
 (`cuboidtrain.fit.exif`). The EXIF is read back from the file (`read_photo_camera`).
 
 Medians of the relative depth/height error (every part), 3D IoU and yaw error, over the masks
-given their own shape class, and the share of those.
+given their own shape class, and the share of those. A fourth row, "exif, whole frame", is what a
+mask of the photo's whole frame would get: the principal point at the photo's centre (for a
+generated view, its true one), as loosely held.
 
     .venv/bin/python benchmarks/accuracy/bench_exif.py --samples 60 --json bench-exif.json
 """
@@ -21,6 +23,7 @@ import json
 import math
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,10 +39,12 @@ from cuboidtrain.fit.exif import FULL_FRAME_DIAGONAL_MM, read_photo_camera  # no
 from cuboidtrain.fit.fitter import Fitter  # noqa: E402
 from cuboidtrain.fit.options import FitOptions  # noqa: E402
 from cuboidtrain.geometry.accuracy import Truth, against_truth  # noqa: E402
+from cuboidtrain.geometry.intrinsics import EXIF_PRINCIPAL_SIDES, KnownCamera  # noqa: E402
 from shared.sample import decode  # noqa: E402
 from shared.spool import enumerate_spool, read_sample_bytes  # noqa: E402
 
-CAMERAS = ("fitted", "exif", "given")
+CAMERAS = ("fitted", "exif", "exif, whole frame", "given")
+FRAME = 256  # px: the spools' masks
 LENS_MM = (24.0, 70.0)  # 35 mm equivalent focal lengths drawn for the photos
 
 
@@ -53,6 +58,13 @@ def photo_for(truth: Truth, lens_mm: float, path: Path) -> Path:
     return path
 
 
+def whole_frame(exif: KnownCamera, truth: Truth) -> KnownCamera:
+    """What a mask of the photo's whole frame would get: the principal point at the frame's centre,
+    which for a generated view is its true one, as loose a prior as EXIF's (`PhotoCamera.in_frame`)."""
+    return replace(exif, principal_px=truth.known_camera().principal_px,
+                   principal_stiffness=1 / (EXIF_PRINCIPAL_SIDES * FRAME), exif=("focal_px", "principal_px"))
+
+
 def rows(fitter: Fitter, samples: list, truths: list[Truth], rng: np.random.Generator, folder: Path) -> dict:
     photos = [read_photo_camera(photo_for(t, rng.uniform(*LENS_MM), folder / f"{k}.jpg"))
               for k, t in enumerate(truths)]
@@ -61,7 +73,8 @@ def rows(fitter: Fitter, samples: list, truths: list[Truth], rng: np.random.Gene
         fits = []
         for sample, truth, photo in zip(samples, truths, photos):
             mask = sample.noisy.astype(np.uint8) * 255
-            known = {"fitted": None, "exif": photo.in_frame(mask.shape), "given": truth.known_camera()}[camera]
+            known = {"fitted": None, "exif": photo.in_frame(mask.shape), "given": truth.known_camera(),
+                     "exif, whole frame": whole_frame(photo.in_frame(mask.shape), truth)}[camera]
             fits.append(fitter.fit(mask, camera=known))
         right = [f.shape == t.shape.name for f, t in zip(fits, truths)]
         scored = [against_truth(f.keypoints, f.ratios, t, f.cuboid.fit.camera) if ok else None
