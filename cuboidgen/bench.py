@@ -213,7 +213,7 @@ def bench_on_the_fly(size: int, samples: int, batch: int, workers: int, repeats:
         if "timed out" not in str(exc):
             raise
         logging.getLogger(__name__).warning(
-            "on-the-fly stage given up: a DataLoader worker sent no batch within %.0f s", timeout)
+            "on-the-fly stage given up: a DataLoader worker sent no batch within %g s", timeout)
         return {"workers": workers, "samples": samples, "on_the_fly_per_s": None, "timed_out_s": timeout}
     return {"workers": workers, "samples": samples, "on_the_fly_per_s": rate(samples, statistics.median(times))}
 
@@ -269,7 +269,7 @@ def print_table(r: dict) -> None:
     t.add_row("bytes per sample (mean / max)", f"{g['bytes_per_sample_mean']:,.0f} / {g['bytes_per_sample_max']:,}", "<= 20,480")
     t.add_row("spool read -> tensors, 1 core (unpacked)", f"{rd['read_unpacked_per_s']:,.0f} /s", ">= 20,000 /s")
     t.add_row("spool read -> tensors, 1 core (packed bits)", f"{rd['read_packed_per_s']:,.0f} /s", "")
-    fly = f"{f['on_the_fly_per_s']:,.0f} /s" if f["on_the_fly_per_s"] is not None else f"timed out ({f['timed_out_s']:.0f} s)"
+    fly = f"{f['on_the_fly_per_s']:,.0f} /s" if f["on_the_fly_per_s"] is not None else f"timed out ({f['timed_out_s']:g} s)"
     t.add_row(f"on the fly in DataLoader, {f['workers']} workers", fly, "baseline")
     for name, value in r["ratios"].items():
         shown = f"{value:,.1f}x" if value is not None else "no baseline"

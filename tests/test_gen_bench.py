@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -25,3 +26,13 @@ def test_the_generator_bench_finishes_with_tiny_settings_and_reports_the_on_the_
     assert result["ratios"]["read_unpacked_over_on_the_fly"] > 0
     assert "on the fly in DataLoader" in done.stderr
     assert not list(tmp_path.glob(".bench-*"))  # its spools are gone
+
+
+def test_an_on_the_fly_batch_that_never_comes_gives_the_stage_up_with_a_line(caplog):
+    from cuboidgen.bench import bench_on_the_fly
+
+    with caplog.at_level(logging.WARNING, logger="cuboidgen.bench"):
+        fly = bench_on_the_fly(32, 4, 2, 1, 1, timeout=0.01)  # no spawned worker is up in 10 ms
+    assert fly == {"workers": 1, "samples": 4, "on_the_fly_per_s": None, "timed_out_s": 0.01}
+    assert [r.getMessage() for r in caplog.records] == [
+        "on-the-fly stage given up: a DataLoader worker sent no batch within 0.01 s"]
