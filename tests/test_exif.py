@@ -117,3 +117,14 @@ def test_focal_px_overrides_the_exif_focal_length(street, tmp_path):
     for record in records:
         assert record["cuboid"]["intrinsics"] == {"focal_px": "given", "principal_px": "exif"}
         assert record["cuboid"]["focal_px"] == pytest.approx(321.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("extra, says", [
+    ((), "--photo given 1 times for 2 inputs"),
+    (("--networks-only",), "--photo with --networks-only"),
+])
+def test_photos_that_cannot_be_used_are_one_line_errors(street, extra, says):
+    masks, photos, _, _ = street
+    result = CliRunner().invoke(app, ["infer", "--device", "cpu", *masks, "--photo", photos[0], *extra])
+    assert result.exit_code == 2 and says in result.output and len(result.output.strip().splitlines()) == 1, \
+        result.output
