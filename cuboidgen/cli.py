@@ -12,13 +12,13 @@ from rich.console import Console
 from rich.table import Table
 
 from cuboidgen.config import GEN_SHAPES, SCENES, GenConfig
-from shared.console import Commands, choices, console, setup_logging
+from shared.console import CLI, choices, console, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import atomic_path, json_text
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
+app = CLI(add_completion=False, no_args_is_help=True,
                   help="Synthetic cuboid samples into a capped spool.")
-occluders_app = typer.Typer(no_args_is_help=True, help="Occluder libraries: extract cutouts, preview them.")
+occluders_app = CLI(no_args_is_help=True, help="Occluder libraries: extract cutouts, preview them.")
 app.add_typer(occluders_app, name="occluders")
 
 

@@ -1,6 +1,7 @@
 """`cuboidtrain`: parse options, build a TrainConfig, call the library. Nothing else lives here."""
 from __future__ import annotations
 
+import copy
 import sys
 from pathlib import Path
 from typing import Optional
@@ -11,12 +12,12 @@ from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
 from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP, read_cameras
 from cuboidtrain.fit.options import FIT_SHAPES, OPTIMIZERS, FitOptions
 from cuboidtrain.models.settings import EXTRACTORS, MAX_REFINE_STEPS
-from shared.console import Commands, choices, console, fail, setup_logging
+from shared.console import CLI, choices, console, fail, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
 from shared.shapes import SHAPES
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, cls=Commands,
+app = CLI(add_completion=False, no_args_is_help=True,
                   help="Train the Refiner, Estimator and Tabulator from a spool; evaluate; watch a run; infer.")
 
 
@@ -115,8 +116,8 @@ EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the pape
 PDM_HELP = "PDM active components: a count (e.g. 6) or the fraction of shape variance to keep (e.g. 0.999)."
 DEVICE_HELP = "auto (CUDA when present), cpu, cuda or cuda:N."
 # Options that more than one command takes, declared once (the same name, default and help in each).
-DEVICE = typer.Option(FIT.device, help=DEVICE_HELP)
-EXTRACTOR = typer.Option(ExtractorChoice[FIT.extractor], help=EXTRACTOR_HELP)
+DEVICE = typer.Option(FIT.device, metavar="DEVICE", help=DEVICE_HELP)
+EXTRACTOR = typer.Option(ExtractorChoice[FIT.extractor], metavar="NAME", help=EXTRACTOR_HELP)
 PDM_COMPONENTS = typer.Option(str(FIT.pdm_components), metavar="N|FRACTION", help=PDM_HELP)
 SHIPPED_SHAPE = typer.Option(ShapeChoice["box"], help="Without --checkpoint: which shipped model.")
 THREADS = typer.Option(None, help="CPU threads for torch (default: all cores).")
@@ -170,34 +171,47 @@ def watch(
     raise typer.Exit(code)
 
 
+# infer's options in groups (`--help` shows a panel each), in the order a user meets them
+INPUTS, CAMERA, OUTPUT = "Inputs: what to fit", "Camera: where it is known", "Output: records, pictures, meshes"
+MODELS, SPEED = "Models and the fit", "Speed: processes, a cluster, the device"
+
+
+def in_panel(option, panel: str):
+    """A shared option (`DEVICE`, `EXTRACTOR`, ...) in one command's help panel, the others' left as they are."""
+    option = copy.copy(option)
+    option.rich_help_panel = panel
+    return option
+
+
 @app.command()
 def infer(
     paths: Optional[list[str]] = typer.Argument(None, metavar="PATH", help="Mask images (PNG/JPG, any size): two-valued, the object its light side (--invert: dark; --threshold T for a greyscale image), or by --label-id; a folder: its images, recursively. Or a URL fsspec reads (s3://bucket/masks/, gs://..., file://...; a glob in it is expanded)."),
-    from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders, or URLs), one a line; - for stdin."),
-    glob: Optional[str] = typer.Option(None, metavar="PATTERN", help=f"In folders, the files matching this (e.g. '*_mask.png'); default {DEFAULT_GLOB_HELP}."),
-    checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
-    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl)."),
-    jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run."),
-    workers: int = typer.Option(1, min=1, help="Processes fitting at once, each with its own models and one torch thread."),
-    cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit\\[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves."),
-    shape: FitShape = typer.Option(FitShape[FIT.shape], help="auto: every given model, the best-explained fit wins."),
-    refine_steps: str = refine_steps_option(f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."),
-    all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else one building: its pieces (>= 1% of the largest one's area) fitted together."),
-    label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object."),
-    threshold: Optional[float] = typer.Option(None, metavar="T", help="Not a two-valued mask (a greyscale image, a photo): the object is the pixels whose level is above T, in the image's own units (0-255 for 8 bits; colour: its grey). Without it an image must be two-valued, or it is refused."),
-    invert: bool = typer.Option(False, "--invert", help="The object is the dark side: a dark building on a light background (an object that covers the whole border is refused, naming this option)."),
-    margin: float = typer.Option(FIT.margin, help="Empty border around the framed object, as a fraction of the model size per side."),
-    extractor: ExtractorChoice = EXTRACTOR,
-    pdm_components: str = PDM_COMPONENTS,
-    explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here."),
-    overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR."),
-    device: str = DEVICE,
-    cuboid: bool = typer.Option(INFER_CUBOID, "--cuboid/--networks-only", help="--cuboid (the default): fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). --networks-only: the networks' corners alone (free points, the Tabulator's ratios), about 2.5x faster (BENCHMARKS.md)."),
-    optimizer: OptimizerChoice = typer.Option(OptimizerChoice[FIT.optimizer], help="The cuboid fit's solver: lm (Levenberg-Marquardt on the outline, ~45 ms a mask) or soft (a soft-rasterised silhouette by L-BFGS: more accurate on every measured set, ~35x slower; BENCHMARKS.md, \"Choosing the mask-fit optimiser\")."),
-    mesh: Optional[Path] = typer.Option(None, metavar="DIR", help="Write each fitted box as a Wavefront OBJ mesh here, DIR/<input>.obj, in the camera's frame (x right, y down, z forward; units: box heights); its vertices are the keypoints, in order. Not with --networks-only."),
-    focal_px: Optional[float] = typer.Option(None, metavar="F", help="The camera's focal length in the inputs' pixels, where known: held by the cuboid fit (the record says so). With the camera given, depth/height is several times more accurate (BENCHMARKS.md)."),
-    principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given)."),
-    camera: Optional[Path] = typer.Option(None, metavar="FILE", help='Each input\'s camera: a JSON object mapping its path as given (or its file name) to {"focal_px": F, "principal_px": [X, Y]}; over --focal-px and --principal-px.'),
+    from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders, or URLs), one a line; - for stdin.", rich_help_panel=INPUTS),
+    glob: Optional[str] = typer.Option(None, metavar="PATTERN", help=f"In folders, the files matching this (e.g. '*_mask.png'); default {DEFAULT_GLOB_HELP}.", rich_help_panel=INPUTS),
+    all_components: bool = typer.Option(False, "--all-components", help="One record per 8-connected component (>= 16 px), largest first; else one building: its pieces (>= 1% of the largest one's area) fitted together.", rich_help_panel=INPUTS),
+    label_id: Optional[int] = typer.Option(None, metavar="K", help="Read a grey label map: pixels equal to this id are the object.", rich_help_panel=INPUTS),
+    threshold: Optional[float] = typer.Option(None, metavar="T", help="Not a two-valued mask (a greyscale image, a photo): the object is the pixels whose level is above T, in the image's own units (0-255 for 8 bits; colour: its grey). Without it an image must be two-valued, or it is refused.", rich_help_panel=INPUTS),
+    invert: bool = typer.Option(False, "--invert", help="The object is the dark side: a dark building on a light background (an object that covers the whole border is refused, naming this option).", rich_help_panel=INPUTS),
+    checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models.", rich_help_panel=MODELS),
+    shape: FitShape = typer.Option(FitShape[FIT.shape], metavar="SHAPE", help="auto, box or twobox; auto: every given model, the best-explained fit wins.", rich_help_panel=MODELS),
+    refine_steps: str = in_panel(refine_steps_option(f"Refiner passes, each on the last one's binary output; auto: until nothing changes (at most {MAX_REFINE_STEPS})."), MODELS),
+    margin: float = typer.Option(FIT.margin, metavar="FRACTION", help="Empty border around the framed object, as a fraction of the model size per side.", rich_help_panel=MODELS),
+    extractor: ExtractorChoice = in_panel(EXTRACTOR, MODELS),
+    pdm_components: str = in_panel(PDM_COMPONENTS, MODELS),
+    cuboid: bool = typer.Option(INFER_CUBOID, "--cuboid/--networks-only", help="--cuboid (the default): fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). --networks-only: the networks' corners alone (free points, the Tabulator's ratios), about 2.5x faster (BENCHMARKS.md).", rich_help_panel=MODELS),
+    optimizer: OptimizerChoice = typer.Option(OptimizerChoice[FIT.optimizer], metavar="NAME", help="The cuboid fit's solver: lm (Levenberg-Marquardt on the outline, ~45 ms a mask) or soft (a soft-rasterised silhouette by L-BFGS: more accurate on every measured set, ~35x slower; BENCHMARKS.md, \"Choosing the mask-fit optimiser\").", rich_help_panel=MODELS),
+    focal_px: Optional[float] = typer.Option(None, metavar="F", help="The camera's focal length in the inputs' pixels, where known: held by the cuboid fit (the record says so). With the camera given, depth/height is several times more accurate (BENCHMARKS.md).", rich_help_panel=CAMERA),
+    principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given).", rich_help_panel=CAMERA),
+    camera: Optional[Path] = typer.Option(None, metavar="FILE", help='Each input\'s camera: a JSON object mapping its path as given (or its file name) to {"focal_px": F, "principal_px": [X, Y]}; over --focal-px and --principal-px.', rich_help_panel=CAMERA),
+    photo: list[Path] = typer.Option([], metavar="PHOTO", help="The photo each mask was cut from, in the same order (repeat it): its EXIF focal length sets the camera, loosely (the record says exif); --focal-px, --principal-px, --camera override it.", rich_help_panel=CAMERA),
+    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl).", rich_help_panel=OUTPUT),
+    jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run.", rich_help_panel=OUTPUT),
+    explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here.", rich_help_panel=OUTPUT),
+    overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR.", rich_help_panel=OUTPUT),
+    mesh: Optional[Path] = typer.Option(None, metavar="DIR", help="Write each fitted box as a Wavefront OBJ mesh here, DIR/<input>.obj, in the camera's frame (x right, y down, z forward; units: box heights); its vertices are the keypoints, in order. Not with --networks-only.", rich_help_panel=OUTPUT),
+    workers: int = typer.Option(1, min=1, metavar="N", help="Processes fitting at once, each with its own models and one torch thread.", rich_help_panel=SPEED),
+    cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit\\[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves.", rich_help_panel=SPEED),
+    device: str = in_panel(DEVICE, SPEED),
 ) -> None:
     """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
 
@@ -213,7 +227,7 @@ def infer(
     request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
                            options=options, json_out="-" if json_out is None and jsonl is None else json_out,
                            jsonl=jsonl, workers=workers, cluster=cluster, explain=explain, overlay=tuple(overlay),
-                           mesh=mesh)
+                           photos=tuple(photo), mesh=mesh)
     result = run_infer(request, console)
     if result.pictures is not None:
         console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False)
@@ -427,7 +441,7 @@ def report(
     console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False)
 
 
-models_app = typer.Typer(add_completion=False, help="The shipped models: their cards, and packing a checkpoint into a model file.")
+models_app = CLI(add_completion=False, help="The shipped models: their cards, and packing a checkpoint into a model file.")
 app.add_typer(models_app, name="models")
 
 
@@ -498,7 +512,7 @@ def models_pack(
                   f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False)
 
 
-campaign_app = typer.Typer(add_completion=False, help="The GPU campaign (docs/training.md, \"A GPU lease\"): one standing run that each lease continues.")
+campaign_app = CLI(add_completion=False, help="The GPU campaign (docs/training.md, \"A GPU lease\"): one standing run that each lease continues.")
 app.add_typer(campaign_app, name="campaign")
 
 

@@ -6,12 +6,15 @@ import os
 import select
 import sys
 from enum import Enum
+from typing import get_args
 
 import typer
 from rich.markup import escape
 from rich.console import Console
 from rich.logging import RichHandler
-from typer.core import TyperGroup
+# typer's own copy of click (typer._click): the exceptions a command line meets are these
+from typer._click.exceptions import BadOptionUsage, BadParameter, ClickException
+from typer.core import TyperArgument, TyperCommand, TyperGroup, TyperOption
 
 from shared.errors import UsageError
 
@@ -47,10 +50,39 @@ def fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
-class Commands(TyperGroup):
+class PlainHelp:
+    """`--help` that reads as a command line's usually does. typer (0.29) writes a type after every
+    option, `<bool>` after a flag too (`--help <bool>`), and a required argument in braces in the
+    usage line (`{SPOOL} {OUT_DIR}`): a flag takes no value, and an argument reads as click writes
+    it, SPOOL, [PATH]... A mixin of `Command` and `Commands`, so every command and group of both
+    command lines gets it (`CLI`)."""
+
+    def get_params(self, ctx):
+        params = super().get_params(ctx)
+        for param in params:
+            if isinstance(param, TyperOption) and param.is_flag and param.metavar is None:
+                param.metavar = ""  # the type column's text for it; its error hints name the flag itself
+        return params
+
+
+def usage_name(argument: TyperArgument) -> str:
+    """An argument in the usage line as click writes it: NAME, [NAME] when optional, ... when repeated."""
+    name = argument.metavar or argument.name.upper()
+    return (name if argument.required else f"[{name}]") + ("..." if argument.nargs != 1 else "")
+
+
+class Command(PlainHelp, TyperCommand):
+    """A subcommand of either command line (`CLI.command`)."""
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        arguments = [usage_name(p) for p in self.get_params(ctx) if isinstance(p, TyperArgument)]
+        return ([self.options_metavar] if self.options_metavar else []) + arguments
+
+
+class Commands(PlainHelp, TyperGroup):
     """A command line whose errors give the message alone, in one line.
 
-    The one place both command lines (`Typer(cls=Commands)`) report what the user got wrong:
+    The one place both command lines (`CLI`) report what the user got wrong:
     a UsageError (a bad option, file, model, mask, spool) or an OSError (a path that cannot be
     read or written) from any subcommand becomes `fail`'s one line and exit 2. typer checks a
     value with pydantic and passes on pydantic's wording of a rejected one, "Value error, '3'
@@ -71,15 +103,31 @@ class Commands(TyperGroup):
         return result
 
     def invoke(self, ctx):
+        words = [*ctx._protected_args, *ctx.args]  # the subcommand's, before it parses them (and may fail)
         try:
             return super().invoke(ctx)
-        except typer.BadParameter as exc:
-            exc.message = plain_message(exc.message)
+        except (BadParameter, BadOptionUsage) as exc:
+            option = several_values_option(exc, self.get_command(ctx, words[0]) if words else None)
+            if option is not None:  # `--principal-px 320 mask.png`: the file taken as Y, or nothing after it
+                fail(several_values_message(option, words))
+            if isinstance(exc, BadParameter):
+                exc.message = plain_message(exc.message)
             raise
         except (UsageError, OSError) as exc:
             if isinstance(exc, BrokenPipeError) and reader_gone():
                 quit_quietly()
             fail(str(exc))
+
+
+class CLI(typer.Typer):
+    """A typer app of `Commands`, its commands `Command`s: how both command lines and their groups
+    are made, so each gets the same errors and help."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**{"cls": Commands, **kwargs})
+
+    def command(self, name: str | None = None, *, cls: type[TyperCommand] | None = None, **kwargs):
+        return super().command(name, cls=cls or Command, **kwargs)
 
 
 PIPE_CLOSED = 141  # a command whose reader went away ends as SIGPIPE would end it: 128 + 13, nothing said
@@ -123,6 +171,29 @@ def flush_or_quit() -> None:
         quit_quietly()
     except (OSError, ValueError):  # closed, or not ours to report
         pass
+
+
+NUMBER_WORDS = {2: "two", 3: "three", 4: "four"}
+
+
+def several_values_option(exc: ClickException, command) -> TyperOption | None:
+    """The option of several values (`--principal-px X Y`) of `command` that `exc` is about, else None."""
+    option = getattr(exc, "param", None)
+    if option is None and isinstance(exc, BadOptionUsage) and command is not None:
+        option = next((p for p in command.params if exc.option_name in p.opts), None)
+    return option if isinstance(option, TyperOption) and option.nargs > 1 else None
+
+
+def several_values_message(option: TyperOption, words: list[str]) -> str:
+    """`--principal-px 320 mask.png: expected two numbers X Y`: the option as typed, the words it
+    took (up to its count, none of them another option), and what it needs."""
+    at = max((k for k, w in enumerate(words) if w in option.opts), default=None)  # its last use: the bad one
+    name, taken = (option.opts[0], []) if at is None else (words[at], words[at + 1:at + 1 + option.nargs])
+    taken = taken[:next((k for k, w in enumerate(taken) if w.startswith("--")), len(taken))]
+    kinds = set(get_args(option.type_descriptor.annotation))
+    what = "numbers" if kinds and kinds <= {int, float} else "values"
+    count = NUMBER_WORDS.get(option.nargs, str(option.nargs))
+    return f"{' '.join([name, *taken])}: expected {count} {what} {option.metavar or ''}".rstrip()
 
 
 def plain_message(message: str) -> str:

@@ -163,6 +163,27 @@ def test_a_bad_camera_file_is_one_line_naming_the_entry(street, tmp_path):
     assert len(result.output.strip().splitlines()) == 1
 
 
+def test_a_camera_entry_that_matches_no_input_is_an_error_naming_it(street, tmp_path):
+    paths, _ = street
+    cameras = tmp_path / "cameras.json"
+    cameras.write_text(json.dumps({paths[0].rsplit("/", 1)[-1]: {"focal_px": 300.0},
+                                   "nothere.png": {"focal_px": 300.0}}))
+    result = CliRunner().invoke(app, ["infer", paths[0], "--device", "cpu", "--camera", str(cameras)])
+    assert result.exit_code == 2 and "'nothere.png'" in result.output and "no input" in result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args, quoted", [
+    (["--principal-px", "320", "{mask}"], "--principal-px 320 {mask}"),  # the file name taken as Y
+    (["{mask}", "--principal-px", "320"], "--principal-px 320"),  # nothing after it
+])
+def test_principal_px_with_one_number_says_it_needs_two(street, args, quoted):
+    mask = street[0][0]
+    result = CliRunner().invoke(app, ["infer", *[a.format(mask=mask) for a in args]])
+    assert result.exit_code == 2, result.output
+    assert result.output.strip() == (f"error: {quoted.format(mask=mask)}: expected two numbers X Y")
+
+
 def test_error_bars_are_positive_finite_and_shrink_with_the_camera_given(street, fitter):
     paths, truths = street
     relative = {"free": [], "given": []}

@@ -307,3 +307,22 @@ def test_eval_scores_the_very_fits_infer_gives(tmp_path):
         alone = against_truth(plain.keypoints, plain.ratios, truth)
         np.testing.assert_allclose(np.concatenate([networks.hull, networks.interior]),
                                    np.concatenate([alone.hull, alone.interior]), atol=1e-4)
+
+
+def test_the_paths_table_prints_no_figure_it_cannot_explain():
+    from cuboidtrain.train.evaluate import format_paths, summarise_paths
+
+    keys = summarise_paths({"x": []})["x"]  # every figure, each None: a path without an answer
+    figures = {k: 0.5 for k in keys} | {"samples": 4, "failed": 0}
+    networks = figures | {"focal_mean_rel": 21.504, "focal_median_rel": 20.0, "within_1sd": None, "within_2sd": None}
+    given = figures | {"focal_mean_rel": 0.0, "focal_median_rel": 0.0}
+    lines = format_paths({"networks": networks, "cuboid": figures, "cuboid_camera_given": given,
+                          "none": keys | {"samples": 4, "failed": 4}})
+    table = "\n".join(lines)
+    assert "2150.4" not in table and "2000.0" not in table  # the lifted free corners' focal length: meaningless
+    rows = {line[2:24].strip(): line[24:] for line in lines[2:] if not line.strip().startswith("n/a")}  # less the legend
+    cells = {label: [row[i:i + 20].strip() for i in range(0, 80, 20)] for label, row in rows.items()}
+    assert cells["focal length rel %"][0].startswith("n/a") and cells["truth in 1 / 2 sd %"][0].startswith("n/a")
+    assert cells["focal length rel %"][2] == "given"
+    assert all(cell and cell != "-" for row in cells.values() for cell in row), cells  # every blank says why
+    assert all(cell.startswith("n/a") for label, row in cells.items() if label != "answered" for cell in row[3:])

@@ -5,7 +5,12 @@ explanation arrays; a fit whose numbers are not finite is a FitFailure saying wh
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
+
+import cv2
+import numpy as np
 
 import pytest
 from rich.console import Console
@@ -67,6 +72,35 @@ def test_what_the_fitting_gives_back_is_typed_and_light_in_process_and_from_a_po
     assert all(o.explanation is None and o.keypoints.shape[1] == 2 for o in outcomes[:3])  # no arrays crossed
     assert masks[3] in outcomes[3].reason and "\n" not in outcomes[3].reason
     assert (tally.done, tally.failed, tally.shapes["failed"], sum(tally.shapes.values())) == (4, 1, 1, 4)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_each_input_s_warnings_reach_this_process_s_log_once_in_process_and_from_a_pool(masks, tmp_path, workers,
+                                                                                       caplog):
+    cut = np.zeros((60, 90), np.uint8)
+    cut[20:60, 0:30] = 255  # cut by the bottom and left border: a warning
+    cv2.imwrite(str(tmp_path / "cut.png"), cut)
+    inputs = (str(tmp_path / "cut.png"), masks[3])  # and the file that is no image: a failure
+    options = FitOptions(device="cpu")
+    checkpoints = default_checkpoints(None, options.shapes)
+    with caplog.at_level(logging.WARNING):
+        outcomes, _ = run_batch(Batch(inputs, tuple(checkpoints), options, workers),
+                                Fitter.from_files(checkpoints, options), quiet())
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    expected = [f"{inputs[0]}: {w}" for w in outcomes[0].warnings] + [outcomes[1].reason]
+    assert any("border" in w for w in outcomes[0].warnings)
+    assert sorted(said) == sorted(expected)
+
+
+def test_the_summary_s_counts_add_up_when_an_input_fails(masks, tmp_path):
+    command = CliRunner().invoke(app, ["infer", str(tmp_path / "nothere.png"), masks[0], "--device", "cpu",
+                                       "--json", str(tmp_path / "out.json")])
+    assert command.exit_code == 1, command.output
+    [summary] = [line for line in command.output.splitlines() if " masks; fitted " in line]
+    found = re.search(r"^(\d+) masks; fitted (\d+) in .*; (\d+) failed$", summary)
+    assert found, summary
+    total, fitted, failed = map(int, found.groups())
+    assert (total, fitted, failed) == (2, 1, 1)
 
 
 def test_a_fit_whose_numbers_are_not_finite_is_a_failure_naming_the_field(masks, monkeypatch):

@@ -137,6 +137,26 @@ def test_resume_reproduces_the_uninterrupted_run(spool, tmp_path):
         assert torch.equal(value, split["model"][key]), key
 
 
+class Statuses:
+    """A dashboard that keeps every status it is shown."""
+
+    def __init__(self):
+        self.seen: list[TrainerStatus] = []
+
+    def update(self, status: TrainerStatus) -> None:
+        self.seen.append(status)
+
+
+def test_the_checkpoint_a_resumed_run_continues_is_its_last_until_it_writes_one(spool, tmp_path):
+    run(config(spool, tmp_path, steps=2))
+    board = Statuses()
+    run(config(spool, tmp_path, steps=4, resume=True), dashboard=board)
+    before = [s for s in board.seen if s.step < 4 and s.state != "checkpointing"]
+    assert before and all(s.last_checkpoint and s.last_checkpoint.step == 2 for s in before)
+    assert before[0].last_checkpoint.path == str(tmp_path / "last.pt") and before[0].last_checkpoint.time
+    assert board.seen[-1].last_checkpoint.step == 4
+
+
 def flip_a_bit(path: Path, at: float = 0.5) -> None:
     """One bit flipped at `at` of the file's length (the middle of a zip: a tensor's bytes)."""
     data = bytearray(path.read_bytes())

@@ -13,7 +13,7 @@ import threading
 import pytest
 from rich.console import Console
 
-from cuboidtrain.train.monitor.dashboard import Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
+from cuboidtrain.train.monitor.dashboard import CHANGE_STEPS, Dashboard, fmt_duration, log_line, render, sparkline, trend, wait_cell, watch
 from cuboidtrain.train.monitor.status import TrainerStatus, read_status, write_status
 
 NOW = 1_700_000_000.0
@@ -25,7 +25,8 @@ def status(**changes) -> TrainerStatus:
         "state": "training", "pid": os.getpid(), "started": NOW - 600, "updated": NOW - 1,
         "step": 120, "steps_total": 1000, "epoch": 3, "epochs_total": None, "batch_in_epoch": 7, "batches_in_epoch": 312,
         "losses": {"D_R": 0.05, "D_S": 1.2, "D_T": 3.4, "total": 4.65},
-        "loss_history": {"D_R": [0.1, 0.08, 0.05], "D_S": [1.2, 1.2], "D_T": [3.0, 3.4], "total": [5.0, 4.65]},
+        "loss_history": {"D_R": [0.1] * 20 + [0.05] * 20, "D_S": [1.2, 1.2], "D_T": [3.0] * 20 + [3.4] * 20,
+                         "total": [5.0, 4.65]},
         "loss_weights": [1.0, 0.5, 2.0],
         "samples_per_s": 41.0, "step_time_s": 0.78, "data_wait_fraction": 0.012,
         "freshness": {"mean_age_s": 35.2, "mean_reuse": 1.4},
@@ -58,7 +59,7 @@ def test_render_shows_progress_losses_throughput_and_spool():
                      "mean age 35s", "mean reuse 1.4", "4 (vanished 3, corrupt 1, other shape 0, other size 0)",
                      "step 100, 2m05s ago", "mean 2.30 px, median 1.90 px", "spool is small"):
         assert expected in text, expected
-    assert "↓ 50%" in text and "↑ 13%" in text  # D_R fell 0.1 -> 0.05, D_T rose 3.0 -> 3.4
+    assert "↓ 50%" in text and "↑ 13%" in text  # D_R fell 0.1 -> 0.05, D_T rose 3.0 -> 3.4 (20 steps each)
     assert "loader starving" not in text
 
 
@@ -95,7 +96,19 @@ def test_formatting_helpers():
     assert sparkline([1, 2, 3, 4, 5, 6, 7, 8]) == "▁▂▃▄▅▆▇█"
     assert sparkline(list(range(100))) .__len__() == 30  # only the last 30 points
     assert sparkline([2.0, 2.0]) == "▄▄" and sparkline([]) == "—" and sparkline(None) == "—"
-    assert trend([4, 3, 2, 1]).plain == "↓ 75%" and trend([1.0]).plain == "—"
+    assert trend([4, 4, 1, 1], steps=2).plain == "↓ 75%" and trend([1.0]).plain == "—"
+
+
+def test_the_change_compares_the_last_steps_with_those_before_and_says_so():
+    window = CHANGE_STEPS
+    after_init = [0.2] * 5 + [1.0] * (window - 5) + [0.6] * window  # low just after --init, then falling
+    assert trend(after_init).plain.startswith("↓") and trend(after_init).style == "green"
+    noisy = [0.001] + [1.0, 1.1] * window  # a first point near zero: no "up 4031%"
+    assert trend(noisy).plain == "→ +0%"
+    assert trend([1.0] * (2 * window - 1)).plain == "—"  # too few steps for two windows: no figure
+    assert trend([2.0] * window + [1.0] * window).plain == "↓ 50%"
+    text = as_text(render(status(), now=NOW))
+    assert f"change (last {window} steps vs {window} before)" in text
 
 
 def test_log_line_has_the_figures():

@@ -64,7 +64,16 @@ class FittedCuboid:
 
     fit: CuboidFit  # keypoints (N, 2) input px, viewer-named; ratios; angles; intrinsics; IoU
     corner_scores: np.ndarray  # (N,) in [0, 1], viewer-named (`corner_scores`)
-    given: tuple[str, ...] = ()  # the intrinsics given (`KnownCamera.given`): focal_px, principal_px
+    known: KnownCamera | None = None  # what was known of the camera (given, or a photo's EXIF), if anything
+
+    @property
+    def given(self) -> tuple[str, ...]:
+        """The intrinsics known (`KnownCamera.given`), by the user or a photo's EXIF: focal_px, principal_px."""
+        return self.known.given if self.known is not None else ()
+
+    def source(self, name: str) -> str:
+        """Where intrinsic `name` came from: given, exif or fitted (`KnownCamera.source`)."""
+        return self.known.source(name) if self.known is not None else "fitted"
 
     def ratios_sd(self) -> dict | None:
         """The standard deviations of the ratios, shaped as the record's `ratios` (None: no error bars)."""
@@ -81,7 +90,7 @@ class FittedCuboid:
                 "focal_px": fit.focal_px if perspective else None,
                 "focal_sd_px": None if spread is None or not perspective else spread.focal_px,
                 "principal_px": list(fit.principal_px) if perspective else None,
-                "intrinsics": {name: "given" if name in self.given else "fitted" for name in ("focal_px", "principal_px")},
+                "intrinsics": {name: self.source(name) for name in ("focal_px", "principal_px")},
                 "mirror": fit.mirror, "iou": fit.iou, "outline_rms_px": fit.residual_px,
                 "corners": [{"on_outline": bool(on), "score": float(s)}
                             for on, s in zip(fit.on_outline, self.corner_scores)]}
@@ -114,8 +123,7 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
                 fitted[i] = NoCuboid(str(exc))
                 continue
             named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
-            fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks),
-                                     known[i].given if known[i] is not None else ())
+            fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks), known[i])
     return fitted
 
 

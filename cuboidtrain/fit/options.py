@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import PurePath
 
+from cuboidtrain.fit.exif import PhotoCamera
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.models.settings import (DEFAULT_PDM_COMPONENTS, EXTRACTORS, MAX_REFINE_STEPS, check_device,
                                          parse_components)
@@ -22,6 +23,16 @@ from shared.shapes import SHAPES
 FIT_SHAPES = ("auto", *SHAPES)  # auto: every model given, the best-explained fit wins
 OPTIMIZERS = ("lm", "soft")  # the cuboid fit's: mask_fit (Levenberg-Marquardt), soft_mask_fit (L-BFGS)
 DEFAULT_MARGIN = 0.1  # empty border around a framed object, a fraction of the model size per side
+
+
+def with_exif(given: KnownCamera, exif: KnownCamera) -> KnownCamera:
+    """What the user gave, held, and what they did not, from a photo's EXIF, loosely."""
+    focal, principal = given.focal_px is None, given.principal_px is None  # taken from EXIF
+    return KnownCamera(exif.focal_px if focal else given.focal_px,
+                       exif.principal_px if principal else given.principal_px,
+                       stiffness=exif.stiffness if focal else given.stiffness,
+                       principal_stiffness=exif.principal_stiffness if principal else given.stiffness,
+                       exif=tuple(n for n in exif.exif if {"focal_px": focal, "principal_px": principal}[n]))
 
 
 def parse_refine_steps(value: int | str | None, allow_auto: bool = True) -> int | None:
@@ -63,6 +74,7 @@ class FitOptions:
     focal_px: float | None = number(None, lo=0, lo_open=True, optional=True)  # every input's focal length, px
     principal_px: tuple[float, float] | None = None  # every input's principal point (x, y), px
     cameras: tuple[tuple[str, KnownCamera], ...] = ()  # per input (its path as given, or its file name): --camera FILE
+    photos: tuple[tuple[str, PhotoCamera], ...] = ()  # per input (its path as given): its photo's EXIF camera, --photo
     plausible_camera: bool = True  # a fitted camera kept plausible (geometry.intrinsics.PlausibleRows)
 
     def validate(self) -> "FitOptions":
@@ -90,7 +102,7 @@ class FitOptions:
         except ValueError:
             raise UsageError(f"--principal-px {principal!r}: expected two finite numbers X Y (px)") from None
         given = ("--focal-px" if self.focal_px is not None else "--principal-px" if principal is not None
-                 else "--camera" if self.cameras else None)
+                 else "--camera" if self.cameras else "--photo" if self.photos else None)
         if given is not None and self.optimizer != "lm":
             raise UsageError(f"{given} with --optimizer {self.optimizer}: expected --optimizer lm (only the LM fit "
                              f"holds a given camera)")
@@ -99,17 +111,36 @@ class FitOptions:
 
     def camera_for(self, name: str | None, frame: tuple[int, int]) -> KnownCamera | None:
         """What is known of the camera of input `name` (its entry in `cameras`, by the path as given or
-        its file name, over `focal_px` / `principal_px`), None if nothing. A full frame (`label_id` or
-        `all_components`: the whole photo) has its principal point at the frame's centre unless given."""
+        its file name, over `focal_px` / `principal_px`, over its photo's EXIF in `photos`), None if
+        nothing. A full frame (`label_id` or `all_components`: the whole photo) has its principal
+        point at the frame's centre unless given. What EXIF gives is a loose prior (`exif.PhotoCamera`)."""
         table = self._camera_table
         entry = table.get(name) or table.get(PurePath(name).name if name else None)
         focal = entry.focal_px if entry is not None and entry.focal_px is not None else self.focal_px
         principal = entry.principal_px if entry is not None and entry.principal_px is not None else self.principal_px
         if principal is None and (self.label_id is not None or self.all_components):
             principal = ((frame[1] - 1) / 2, (frame[0] - 1) / 2)
+        photo = self._photo_table.get(name)
+        if photo is not None and (focal is None or principal is None):
+            return with_exif(KnownCamera.of(focal, principal), photo.in_frame(frame))
         if focal is None and principal is None:
             return None
         return KnownCamera.of(focal, principal)
+
+    def check_cameras_match(self, inputs: list[str]) -> None:
+        """Every `cameras` entry names one of the run's inputs, by its path as given or its file name
+        (`camera_for`'s lookup): an entry that names none is a typo or a stale file, and its input
+        would be fitted camera-free with nothing said. A one-line UsageError naming it."""
+        names = set(inputs) | {PurePath(path).name for path in inputs}
+        unmatched = [name for name, _ in self.cameras if name not in names]
+        if unmatched:
+            others = f" (and {len(unmatched) - 1} other entries)" if len(unmatched) > 1 else ""
+            raise UsageError(f"--camera: {unmatched[0]!r}{others} matches no input; expected each entry to be "
+                             f"an input's path as given or its file name")
+
+    @cached_property
+    def _photo_table(self) -> dict[str, PhotoCamera]:
+        return dict(self.photos)
 
     @cached_property
     def _camera_table(self) -> dict[str, KnownCamera]:

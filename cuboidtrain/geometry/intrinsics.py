@@ -26,6 +26,14 @@ from shared.shapes import Shape
 
 HELD = 1000.0  # the stiffness of a given camera: held, not merely preferred
 PRINCIPAL_PX = 1.0  # the principal point's residual unit
+# A photo's EXIF focal length is a loose prior, not a given camera: EXIF rounds it to a whole mm
+# (a 35 mm equivalent of 26 mm is 25.5-26.5: +-2%), a phone reports its main lens's focal length
+# for a digital zoom or a crop, and a resize keeps it only when the mask is the photo's whole frame.
+# One sd (EXIF_FOCAL_SD of the focal length, EXIF_PRINCIPAL_SIDES of the frame's longer side for
+# the principal point at the photo's centre) costs as much as one corner 1 px off, as the typical
+# camera's Gaussian (`TYPICAL_WEIGHT`) does.
+EXIF_FOCAL_SD = 0.12
+EXIF_PRINCIPAL_SIDES = 0.03
 
 
 @dataclass(frozen=True)
@@ -34,7 +42,18 @@ class KnownCamera:
 
     focal_px: float | None = None
     principal_px: tuple[float, float] | None = None
-    stiffness: float = HELD
+    stiffness: float = HELD  # the focal length's (and the principal point's, unless given below)
+    principal_stiffness: float | None = None  # the principal point's, where it differs
+    exif: tuple[str, ...] = ()  # what of it a photo's EXIF gave (a loose prior), not the user
+
+    @property
+    def focal_held(self) -> bool:
+        """Whether the focal length is held (given by the user), not a loose prior (EXIF) or free."""
+        return self.focal_px is not None and "focal_px" not in self.exif
+
+    def source(self, name: str) -> str:
+        """The record's word for intrinsic `name`: given (by the user), exif (a photo's), or fitted."""
+        return "exif" if name in self.exif else "given" if name in self.given else "fitted"
 
     def __post_init__(self):
         if self.focal_px is not None and not (_finite(self.focal_px) and self.focal_px > 0):
@@ -71,7 +90,8 @@ class CameraRows:
 
     focal: np.ndarray  # (K,) px; NaN where not given
     principal: np.ndarray  # (K, 2) px; NaN where not given
-    stiffness: np.ndarray  # (K,)
+    stiffness: np.ndarray  # (K,) the focal length's
+    principal_stiffness: np.ndarray  # (K,)
 
     @classmethod
     def of(cls, known) -> "CameraRows | None":
@@ -84,29 +104,31 @@ class CameraRows:
         principal = np.array([(np.nan, np.nan) if k is None or k.principal_px is None else k.principal_px
                               for k in known], dtype=np.float64).reshape(-1, 2)
         stiffness = np.array([HELD if k is None else k.stiffness for k in known], dtype=np.float64)
-        return cls(focal, principal, stiffness)
+        principal_stiffness = np.array([HELD if k is None else k.stiffness if k.principal_stiffness is None
+                                        else k.principal_stiffness for k in known], dtype=np.float64)
+        return cls(focal, principal, stiffness, principal_stiffness)
 
     def terms(self, x: np.ndarray, owner: np.ndarray, derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """(B, 3) residuals (focal, principal x, y) of params (B, P) whose inputs are `owner` (B,),
         and their Jacobian (B, 3, P) with `derivatives`."""
-        f, c, w = self.focal[owner], self.principal[owner], self.stiffness[owner]
+        f, c, w, wc = self.focal[owner], self.principal[owner], self.stiffness[owner], self.principal_stiffness[owner]
         has_f, has_c = np.isfinite(f), np.isfinite(c[:, 0])
         s, k = np.exp(x[:, 7]), x[:, 8]
         f0, c0 = np.where(has_f, f, 0.0), np.where(has_c[:, None], c, 0.0)
         focal = np.where(has_f, w * (f0 * k / s - 1), 0.0)
-        centre = np.where(has_c[:, None], w[:, None] * (x[:, 9:11] - c0) / PRINCIPAL_PX, 0.0)
+        centre = np.where(has_c[:, None], wc[:, None] * (x[:, 9:11] - c0) / PRINCIPAL_PX, 0.0)
         values = np.concatenate([focal[:, None], centre], axis=1)
         if not derivatives:
             return values, None
         jac = np.zeros((len(x), 3, x.shape[1]))
         jac[:, 0, 7] = np.where(has_f, -w * f0 * k / s, 0.0)
         jac[:, 0, 8] = np.where(has_f, w * f0 / s, 0.0)
-        jac[:, 1, 9] = jac[:, 2, 10] = np.where(has_c, w / PRINCIPAL_PX, 0.0)
+        jac[:, 1, 9] = jac[:, 2, 10] = np.where(has_c, wc / PRINCIPAL_PX, 0.0)
         return values, jac
 
     def subset(self, rows: np.ndarray) -> "CameraRows":
         """The cameras of inputs `rows`, renumbered 0 .. len(rows) - 1."""
-        return CameraRows(self.focal[rows], self.principal[rows], self.stiffness[rows])
+        return CameraRows(self.focal[rows], self.principal[rows], self.stiffness[rows], self.principal_stiffness[rows])
 
     def start_from(self, params: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """Starts (H, P) of inputs `owner` (H,) moved onto their given cameras: the principal point

@@ -68,7 +68,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
         best = first + int(np.argmin(solved.cost[first : first + len(mine)]))
         first += len(mine)
         camera = CameraParams(shape, solved.params[best], bool(mirrors[best]))
-        focal_given = known is not None and known[k] is not None and known[k].focal_px is not None
+        focal_given = known is not None and known[k] is not None and known[k].focal_held  # EXIF's: a prior
         fit = described(target, shape, camera, weights)
         starts_k = lifted.params[lifted.owner == k]  # every lift hypothesis of this mask, not just those fitted
         bars = spread(camera, 2 * solved.cost[best], solved.normal[best], solved.residuals, focal_given,

@@ -16,7 +16,7 @@ from contextlib import closing, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
-from cuboidtrain.fit.fitter import Outcome
+from cuboidtrain.fit.fitter import FitFailure, Outcome
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.pool import fit_groups
 from cuboidtrain.infer.reporting import Reporter, Tally
@@ -69,8 +69,11 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None,
                      len(inputs), len(jobs))
         # fit, store and show each input's outcomes as they complete
         groups = fitted(batch, jobs, fitter, explain, stop)
+        elsewhere = batch.workers > 1 or batch.cluster is not None
         with Reporter(tally, console) as reporter, closing(groups):
             for index, outcomes in groups:
+                if elsewhere:
+                    say_warnings(outcomes)
                 if store:
                     store.write(index, outcomes)
                 if batch.keep:
@@ -92,6 +95,18 @@ def fitted(batch: Batch, jobs: list[tuple[int, str]], fitter, explain: Callable 
     from cuboidtrain.infer.cluster import cluster_groups  # Dask only when asked: an optional extra
 
     return cluster_groups(jobs, batch.checkpoints, batch.options, batch.cluster, batch.workers)
+
+
+def say_warnings(outcomes: Sequence[Outcome]) -> None:
+    """Log an input's warnings and failure here, as `Fitter.outcomes` logs them in this process, for
+    outcomes fitted in another: a pool's worker logs errors only (its lines would tear the progress
+    bar, which this process's log handler keeps whole), a cluster's logs where it runs."""
+    for outcome in outcomes:
+        if isinstance(outcome, FitFailure):
+            log.warning("%s", outcome.reason)
+        else:
+            for warning in outcome.warnings:
+                log.warning("%s: %s", outcome.input, warning)
 
 
 def unique(inputs: Sequence[str]) -> list[str]:

@@ -208,8 +208,7 @@ def uncertainty(fit: Fit) -> list[str]:
     """The header's lines on how far to trust the box: each ratio with its sd, which intrinsics
     were given (docs/contract.md, "Error bars")."""
     sd = fit.cuboid.ratios_sd()
-    lines = [f"intrinsics: focal_px {'given' if 'focal_px' in fit.cuboid.given else 'fitted'}, "
-             f"principal_px {'given' if 'principal_px' in fit.cuboid.given else 'fitted'}"]
+    lines = [f"intrinsics: focal_px {fit.cuboid.source('focal_px')}, principal_px {fit.cuboid.source('principal_px')}"]
     if sd is not None:
         shape = get_shape(fit.shape)
         lines.append("ratios +- sd: " + ", ".join(f"{name} {value:.3f} +- {spread:.3f}" for name, value, spread in zip(

@@ -22,8 +22,9 @@ class Tally:
 
     total: int  # inputs of the run, resumed ones included
     resumed: int = 0  # inputs OUT already held
-    done: int = 0  # inputs fitted this run
+    done: int = 0  # inputs tried this run, failed ones included
     failed: int = 0  # inputs whose first record has an error (this run and resumed)
+    failed_now: int = 0  # of them, the inputs tried this run
     shapes: Counter = field(default_factory=Counter)  # records by shape class ("failed" for errors)
     stopped: str | None = None  # what stopped the run before its end ("Ctrl-C", "SIGTERM"), if anything
     started: float = field(default_factory=time.monotonic)
@@ -31,8 +32,9 @@ class Tally:
     def add(self, outcomes: Sequence[Outcome]) -> None:
         """An input fitted this run: its outcomes (a FitFailure is a failed input)."""
         self.done += 1
-        self.count([None if isinstance(o, FitFailure) else o.shape for o in outcomes],
-                   bool(outcomes) and isinstance(outcomes[0], FitFailure))
+        failed = bool(outcomes) and isinstance(outcomes[0], FitFailure)
+        self.failed_now += failed
+        self.count([None if isinstance(o, FitFailure) else o.shape for o in outcomes], failed)
 
     def resume(self, records: Sequence[dict]) -> None:
         """An input OUT already held: its records, as read back."""
@@ -42,6 +44,11 @@ class Tally:
     def count(self, shapes: list[str | None], failed: bool) -> None:
         self.failed += failed
         self.shapes.update(shape or "failed" for shape in shapes)
+
+    @property
+    def fitted(self) -> int:
+        """Inputs fitted this run: those tried, less those that failed (the summary's counts add up)."""
+        return self.done - self.failed_now
 
     @property
     def rate(self) -> float:
@@ -60,7 +67,7 @@ class Tally:
         resumed = f" ({self.resumed} already in OUT)" if self.resumed else ""
         count = f"stopped by {self.stopped}: {self.resumed + self.done} of {self.total}" if self.stopped else \
             f"{self.resumed + self.done}"
-        return (f"{count} masks{resumed}; fitted {self.done} in {seconds:.1f} s "
+        return (f"{count} masks{resumed}; fitted {self.fitted} in {seconds:.1f} s "
                 f"({self.rate:.1f} masks/s); records by shape: {shapes}; {self.failed} failed")
 
 

@@ -8,8 +8,9 @@ nothing here imports torch before it), and matplotlib is imported only for `expl
 """
 from __future__ import annotations
 
+import logging
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,6 +20,8 @@ from cuboidtrain.infer.mesh import MeshWriter, check_mesh_options
 from cuboidtrain.infer.stopping import Stop
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # torch: imported by `infer` only after the warm-up
     from cuboidtrain.fit.fitter import Outcome
@@ -40,6 +43,7 @@ class InferRequest:
     cluster: str | None = None  # a Dask scheduler's address, or "local"
     explain: Path | None = None  # a folder for the explanation panels
     overlay: tuple[Path, ...] = ()  # with `explain`: the photo behind each mask, in input order
+    photos: tuple[Path, ...] = ()  # the photo each mask was cut from, in input order: its EXIF focal length
     mesh: Path | None = None  # a folder for each fitted box's OBJ mesh
 
 
@@ -63,6 +67,8 @@ def infer(request: InferRequest, console) -> InferResult:
     options = request.options.validate()
     check_request(request, options)
     inputs = gather_inputs(list(request.paths), request.from_list, request.glob)  # nothing to fit: before the models
+    options.check_cameras_match(inputs)
+    options = with_photos(options, list(request.photos), inputs)
     if request.cluster is None:
         from cuboidtrain.infer.pool import warm_up
 
@@ -87,6 +93,26 @@ def infer(request: InferRequest, console) -> InferResult:
                        stop.exit_code if tally.stopped else None)
 
 
+def with_photos(options: FitOptions, photos: list[Path], inputs: list[str]) -> FitOptions:
+    """The options with each input's photo's EXIF camera (`--photo`, in input order); the photos
+    that carry no EXIF focal length change nothing, and one line says so."""
+    if not photos:
+        return options
+    if len(photos) != len(inputs):
+        raise UsageError(f"--photo given {len(photos)} times for {len(inputs)} inputs: expected one photo per "
+                         f"input, in the same order")
+    from cuboidtrain.fit.exif import read_photo_camera
+
+    cameras = [read_photo_camera(photo) for photo in photos]
+    bare = [photo for photo, camera in zip(photos, cameras) if camera is None]
+    if len(bare) == 1:
+        log.warning("--photo %s: no EXIF focal length; its input's camera is fitted as without a photo", bare[0])
+    elif bare:
+        log.warning("--photo: %d of %d photos carry no EXIF focal length (the first: %s); their inputs' cameras "
+                    "are fitted as without a photo", len(bare), len(photos), bare[0])
+    return replace(options, photos=tuple((name, camera) for name, camera in zip(inputs, cameras) if camera))
+
+
 def check_request(request: InferRequest, options: FitOptions) -> None:
     """The outputs and the combinations of options, before any input is read: one-line UsageErrors."""
     check_outputs(("--json", request.json_out), ("--jsonl", request.jsonl))
@@ -96,6 +122,9 @@ def check_request(request: InferRequest, options: FitOptions) -> None:
             what = f"--workers {request.workers}" if request.cluster is None else f"--cluster {request.cluster}"
             raise UsageError(f"--explain with {what}: expected --workers 1 and no --cluster "
                              f"(pictures are drawn in one process)")
+    if request.photos and (not options.cuboid or options.optimizer != "lm"):
+        raise UsageError(f"--photo with {'--networks-only' if not options.cuboid else '--optimizer ' + options.optimizer}: "
+                         f"expected the cuboid fit by --optimizer lm (only it holds a camera)")
     check_mesh_options(request.mesh, options.cuboid, request.cluster)
     if request.mesh is not None:
         check_writable("--mesh", request.mesh, folder=True)

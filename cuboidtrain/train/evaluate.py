@@ -371,14 +371,24 @@ def format_report(result: Evaluation) -> str:
     return "\n".join(lines)
 
 
+# A figure a path does not have, and why, in a word or two (`eval` prints nothing it cannot explain):
+# the networks' corners are free points, so the camera of their lift is no camera (its focal length
+# was off by 2150%), and they carry no error bars; the camera-given fit holds the true focal length.
+NOT_APPLICABLE = {("focal length rel %", "networks"): "n/a: free corners",
+                  ("truth in 1 / 2 sd %", "networks"): "n/a: no sd",
+                  ("focal length rel %", "cuboid_camera_given"): "given"}
+NO_DATA = "n/a: no data"  # no answer, or none of its kind (no interior corner, no true camera)
+
+
 def format_paths(paths: dict[str, dict]) -> list[str]:
-    """The paths side by side: mean / median of each figure (`summarise_paths`)."""
+    """The paths side by side: mean / median of each figure (`summarise_paths`); a figure a path
+    does not have says why (`NOT_APPLICABLE`, `NO_DATA`)."""
     def pair(figures, key, scale=1.0, digits=2, unit=""):
         mean, median = figures[f"{key}_mean{unit}"], figures[f"{key}_median{unit}"]
-        return "-" if mean is None else f"{scale * mean:.{digits}f} / {scale * median:.{digits}f}"
+        return None if mean is None else f"{scale * mean:.{digits}f} / {scale * median:.{digits}f}"
 
     rows = [("answered", lambda f: f"{f['samples'] - f['failed']} of {f['samples']}"),
-            ("corners px", lambda f: "-" if f["mean_px"] is None else f"{f['mean_px']:.2f} / {f['median_px']:.2f}"),
+            ("corners px", lambda f: None if f["mean_px"] is None else f"{f['mean_px']:.2f} / {f['median_px']:.2f}"),
             ("hull corners px", lambda f: pair(f, "hull", unit="_px")),
             ("interior corners px", lambda f: pair(f, "interior", unit="_px")),
             ("NME % of span", lambda f: pair(f, "nme", 100)),
@@ -387,10 +397,16 @@ def format_paths(paths: dict[str, dict]) -> list[str]:
             ("yaw error deg", lambda f: pair(f, "yaw", unit="_deg")),
             ("3D IoU", lambda f: pair(f, "iou3d", digits=3)),
             ("focal length rel %", lambda f: pair(f, "focal", 100, 1, "_rel")),
-            ("truth in 1 / 2 sd %", lambda f: "-" if f.get("within_1sd") is None
+            ("truth in 1 / 2 sd %", lambda f: None if f.get("within_1sd") is None
              else f"{100 * f['within_1sd']:.0f} / {100 * f['within_2sd']:.0f}")]
     names = list(paths)
+
+    def cell(label, show, name) -> str:
+        return NOT_APPLICABLE.get((label, name)) or show(paths[name]) or NO_DATA
+
     lines = ["paths        in the samples' own px, mean / median; networks' yaw and 3D IoU: its corners lifted",
              f"  {'':<22}" + "".join(f"{name:<20}" for name in names)]
-    lines += [f"  {label:<22}" + "".join(f"{show(paths[name]):<20}" for name in names) for label, show in rows]
+    lines += [f"  {label:<22}" + "".join(f"{cell(label, show, name):<20}" for name in names) for label, show in rows]
+    if "networks" in names:
+        lines.append("  n/a: free corners: the networks' corners lifted have no camera of their own; no sd: no error bars")
     return lines

@@ -39,7 +39,7 @@ from cuboidtrain.train.distributed import Ranks, from_environment, shutdown, wei
 from cuboidtrain.train.ledger import Ledger
 from cuboidtrain.train.losses import combine, phase_losses
 from cuboidtrain.train.monitor.progress import Progress
-from cuboidtrain.train.monitor.status import TrainerStatus, TrainingFailed
+from cuboidtrain.train.monitor.status import Checkpoint, TrainerStatus, TrainingFailed
 from cuboidtrain.train.preflight import LAST, PREVIOUS, check_paths
 from cuboidtrain.train.startup import Setup, set_up
 from cuboidtrain.train.stop_and_wait import Backoff, StopRequest, finished, idle_pause, unusable_reason
@@ -199,7 +199,7 @@ def _train_ranks(config: TrainConfig, dashboard, stop: StopRequest, loader_timeo
             workers_stopped(setup.loader), contextlib.closing(ledger) if ledger else contextlib.nullcontext():
         session = Session(config, ranks, device, stop, setup, progress, census, freshness, started, ledger)
         _listen(session)
-        progress.begin(setup.step, setup.sampler)
+        progress.begin(setup.step, setup.sampler, resumed_checkpoint(Path(config.out), setup.kept))
         position = train_epochs(session, Position(setup.step, setup.kept))
         return shut_down(session, position)
 
@@ -348,6 +348,15 @@ def account_listing(census: SpoolCensus, names: list[str], speaks: bool, said: E
                     "listed, %d listed but never read): the generator outruns the trainer (cuboidgen run --max-rate)",
                     total - said.total, total, unread["never_listed"], unread["listed_unread"])
         said.at, said.total = time.monotonic(), total
+
+
+def resumed_checkpoint(out: Path, step: int | None) -> Checkpoint | None:
+    """The checkpoint a resumed run continues (step `step`; None: a fresh run): OUT/last.pt, or
+    OUT/previous.pt where a damaged last.pt was set aside (`startup.resumable`), dated by its file."""
+    if step is None:
+        return None
+    path = next((p for p in (out / LAST, out / PREVIOUS) if p.is_file()), out / LAST)
+    return Checkpoint(str(path), step, path.stat().st_mtime if path.is_file() else None)
 
 
 def _kept(progress: Progress, out: Path, resumed: int | None) -> str:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import statistics
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -29,6 +30,7 @@ log = logging.getLogger(__name__)
 DASH = "—"
 SPARK = "▁▂▃▄▅▆▇█"
 SPARK_POINTS = 30  # points of loss_history drawn as the trend
+CHANGE_STEPS = 20  # the change column: the mean of this many last steps against the as many before
 WAIT_TARGET = 0.05  # data-wait fraction of step time above which the loader is starving the GPU
 WAIT_WARNING = 0.20  # and above which the GPU mostly idles: a warning (issue 29)
 # Short words for the title line; config.PHASES has the full sentences.
@@ -87,12 +89,19 @@ def sparkline(values: list[float] | None, points: int = SPARK_POINTS) -> str:
     return "".join(SPARK[round((y - lo) / (hi - lo) * (len(SPARK) - 1))] for y in ys)
 
 
-def trend(values: list[float] | None) -> Text:
-    """Change from the first to the last point of the history; a falling loss is green."""
+def trend(values: list[float] | None, steps: int = CHANGE_STEPS) -> Text:
+    """The mean of the last `steps` steps' losses against the mean of the `steps` before them; a
+    falling loss is green. Means, not the first point against the last: one step's loss is noisy
+    (a D_T of 0.001 at the first point read "up 4031%" at the stop), and the history is this run's
+    own, so the first steps after `--init` or a resume are never the yardstick of a later phase.
+    A dash until the run has taken two windows of steps."""
     ys = [v for v in (values or []) if _finite(v)]
-    if len(ys) < 2 or ys[0] == 0:
+    if len(ys) < 2 * steps:
         return Text(DASH)
-    pct = (ys[-1] - ys[0]) / abs(ys[0]) * 100
+    before, last = statistics.fmean(ys[-2 * steps:-steps]), statistics.fmean(ys[-steps:])
+    if before == 0:
+        return Text(DASH)
+    pct = (last - before) / abs(before) * 100
     if abs(pct) < 1:
         return Text(f"→ {pct:+.0f}%", style="dim")
     return Text(f"↓ {-pct:.0f}%", style="green") if pct < 0 else Text(f"↑ {pct:.0f}%", style="red")
@@ -144,7 +153,8 @@ def _progress(s: TrainerStatus) -> Table:
 
 def _losses(s: TrainerStatus) -> Table:
     losses, history, weights = s.losses, s.loss_history, s.loss_weights
-    table = Table("loss", "", "value", "weight", f"trend (last {SPARK_POINTS})", "change", box=None)
+    table = Table("loss", "", "value", "weight", f"trend (last {SPARK_POINTS})",
+                  f"change (last {CHANGE_STEPS} steps vs {CHANGE_STEPS} before)", box=None)
     for i, (name, network) in enumerate(LOSSES):
         weight = _num(weights[i] if i < len(weights) else None, "g")
         weight = "" if name == "total" else weight  # the total is the weighted sum itself

@@ -65,9 +65,12 @@ class Progress:
 
     # ---- events from the loop
 
-    def begin(self, step: int, sampler) -> None:
+    def begin(self, step: int, sampler, kept: Checkpoint | None = None) -> None:
+        """Training starts after `step`; `kept`: the checkpoint a resumed run continues, its last
+        until it writes one (the dashboard's "ckpt step" showed a dash after `--resume`)."""
         self.sampler = sampler
         self._status.step = step
+        self._status.last_checkpoint = kept
         self._publish(force=True)
 
     def state(self, state: str) -> None:
