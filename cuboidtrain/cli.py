@@ -176,7 +176,7 @@ def infer(
     from_list: Optional[str] = typer.Option(None, "--from-list", metavar="FILE", help="A text file of mask paths (or folders, or URLs), one a line; - for stdin."),
     glob: Optional[str] = typer.Option(None, metavar="PATTERN", help=f"In folders, the files matching this (e.g. '*_mask.png'); default {DEFAULT_GLOB_HELP}."),
     checkpoint: list[Path] = typer.Option([], metavar="CKPT", help="A trained model; give it twice (one box, one twobox) to choose per input. Default: the shipped box and twobox models."),
-    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl)."),
+    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl when stdout is a pipe or a file; at a terminal, without --json, each input's answer is a line on stderr and no JSON is written)."),
     jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run."),
     workers: int = typer.Option(1, min=1, help="Processes fitting at once, each with its own models and one torch thread."),
     cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit\\[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves."),
@@ -199,11 +199,12 @@ def infer(
     principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given)."),
     camera: Optional[Path] = typer.Option(None, metavar="FILE", help='Each input\'s camera: a JSON object mapping its path as given (or its file name) to {"focal_px": F, "principal_px": [X, Y]}; over --focal-px and --principal-px.'),
 ) -> None:
-    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
+    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON), and one
+    line per input on stderr (file, shape, trust, ratios, yaw, camera, warnings) and a total.
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.infer.run import InferRequest, infer as run_infer  # no torch: it comes after the workers' warm-up
+    from cuboidtrain.infer.run import InferRequest, infer as run_infer, json_destination  # no torch: it comes after the workers' warm-up
 
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
@@ -211,7 +212,7 @@ def infer(
                          threshold=threshold, invert=invert, device=device, cuboid=cuboid, optimizer=optimizer.value, focal_px=focal_px,
                          principal_px=principal_px, cameras=read_cameras(camera) if camera is not None else ())
     request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
-                           options=options, json_out="-" if json_out is None and jsonl is None else json_out,
+                           options=options, json_out=json_destination(json_out, jsonl, sys.stdout.isatty()),
                            jsonl=jsonl, workers=workers, cluster=cluster, explain=explain, overlay=tuple(overlay),
                            mesh=mesh)
     result = run_infer(request, console)
