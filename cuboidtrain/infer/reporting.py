@@ -36,7 +36,7 @@ class Ratio:
         def one(part: str, value: float, sd: float | None) -> str:
             return (f"{part} " if part else "") + f"{value:.2f}" + ("" if sd is None else f" ± {sd:.2f}")
 
-        return f"{self.name} " + ", ".join(one(*v) for v in self.values)
+        return f"{self.name} " + " / ".join(one(*v) for v in self.values)
 
 
 @dataclass(frozen=True)
@@ -195,8 +195,10 @@ class Reporter:
         self.bar = None
         self.logged = time.monotonic()
         # the columns as wide as the run's inputs and a typical answer of its richest shape class need
+        # (one input's line is not padded: there is nothing to align it with)
         self.widths = [len(text) for text, _ in typical_answer(max(shapes, key=len)).cells()[:-1]]
         self.widths[0] = min(max(map(len, inputs), default=0), INPUT_CHARS)
+        self.align = len(inputs) > 1
 
     def __enter__(self) -> "Reporter":
         if self.console.is_terminal:
@@ -226,7 +228,7 @@ class Reporter:
             if k == len(self.widths):
                 self.widths.append(0)
             self.widths[k] = max(self.widths[k], len(text))
-        self.console.print(answer.markup(self.widths), highlight=False, soft_wrap=True)
+        self.console.print(answer.markup(self.widths if self.align else ()), highlight=False, soft_wrap=True)
 
     def update(self) -> None:
         tally = self.tally
