@@ -1,17 +1,19 @@
 """Explanations (paper Figure 4): how R, S and T arrived at a fit, drawn for a person.
 
-A panel per fitted input, `<stem>.png` in the explanation folder:
+A panel per fitted input, `<stem>.png` in the explanation folder, titled with the line `infer`
+prints for the fit (`reporting.Answer`), why its shape won where another scored higher
+(`choice_reason`), and its first warning:
 
     top:    the input mask with the fit in its own pixels | the framed input x1 the
             networks saw | R's refined mask with the wireframe, keypoint indices and
             the front-facing arrow | the sum of S's heat maps with the keypoints
-            [| the photo with the fit, given --overlay]
+            [| the photo with the fit, given --overlay]; one legend for their marks
     with --cuboid, a row of the fitted box: the networks' corners joined to the fitted box's (the
             hidden corners ringed) | the silhouette residual, input minus box red, box minus
-            input blue, with pixel counts | the box in 3D beside its camera, seen obliquely from
-            above, behind and to the right of the camera, at equal scale, upright (the camera's y
-            is down: drawn as (x, z, -y)), FRONT face orange and corners numbered as the 2D tiles'
-    below:  one tile per keypoint heat map, named, with the chosen point on it
+            input blue, with pixel counts | the box in 3D in its own axes, framed, from a side
+            that shows every face, with its ratios' sd | the camera and the box from above
+            (`box_view`); each with its legend
+    below:  one tile per keypoint heat map, named, with the chosen point on it; a legend
 
 and, given a photo, `<stem>-overlay.png`: the fit drawn over the photo at its own
 resolution, or a whole multiple of it up to at least MIN_OVERLAY px on the long side

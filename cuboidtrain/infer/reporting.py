@@ -78,8 +78,9 @@ class Answer:
             trust = (f"conf {self.confidence:.2f}", "")
         yaw = "" if self.yaw is None else f"yaw {self.yaw[0]:.0f}°" + (
             "" if self.yaw[1] is None else f" ± {self.yaw[1]:.0f}°")
-        return [(name, ""), (self.shape, "bold"), trust, *((r.text(), "") for r in self.ratios), (yaw, ""),
-                (self.camera or "no cuboid fit", ""), (warnings_text(self.warnings), "yellow" if self.warnings else "")]
+        return [(name, ""), (self.shape, "bold"), trust, *((r.text(), "") for r in self.ratios),
+                *([(yaw, "")] if yaw else []), (self.camera or "no cuboid fit", ""),
+                (warnings_text(self.warnings), "yellow" if self.warnings else "")]
 
     def line(self, widths: Sequence[int] = ()) -> str:
         """The answer as plain text, each column padded to `widths` (the last never)."""
