@@ -32,6 +32,7 @@ VIEW_ELEVATION = (20.0, 35.0)  # degrees above the box: its top is seen, never e
 VIEW_OFF_FACES = 45.0  # degrees between the view and each of the two side faces it shows
 VIEW_NUDGE = 15.0  # degrees the view may turn towards the camera's bearing: 30-60 off every face
 FILL = 0.86  # the share of the tile's shorter side the box's drawing spans
+MAX_BAND = 2.0  # the +1 sd box is drawn at most this many times the box (a wider one would leave the tile)
 MAX_DRAWN_GAP = 6.0  # box sizes: a box farther than this from its camera is drawn nearer in the plan (and said so)
 LABEL_GAP = 9.0  # points between a corner and its number
 
@@ -85,16 +86,20 @@ def face_cosines(elevation: float, azimuth: float) -> np.ndarray:
     return np.abs([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
-def bands(frame: BoxFrame, fit: Fit) -> tuple[np.ndarray, np.ndarray] | None:
-    """The box at minus and at plus one sd of its depth and width: (N, 3) each, scaled about its
-    middle by exp(-+s) along y (depth) and x (width), s the sd over the ratio (a twobox: its parts'
-    mean), so a wide band stays a box. None without error bars."""
+def bands(frame: BoxFrame, fit: Fit) -> tuple[tuple[np.ndarray, np.ndarray], bool] | None:
+    """The box at minus and at plus one sd of its depth and width ((N, 3) each, scaled about its middle
+    by exp(-+s) along y, depth, and x, width; s the sd over the ratio, a twobox's its parts' mean, so a
+    wide band stays a box), and whether s was capped at log(MAX_BAND) to stay in the tile. None
+    without error bars."""
     spread = fit.cuboid.fit.spread
     if spread is None:
         return None
     relative = np.asarray(spread.ratios) / frame.shape.ratio_vector(fit.ratios)  # (d, w) per part
     depth, width = float(relative[0::2].mean()), float(relative[1::2].mean())
-    return tuple(frame.corners * [math.exp(sign * width), math.exp(sign * depth), 1.0] for sign in (-1.0, 1.0))
+    cap = math.log(MAX_BAND)
+    scaled = tuple(frame.corners * [math.exp(sign * min(width, cap)), math.exp(sign * min(depth, cap)), 1.0]
+                   for sign in (-1.0, 1.0))
+    return scaled, max(depth, width) > cap
 
 
 def uncertainty_text(fit: Fit) -> str:
@@ -111,8 +116,8 @@ def box3d_tile(ax, fit: Fit) -> list:
     frame = BoxFrame.of(box)
     geometry, corners = frame.shape, frame.corners
     ax.computed_zorder = False  # drawn in layers: a translucent face sorted over an edge tinted it
-    band = bands(frame, fit)
-    footprint = np.concatenate([corners, *(band or ())])
+    band, capped = bands(frame, fit) or ((), False)
+    footprint = np.concatenate([corners, *band])
     lo, hi = footprint.min(axis=0), footprint.max(axis=0)
     pad = 0.08 * (hi - lo)[:2].max()
     ground = np.array([[lo[0] - pad, lo[1] - pad, 0], [hi[0] + pad, lo[1] - pad, 0],
@@ -127,7 +132,7 @@ def box3d_tile(ax, fit: Fit) -> list:
     for a, b in geometry.edges:
         ax.plot(*corners[[a, b]].T, color=FRONT_COLOUR if a in front and b in front else BACK_COLOUR,
                 linewidth=1.8, zorder=3)
-    for moved in band or ():
+    for moved in band:
         for a, b in geometry.edges:
             ax.plot(*moved[[a, b]].T, color=BAND_COLOUR, linewidth=0.8, linestyle=(0, (3, 2)), zorder=3)
     every = np.concatenate([footprint, ground])
@@ -144,10 +149,10 @@ def box3d_tile(ax, fit: Fit) -> list:
                Patch(facecolor=BACK_COLOUR, alpha=0.35, label="other faces"),
                Patch(facecolor=GROUND_COLOUR, alpha=0.35, label="ground"),
                Line2D([], [], marker="$k$", color="black", linestyle="", markersize=7,
-                      label="corner k, as numbered in 2D")]
-    if band is not None:
+                      label="corner k, as in 2D")]
+    if band:
         handles.insert(2, Line2D([], [], color=BAND_COLOUR, linestyle=(0, (3, 2)), linewidth=0.8,
-                                 label="-1 sd and +1 sd of d/h, w/h"))
+                                 label="-1 and +1 sd of d/h, w/h" + (f" (at most x{MAX_BAND:g})" if capped else "")))
     ax.set_title(f"the box in its own axes, seen from {elevation:.0f}° above\n{uncertainty_text(fit)}", fontsize=9)
     return handles
 

@@ -56,7 +56,8 @@ class Answer:
     @classmethod
     def of(cls, record: dict) -> "Answer":
         """The answer of an infer record (docs/contract.md, "The infer record"), a fitted one or an error."""
-        name = record["input"] + (f" #{record['component']}" if record.get("component") is not None else "")
+        name = (record["input"] if record["input"] is not None else "mask")  # an array fitted through the API: no file
+        name += f" #{record['component']}" if record.get("component") is not None else ""
         if record.get("error") is not None:
             return cls(name, error=record["error"])
         trust = record.get("trust")
