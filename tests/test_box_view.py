@@ -174,3 +174,16 @@ def test_the_3d_tile_writes_both_ratios_with_their_sd(figures):
     assert ax.get_title().split("\n")[1] == (f"d/h {fit.ratios['depth_height']:.2f} ± {sd['depth_height']:.2f}, "
                                             f"w/h {fit.ratios['width_height']:.2f} ± {sd['width_height']:.2f}")
     assert "focal length fitted, centre fitted" in plan.get_title()
+
+
+def test_labels_of_corners_that_nearly_coincide_are_placed_apart():
+    """A box seen nearly head-on puts corners 4 and 0, 5 and 1 within a few pixels of each other: their
+    numbers' badges (8 x 11 px here) still do not overlap, and each stays within 3 gaps of its corner."""
+    from cuboidtrain.infer.box_view import label_centres, overlap
+
+    at = np.array([[100.0, 100], [100, 20], [20, 100], [20, 20], [103, 102], [102, 18], [24, 97], [21, 23]])
+    halves = np.full((8, 2), [4.0, 5.5])
+    centres = label_centres(at, halves, gap=12.0)
+    boxes = [(c - h, c + h) for c, h in zip(centres, halves)]
+    assert not any(overlap(a, b) for a, b in itertools.combinations(boxes, 2))
+    assert (np.linalg.norm(centres - at, axis=1) <= 3 * 12.0).all()

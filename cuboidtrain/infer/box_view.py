@@ -177,31 +177,49 @@ def projected(ax, points: np.ndarray) -> np.ndarray:
 
 
 def place_labels(ax, points: np.ndarray, labels: list[str]) -> list:
-    """Corner numbers beside their 3D points, none over another: each tried LABEL_GAP points out from
-    the drawing's middle, then turned round its corner in steps until it meets no label placed before;
-    written in axes coordinates (2D text), so they stay where put at any dpi."""
-    renderer = ax.figure.canvas.get_renderer()
+    """Corner numbers beside their 3D points, none over another (`label_centres`), written in axes
+    coordinates (2D text), so they stay where put at any dpi."""
     at = projected(ax, points)
+    texts = [ax.text2D(0, 0, label, transform=ax.transAxes, fontsize=7, color="white", weight="bold", ha="center",
+                       va="center", zorder=10, bbox=dict(boxstyle="round,pad=0.15", fc="black", alpha=0.6, lw=0))
+             for label in labels]
+    centres = label_centres(at, badge_halves(ax.figure, texts, 7), LABEL_GAP * ax.figure.dpi / 72.0)
+    for text, centre in zip(texts, ax.transAxes.inverted().transform(centres)):
+        text.set_position(centre)
+    return texts
+
+
+def badge_halves(figure, texts: list, fontsize: float, pad: float = 0.15) -> np.ndarray:
+    """(N, 2) px: half of each text's width and height as drawn, with its badge's pad and a pixel to spare
+    (measured once each: a layout per try cost half a second a panel)."""
+    renderer = figure.canvas.get_renderer()
+    sizes = np.array([[e.width, e.height] for e in (t.get_window_extent(renderer) for t in texts)])
+    return sizes / 2 + pad * fontsize * figure.dpi / 72.0 + 1
+
+
+def label_centres(at: np.ndarray, halves: np.ndarray, gap: float) -> np.ndarray:
+    """(N, 2) px: where to centre each label of points `at` (px) so none overlaps another. The
+    outermost first (they have the most room): each tried `gap` out from the points' middle, then
+    turned round its point in steps and moved farther until it meets no label placed before."""
     middle = at.mean(axis=0)
-    gap = LABEL_GAP * ax.figure.dpi / 72.0
-    placed, texts = [], []
-    to_axes = ax.transAxes.inverted()
-    for k in np.argsort(-np.linalg.norm(at - middle, axis=1)):  # the outermost first: they have the most room
+    centres, placed = np.array(at, dtype=np.float64), []
+    tries = [(d, t) for d in (1.0, 1.6, 2.3) for t in (0, 30, -30, 60, -60, 90, -90, 135, -135, 180)]
+    for k in np.argsort(-np.linalg.norm(at - middle, axis=1), kind="stable"):
         outward = at[k] - middle
         start = math.atan2(outward[1], outward[0]) if np.linalg.norm(outward) > 1e-9 else math.pi / 4
-        text = ax.text2D(0, 0, labels[k], transform=ax.transAxes, fontsize=7, color="white", weight="bold",
-                         ha="center", va="center", zorder=10,
-                         bbox=dict(boxstyle="round,pad=0.15", fc="black", alpha=0.6, lw=0))
-        for distance, turn in [(d, t) for d in (1.0, 1.6, 2.3) for t in (0, 30, -30, 60, -60, 90, -90, 135, -135, 180)]:
+        for distance, turn in tries:
             angle = start + math.radians(turn)
-            centre = at[k] + distance * gap * np.array([math.cos(angle), math.sin(angle)])
-            text.set_position(to_axes.transform(centre))
-            box = text.get_window_extent(renderer)
-            if not any(box.overlaps(other) for other in placed):
+            centres[k] = at[k] + distance * gap * np.array([math.cos(angle), math.sin(angle)])
+            box = (centres[k] - halves[k], centres[k] + halves[k])
+            if not any(overlap(box, other) for other in placed):
                 break
-        placed.append(text.get_window_extent(renderer))
-        texts.append(text)
-    return texts
+        placed.append(box)
+    return centres
+
+
+def overlap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether two (lower left, upper right) boxes overlap."""
+    return bool((a[0] < b[1]).all() and (b[0] < a[1]).all())
 
 
 def camera_plan_tile(ax, fit: Fit) -> list:

@@ -50,7 +50,7 @@ from cuboidtrain.geometry.silhouette import model_silhouette  # noqa: E402
 from cuboidtrain.infer.inputs import OutputNames  # noqa: E402
 from cuboidtrain.infer.records import to_record  # noqa: E402
 from cuboidtrain.infer.reporting import Answer  # noqa: E402
-from cuboidtrain.infer.box_view import box3d_tile, camera_plan_tile  # noqa: E402
+from cuboidtrain.infer.box_view import badge_halves, box3d_tile, camera_plan_tile, label_centres  # noqa: E402
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
@@ -94,11 +94,16 @@ def draw_fit(ax, geometry: Shape, keypoints: np.ndarray, scale: float = 1.0, ind
         ax.plot(points[[a, b], 0], points[[a, b], 1], color=colour, linewidth=1.6 * scale, alpha=0.9)
     ax.scatter(points[:, 0], points[:, 1], s=14 * scale**2, color=POINT_COLOUR, edgecolors="black",
                linewidths=0.5 * scale, zorder=3)
-    if indices:
-        for k, (x, y) in enumerate(points):
-            ax.annotate(str(k), (x, y), xytext=(3 * scale, -3 * scale), textcoords="offset points",
-                        fontsize=7 * scale, color="white", weight="bold",
-                        bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
+    if indices:  # apart from each other (`label_centres`): call it once the tile's view is final
+        badges = [ax.annotate(str(k), (x, y), xytext=(0, 0), textcoords="offset points", ha="center", va="center",
+                              fontsize=7 * scale, color="white", weight="bold",
+                              bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
+                  for k, (x, y) in enumerate(points)]
+        at = ax.transData.transform(points)
+        points_px = ax.figure.dpi / 72.0
+        centres = label_centres(at, badge_halves(ax.figure, badges, 7 * scale, 0.1), 6 * scale * points_px)
+        for badge, offset in zip(badges, (centres - at) / points_px):
+            badge.xyann = tuple(offset)
     if arrow:
         start, end = front_arrow(geometry, points)
         ax.annotate("", xy=end, xytext=start, zorder=4,
@@ -174,6 +179,7 @@ def _corners_tile(ax, fit: Fit) -> None:
     fitted = input_keypoints(fit)
     networks = networks_corners(fit)
     _show(ax, mask, "", cmap="gray", vmin=0, vmax=2.2)  # the building in grey: the lines stand out
+    outside = _zoom(ax, mask, fitted, *([networks] if networks is not None else []))  # before the numbers' places
     hidden = ~np.asarray(fit.cuboid.fit.on_outline, dtype=bool)
     ax.scatter(fitted[hidden, 0], fitted[hidden, 1], s=150, facecolors="none", edgecolors="white",
                linewidths=1.2, linestyle=(0, (2, 1.5)), zorder=2)
@@ -193,7 +199,6 @@ def _corners_tile(ax, fit: Fit) -> None:
         title = (f"networks' corners -> the fitted cuboid\nmoved {moved.mean():.1f} px mean, "
                  f"{moved.max():.1f} px most (corner {int(moved.argmax())})")
     ax.set_title(title, fontsize=9)
-    outside = _zoom(ax, mask, fitted, *([networks] if networks is not None else []))
     _legend_below(ax, handles, outside)
 
 
