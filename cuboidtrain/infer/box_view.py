@@ -22,11 +22,12 @@ from matplotlib.patches import Patch, Polygon
 
 from cuboidtrain.infer.mesh import CameraBox, camera_box
 from cuboidtrain.infer.reporting import ratios_of
+from shared.shapes import Shape
 
 if TYPE_CHECKING:
     from cuboidtrain.fit.fitter import Fit
 
-FRONT_COLOUR, BACK_COLOUR = "#ff7f0e", "#17becf"  # as the 2D tiles' wireframe (explain.draw_fit)
+FRONT_COLOUR, BACK_COLOUR = "#ff7f0e", "#17becf"  # the panel's wireframe, 2D (explain.draw_fit) and 3D
 BAND_COLOUR, GROUND_COLOUR, CAMERA_COLOUR = "#444444", "#8c8c8c", "black"
 VIEW_ELEVATION = (20.0, 35.0)  # degrees above the box: its top is seen, never edge-on
 VIEW_OFF_FACES = 45.0  # degrees between the view and each of the two side faces it shows
@@ -39,11 +40,12 @@ LABEL_GAP = 9.0  # points between a corner and its number
 
 @dataclass(frozen=True)
 class BoxFrame:
-    """A fitted box in its own axes: x to its RIGHT, y from its FRONT to its BACK, z up (units: the
-    taller part's height), the origin on the ground under the middle of its footprint; and where its
-    camera stands in those axes."""
+    """A fitted box in its own axes: x to its RIGHT, y from its FRONT to its BACK (a mirrored fit's
+    FRONT lies at +y: the camera's frame is turned, never mirrored), z up (units: the taller part's
+    height), the origin on the ground under the middle of its footprint; and where its camera stands
+    in those axes."""
 
-    shape: object  # shared.shapes.Shape
+    shape: Shape
     corners: np.ndarray  # (N, 3) in the record's keypoint order
     camera: np.ndarray  # (3,) the camera's centre
 

@@ -50,7 +50,8 @@ from cuboidtrain.geometry.silhouette import model_silhouette  # noqa: E402
 from cuboidtrain.infer.inputs import OutputNames  # noqa: E402
 from cuboidtrain.infer.records import to_record  # noqa: E402
 from cuboidtrain.infer.reporting import Answer  # noqa: E402
-from cuboidtrain.infer.box_view import badge_halves, box3d_tile, camera_plan_tile, label_centres  # noqa: E402
+from cuboidtrain.infer.box_view import (BACK_COLOUR, FRONT_COLOUR, badge_halves, box3d_tile,  # noqa: E402
+                                         camera_plan_tile, label_centres)
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
@@ -59,7 +60,7 @@ if TYPE_CHECKING:
     from cuboidtrain.fit.fitter import Fit
 
 log = logging.getLogger(__name__)
-FRONT_COLOUR, BACK_COLOUR, POINT_COLOUR = "#ff7f0e", "#17becf", "#ffdd00"
+POINT_COLOUR = "#ffdd00"
 MAX_TILES_PER_ROW = 8
 MIN_OVERLAY = 512  # px: a smaller photo's overlay is scaled up to at least this on its long side
 NETWORK_COLOUR = "#e7298a"  # the networks' corners, against the fitted cuboid's
