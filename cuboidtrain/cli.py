@@ -204,7 +204,7 @@ def infer(
     principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given).", rich_help_panel=CAMERA),
     camera: Optional[Path] = typer.Option(None, metavar="FILE", help='Each input\'s camera: a JSON object mapping its path as given (or its file name) to {"focal_px": F, "principal_px": [X, Y]}; over --focal-px and --principal-px.', rich_help_panel=CAMERA),
     photo: list[Path] = typer.Option([], metavar="PHOTO", help="The photo each mask was cut from, in the same order (repeat it): its EXIF focal length sets the camera, loosely (the record says exif); --focal-px, --principal-px, --camera override it.", rich_help_panel=CAMERA),
-    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl).", rich_help_panel=OUTPUT),
+    json_out: Optional[str] = typer.Option(None, "--json", metavar="OUT", help="Where the JSON list goes: a file (written atomically) or - for stdout (the default without --jsonl when stdout is a pipe or a file; at a terminal, without --json, each input's answer is a line on stderr and no JSON is written).", rich_help_panel=OUTPUT),
     jsonl: Optional[Path] = typer.Option(None, metavar="OUT", help="Stream one record a line to OUT as fits complete; rerun with the same OUT to resume a killed run.", rich_help_panel=OUTPUT),
     explain: Optional[Path] = typer.Option(None, metavar="DIR", help="Write a Figure 4-style PNG panel per input (and per component) here.", rich_help_panel=OUTPUT),
     overlay: list[Path] = typer.Option([], metavar="PHOTO", help="The photo behind each mask, in the same order (repeat it): the fit is drawn over it, into --explain DIR.", rich_help_panel=OUTPUT),
@@ -213,11 +213,12 @@ def infer(
     cluster: Optional[str] = typer.Option(None, metavar="ADDRESS", help="Fit on a Dask cluster (pip install 'cuboid-fit\\[cluster]'): tcp://HOST:8786 joins a running scheduler; local starts one here with --workers processes. Workers read the inputs' paths themselves.", rich_help_panel=SPEED),
     device: str = in_panel(DEVICE, SPEED),
 ) -> None:
-    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON).
+    """Fit cuboids to mask images: keypoints in the input's own pixels, ratios, confidence (JSON), and one
+    line per input on stderr (file, shape, trust, ratios, yaw, camera, warnings) and a total.
 
     Exits 1 when any input failed (its record says why); the others are still written.
     """
-    from cuboidtrain.infer.run import InferRequest, infer as run_infer  # no torch: it comes after the workers' warm-up
+    from cuboidtrain.infer.run import InferRequest, infer as run_infer, json_destination  # no torch: it comes after the workers' warm-up
 
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
@@ -225,7 +226,7 @@ def infer(
                          threshold=threshold, invert=invert, device=device, cuboid=cuboid, optimizer=optimizer.value, focal_px=focal_px,
                          principal_px=principal_px, cameras=read_cameras(camera) if camera is not None else ())
     request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
-                           options=options, json_out="-" if json_out is None and jsonl is None else json_out,
+                           options=options, json_out=json_destination(json_out, jsonl, sys.stdout.isatty()),
                            jsonl=jsonl, workers=workers, cluster=cluster, explain=explain, overlay=tuple(overlay),
                            photos=tuple(photo), mesh=mesh)
     result = run_infer(request, console)

@@ -133,3 +133,21 @@ def test_inputs_of_the_same_name_in_other_folders_get_their_own_panels(tmp_path)
     infer_paths(paths, [model], explain=explainer)
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x-input1.png", "x.png"]
     assert len(set(explainer.written)) == 2
+
+
+def test_the_readme_caption_quotes_the_line_infer_prints_for_its_picture(monkeypatch):
+    """docs/explain_figure.py runs `infer examples/building.png` as the README's caption says; the
+    caption carries the line it prints, so a change to the fit or the line that leaves the picture and
+    its caption behind fails here (the picture once showed depth x/ 4.43 against the command's 1.60)."""
+    import importlib.util
+    import re
+
+    root = Path(__file__).resolve().parent.parent
+    spec = importlib.util.spec_from_file_location("explain_figure", root / "docs" / "explain_figure.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    monkeypatch.chdir(root)
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    caption = readme.split("](docs/explain-building.png)", 1)[1].split("\n\n", 2)[1]
+    quoted = re.findall(r"`([^`]*)`", caption)
+    assert script.answer_line() in quoted, quoted

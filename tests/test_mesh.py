@@ -183,34 +183,3 @@ def test_infer_writes_one_mesh_per_input_in_this_process_or_a_pool(tmp_path, mas
     assert sorted(p.name for p in out.iterdir()) == ["box-1.obj", "twobox-1.obj"]
     assert f"2 meshes in {out}" in " ".join(result.output.split())  # rich wraps long lines
 
-
-def test_the_panel_draws_the_box_in_3d_with_its_camera_upright_and_at_equal_scale(fits):
-    """With --cuboid the explanation adds the networks' corners against the fitted box, the
-    silhouette residual both ways, and the box in 3D beside its camera."""
-    import matplotlib.pyplot as plt
-
-    from cuboidtrain.infer.explain import DISPLAY, explanation_figure
-
-    for fit in fits.values():
-        figure = explanation_figure(fit)
-        try:
-            three = [ax for ax in figure.axes if ax.name == "3d"]
-            assert len(three) == 1
-            ax = three[0]
-            spans = np.array([np.ptp(ax.get_xlim()), np.ptp(ax.get_ylim()), np.ptp(ax.get_zlim())])
-            aspect = ax.get_box_aspect()
-            assert np.allclose(aspect / aspect.max(), spans / spans.max())  # equal scale on every axis
-            texts = [t.get_text().strip() for t in ax.texts]
-            assert {"FRONT", "camera"} <= set(texts) and {str(k) for k in range(len(fit.keypoints))} <= set(texts)
-            legends = [[t.get_text() for t in a.get_legend().get_texts()] for a in figure.axes if a.get_legend()]
-            assert any("networks' corner -> fitted" in labels for labels in legends)
-            assert any(labels[0].startswith("input, not the box") and labels[1].startswith("box, not the input")
-                       for labels in legends)
-        finally:
-            plt.close(figure)
-    # drawn upright: the camera's y points down, the drawing's third axis up; a rotation, not a mirror
-    assert np.allclose(DISPLAY @ [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]) and math.isclose(np.linalg.det(DISPLAY), 1.0)
-    box = camera_box(fits["box"].cuboid.fit)
-    top, bottom = (box.corners[box.shape.having(w)] @ DISPLAY.T for w in ("TOP", "BOTTOM"))
-    assert top[:, 2].mean() > bottom[:, 2].mean()  # this building stands on its bottom face
-

@@ -51,7 +51,9 @@ def spool(tmp_path_factory) -> Path:
 ])
 def test_a_closed_stdout_ends_a_command_quietly(program, args, spool):
     code, stderr = run_into_closed_pipe(program, *[a.format(spool=spool) for a in args])
-    assert code in (0, 141) and stderr == ""
+    # infer's answer line and total go to stderr as the fit completes, before the JSON meets the closed pipe
+    said = [line for line in stderr.splitlines() if not line.startswith(("examples/building.png  ", "1 mask; "))]
+    assert code in (0, 141) and said == [], stderr
 
 
 def test_a_closed_pipe_for_both_streams_is_quiet_too():

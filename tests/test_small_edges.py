@@ -47,22 +47,30 @@ def test_infer_help_names_the_cluster_extra():
     assert done.returncode == 0 and "pip install 'cuboid-fit[cluster]'" in done.stdout
 
 
-def test_the_panel_title_shows_the_digits_that_tell_the_shapes_apart():
-    """0.903 against 0.901 read "box, confidence 0.90 (vs twobox 0.90)": a choice that looked arbitrary."""
+def test_the_panel_title_says_why_a_lower_score_won_in_digits_that_tell_them_apart():
+    """0.903 against 0.901 read "box, confidence 0.90 (vs twobox 0.90)": a choice that looked arbitrary,
+    and nothing said why the lower one won (the richer shape's margin, or its fit set aside)."""
     import numpy as np
 
     from cuboidtrain.fit.fitter import Fit
-    from cuboidtrain.infer.explain import caption
+    from cuboidtrain.infer.explain import choice_reason
 
-    def title(confidence: float, candidates: dict) -> str:
+    def reason(candidates: dict, cuboid=None, warnings=()) -> str | None:
         fit = Fit(shape="box", keypoints=np.zeros((8, 2)), ratios={"depth_height": 1.0, "width_height": 1.0},
-                  confidence=confidence, refine_steps=1, refine_converged=True, candidates=candidates, input="m.png")
-        return caption(fit).split("   ")[0]
+                  confidence=candidates["box"], refine_steps=1, refine_converged=True, candidates=candidates,
+                  input="m.png", cuboid=cuboid, warnings=warnings)
+        return choice_reason(fit)
 
-    assert title(0.903, {"box": 0.903, "twobox": 0.901}) == "m.png: box, confidence 0.903 (vs twobox 0.901)"
-    assert title(0.93, {"box": 0.93, "twobox": 0.41}) == "m.png: box, confidence 0.93 (vs twobox 0.41)"
-    assert title(0.9031, {"box": 0.9031, "twobox": 0.9032}) == "m.png: box, confidence 0.9031 (vs twobox 0.9032)"
-    assert title(0.5, {"box": 0.5}) == "m.png: box, confidence 0.50"
+    assert reason({"box": 0.903, "twobox": 0.906}, cuboid="fitted") == \
+        "box: twobox's IoU 0.906 is not 0.005 above the box's 0.903, the margin a richer shape must win by"
+    assert reason({"box": 0.9031, "twobox": 0.9032}) == \
+        "box: twobox's confidence 0.9032 is not 0.02 above the box's 0.9031, the margin a richer shape must win by"
+    aside = ("the twobox cuboid explained the input better (IoU 0.950 against 0.903) but was set aside: its two "
+             "parts' heights differ by 3% (< 10%): a box with a seam")
+    assert reason({"box": 0.903, "twobox": 0.95}, cuboid="fitted", warnings=(aside,)) == \
+        "box: twobox's IoU 0.950 is higher, but the twobox was set aside: its two parts' heights differ by 3% " \
+        "(< 10%): a box with a seam"
+    assert reason({"box": 0.93, "twobox": 0.41}) is None and reason({"box": 0.5}) is None  # it scored highest
 
 
 def test_the_model_table_splits_no_number_in_80_columns_without_a_terminal():

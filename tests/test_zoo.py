@@ -137,12 +137,12 @@ def test_infer_without_a_checkpoint_uses_the_shipped_models(zoo, tmp_path, monke
     cv2.imwrite(str(mask), build_sample(5, size=96).noisy.astype(np.uint8) * 255)
     result = runner.invoke(app, ["infer", str(mask), "--json", "-", "--networks-only"])
     assert result.exit_code == 0, result.output
-    record = json.loads(result.output)[0]
+    record = json.loads(result.stdout)[0]  # stdout: the answer line and the total are on stderr
     assert set(record["candidates"]) == {"box", "twobox"}  # both shipped models were tried
     given = runner.invoke(app, ["infer", str(mask), "--checkpoint", str(folder / "box.pt"), "--json", "-",
                                 "--networks-only"])
-    assert json.loads(given.output)[0]["keypoints"] == json.loads(
-        runner.invoke(app, ["infer", str(mask), "--shape", "box", "--json", "-", "--networks-only"]).output)[0]["keypoints"]
+    assert json.loads(given.stdout)[0]["keypoints"] == json.loads(
+        runner.invoke(app, ["infer", str(mask), "--shape", "box", "--json", "-", "--networks-only"]).stdout)[0]["keypoints"]
 
 
 def test_a_missing_shipped_model_is_a_one_line_error(tmp_path, monkeypatch):

@@ -4,7 +4,7 @@ a pool), store each input's records as it completes, report progress, summarise.
 The pieces have a module each: `inputs` (what to fit), `storage` (where a mask is read from: a
 local path or an fsspec URL), `records` (the records, the JSONL file and its resume), `pool`
 (where fits run on this machine), `cluster` (on a Dask cluster, imported only for `--cluster`),
-`progress` (what the user sees). What travels between them is typed: each input's outcomes
+`reporting` (what the user sees: a line per record, the progress, a total). What travels between them is typed: each input's outcomes
 (`Fit`, `FitFailure`), made into records only by `records` as they are written.
 """
 from __future__ import annotations
@@ -70,7 +70,7 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None,
         # fit, store and show each input's outcomes as they complete
         groups = fitted(batch, jobs, fitter, explain, stop)
         elsewhere = batch.workers > 1 or batch.cluster is not None
-        with Reporter(tally, console) as reporter, closing(groups):
+        with Reporter(tally, console, inputs, batch.options.shapes) as reporter, closing(groups):
             for index, outcomes in groups:
                 if elsewhere:
                     say_warnings(outcomes)
@@ -78,8 +78,7 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None,
                     store.write(index, outcomes)
                 if batch.keep:
                     kept[index] = outcomes
-                tally.add(outcomes)
-                reporter.update()
+                reporter.add(outcomes)
                 if stop and batch.cluster is not None:  # a pool finishes its inputs in hand; a cluster's are dropped
                     break
             if stop and tally.resumed + tally.done < tally.total:

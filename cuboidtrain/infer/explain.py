@@ -1,17 +1,19 @@
 """Explanations (paper Figure 4): how R, S and T arrived at a fit, drawn for a person.
 
-A panel per fitted input, `<stem>.png` in the explanation folder:
+A panel per fitted input, `<stem>.png` in the explanation folder, titled with the line `infer`
+prints for the fit (`reporting.Answer`), why its shape won where another scored higher
+(`choice_reason`), and its first warning:
 
     top:    the input mask with the fit in its own pixels | the framed input x1 the
             networks saw | R's refined mask with the wireframe, keypoint indices and
             the front-facing arrow | the sum of S's heat maps with the keypoints
-            [| the photo with the fit, given --overlay]
+            [| the photo with the fit, given --overlay]; one legend for their marks
     with --cuboid, a row of the fitted box: the networks' corners joined to the fitted box's (the
             hidden corners ringed) | the silhouette residual, input minus box red, box minus
-            input blue, with pixel counts | the box in 3D beside its camera, seen obliquely from
-            above, behind and to the right of the camera, at equal scale, upright (the camera's y
-            is down: drawn as (x, z, -y)), FRONT face orange and corners numbered as the 2D tiles'
-    below:  one tile per keypoint heat map, named, with the chosen point on it
+            input blue, with pixel counts | the box in 3D in its own axes, framed, from a side
+            that shows every face, with its ratios' sd | the camera and the box from above
+            (`box_view`); each with its legend
+    below:  one tile per keypoint heat map, named, with the chosen point on it; a legend
 
 and, given a photo, `<stem>-overlay.png`: the fit drawn over the photo at its own
 resolution, or a whole multiple of it up to at least MIN_OVERLAY px on the long side
@@ -41,10 +43,15 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from cuboidtrain.fit.candidates import RICHER_SHAPE_MARGIN  # noqa: E402
+from cuboidtrain.fit.cuboid import CUBOID_MARGIN  # noqa: E402
 from cuboidtrain.fit.fitter import no_explanation  # noqa: E402
 from cuboidtrain.geometry.silhouette import model_silhouette  # noqa: E402
 from cuboidtrain.infer.inputs import OutputNames  # noqa: E402
-from cuboidtrain.infer.mesh import camera_box, depth_band  # noqa: E402
+from cuboidtrain.infer.records import to_record  # noqa: E402
+from cuboidtrain.infer.reporting import Answer  # noqa: E402
+from cuboidtrain.infer.box_view import (BACK_COLOUR, FRONT_COLOUR, badge_halves, box3d_tile,  # noqa: E402
+                                         camera_plan_tile, label_centres)
 from shared.errors import UsageError  # noqa: E402
 from shared.files import atomic_path  # noqa: E402
 from shared.shapes import Shape, get_shape  # noqa: E402
@@ -53,16 +60,14 @@ if TYPE_CHECKING:
     from cuboidtrain.fit.fitter import Fit
 
 log = logging.getLogger(__name__)
-FRONT_COLOUR, BACK_COLOUR, POINT_COLOUR = "#ff7f0e", "#17becf", "#ffdd00"
+POINT_COLOUR = "#ffdd00"
 MAX_TILES_PER_ROW = 8
 MIN_OVERLAY = 512  # px: a smaller photo's overlay is scaled up to at least this on its long side
 NETWORK_COLOUR = "#e7298a"  # the networks' corners, against the fitted cuboid's
 MISSED_COLOUR, EXTRA_COLOUR = (1.0, 0.15, 0.1), (0.2, 0.5, 1.0)  # input minus model, model minus input
-CUBOID_ROW = 5.9  # inches: the --cuboid row, titles and legends included
-DISPLAY = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # camera (x, y down, z) -> (x, z, up)
-VIEW_ELEVATION, VIEW_AZIMUTH = 24.0, -50.0  # degrees: above, behind and right of the camera
-CAMERA_DEPTH = 0.2  # the camera pyramid's depth, a share of the box's distance
-MAX_DRAWN_GAP = 6.0  # box sizes: a box farther than this from its camera is drawn nearer (and said so)
+CUBOID_ROW = 6.2  # inches: the --cuboid row, titles and legends included
+LEGEND_ROW = 0.4  # inches: a row of legend under the top tiles, and under the heat maps
+ARROW_COLOUR, HEAT_POINT_COLOUR = "#e41a1c", "#00ff66"
 OUTSIDE = dict(facecolor="#8c8c8c", edgecolor="#5e5e5e", hatch="///", linewidth=0)  # beyond the image
 
 
@@ -90,15 +95,20 @@ def draw_fit(ax, geometry: Shape, keypoints: np.ndarray, scale: float = 1.0, ind
         ax.plot(points[[a, b], 0], points[[a, b], 1], color=colour, linewidth=1.6 * scale, alpha=0.9)
     ax.scatter(points[:, 0], points[:, 1], s=14 * scale**2, color=POINT_COLOUR, edgecolors="black",
                linewidths=0.5 * scale, zorder=3)
-    if indices:
-        for k, (x, y) in enumerate(points):
-            ax.annotate(str(k), (x, y), xytext=(3 * scale, -3 * scale), textcoords="offset points",
-                        fontsize=7 * scale, color="white", weight="bold",
-                        bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
+    if indices:  # apart from each other (`label_centres`): call it once the tile's view is final
+        badges = [ax.annotate(str(k), (x, y), xytext=(0, 0), textcoords="offset points", ha="center", va="center",
+                              fontsize=7 * scale, color="white", weight="bold",
+                              bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
+                  for k, (x, y) in enumerate(points)]
+        at = ax.transData.transform(points)
+        points_px = ax.figure.dpi / 72.0
+        centres = label_centres(at, badge_halves(ax.figure, badges, 7 * scale, 0.1), 6 * scale * points_px)
+        for badge, offset in zip(badges, (centres - at) / points_px):
+            badge.xyann = tuple(offset)
     if arrow:
         start, end = front_arrow(geometry, points)
         ax.annotate("", xy=end, xytext=start, zorder=4,
-                    arrowprops=dict(arrowstyle="-|>", color="#e41a1c", lw=2.0 * scale, mutation_scale=14 * scale))
+                    arrowprops=dict(arrowstyle="-|>", color=ARROW_COLOUR, lw=2.0 * scale, mutation_scale=14 * scale))
 
 
 def _show(ax, image, title: str, **kwargs) -> None:
@@ -170,6 +180,7 @@ def _corners_tile(ax, fit: Fit) -> None:
     fitted = input_keypoints(fit)
     networks = networks_corners(fit)
     _show(ax, mask, "", cmap="gray", vmin=0, vmax=2.2)  # the building in grey: the lines stand out
+    outside = _zoom(ax, mask, fitted, *([networks] if networks is not None else []))  # before the numbers' places
     hidden = ~np.asarray(fit.cuboid.fit.on_outline, dtype=bool)
     ax.scatter(fitted[hidden, 0], fitted[hidden, 1], s=150, facecolors="none", edgecolors="white",
                linewidths=1.2, linestyle=(0, (2, 1.5)), zorder=2)
@@ -189,7 +200,6 @@ def _corners_tile(ax, fit: Fit) -> None:
         title = (f"networks' corners -> the fitted cuboid\nmoved {moved.mean():.1f} px mean, "
                  f"{moved.max():.1f} px most (corner {int(moved.argmax())})")
     ax.set_title(title, fontsize=9)
-    outside = _zoom(ax, mask, fitted, *([networks] if networks is not None else []))
     _legend_below(ax, handles, outside)
 
 
@@ -214,145 +224,15 @@ def _residual_tile(ax, fit: Fit) -> None:
     _legend_below(ax, handles, _zoom(ax, mask, fitted))
 
 
-def _box3d_tile(ax, fit: Fit) -> None:
-    """With `--cuboid`: the fitted box in 3D with its camera, seen from above, behind and to the
-    right of the camera, at equal scale on every axis (units: box heights).
-
-    The camera's frame (x right, y down, z forward) is drawn with up as up: display (x, z, -y),
-    a rotation, so nothing is mirrored. The camera is a pyramid at the origin whose base is the
-    input image's outline through the fitted focal length and principal point, a triangle on its
-    top edge; its view's edges run on, dotted, to the box's far side. A box more than
-    MAX_DRAWN_GAP of its sizes away (a weak-perspective fit's is NOMINAL_DISTANCE heights away) is
-    drawn nearer, in a wider view, and the title says so. Faces and edges are coloured
-    as the 2D tiles' (FRONT orange), the corners numbered as theirs."""
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    box = camera_box(fit.cuboid.fit)
-    geometry, corners = box.shape, box.corners
-    centre = corners.mean(axis=0)
-    distance, size = float(np.linalg.norm(centre)), float(np.ptp(corners, axis=0).max())
-    squeezed = distance > MAX_DRAWN_GAP * size
-    nearer = MAX_DRAWN_GAP * size / distance if squeezed else 1.0
-    # A far box would be a dot: it is drawn nearer, along its line of sight, and said so, before a
-    # camera of a wider view (focal length times the same factor), in which it fills the image as it did.
-    corners = corners - centre + centre * nearer
-    show = corners @ DISPLAY.T
-    # Drawn in layers (faces, then lines, then labels), not sorted by depth: a translucent face
-    # sorted in front of an edge tinted the FRONT face's orange edges cyan.
-    ax.computed_zorder = False
-    # the box: translucent faces, FRONT orange; edges as draw_fit's; numbered corners
-    for _, quads in box.faces():
-        for face, cycle in quads:
-            front = face == "FRONT"
-            ax.add_collection3d(Poly3DCollection(
-                [show[list(cycle)]], facecolors=FRONT_COLOUR if front else BACK_COLOUR,
-                alpha=0.4 if front else 0.10, edgecolors="none", zorder=2))
-    front = set(geometry.having("FRONT").tolist())
-    for a, b in geometry.edges:
-        colour = FRONT_COLOUR if a in front and b in front else BACK_COLOUR
-        ax.plot(*show[[a, b]].T, color=colour, linewidth=1.8, zorder=3)
-    depth_sd = _depth_bounds(ax, fit, box, corners)
-    for k, point in enumerate(show):
-        ax.text(*point, f" {k}", fontsize=7, color="white", weight="bold", zorder=10,
-                bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0))
-    below = show[np.intersect1d(geometry.having("FRONT"), geometry.having("BOTTOM"))].mean(axis=0)
-    ax.text(*(below - [0.0, 0.0, 0.1 * size]), "FRONT", fontsize=8, color="#b35900", weight="bold", ha="center",
-            va="top")  # under the FRONT face's bottom edge, clear of the corner numbers
-    # the camera: a pyramid on the image's outline, a triangle marking the image's top
-    height, width = fit.explanation.mask.shape
-    (cx, cy), f = box.principal, box.focal * nearer
-    # deep enough that a narrow view's pyramid is not a needle: its base at least 1/8 of the box's size
-    drawn = float(np.linalg.norm(corners.mean(axis=0)))
-    depth = min(max(CAMERA_DEPTH * drawn, size / 8 * f / max(height, width)), 0.4 * drawn)
-    image = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]])
-    rays = np.column_stack([(image - [cx, cy]) / f, np.ones(4)])  # camera frame, z = 1
-    base = rays * depth
-    apex = np.zeros(3)
-    ax.add_collection3d(Poly3DCollection([base @ DISPLAY.T], facecolors="#555555", alpha=0.25, edgecolors="black",
-                                         linewidths=1.0, zorder=2))
-    for corner in base:
-        ax.plot(*(np.stack([apex, corner]) @ DISPLAY.T).T, color="black", linewidth=1.0, zorder=3)
-    top = (base[0] + base[1]) / 2
-    up = np.array([0.0, -1.0, 0.0]) * 0.35 * np.linalg.norm(base[1] - base[0])
-    ax.add_collection3d(Poly3DCollection([np.stack([base[0] * 0.75 + base[1] * 0.25, top + up,
-                                                     base[0] * 0.25 + base[1] * 0.75]) @ DISPLAY.T],
-                                         facecolors="black", alpha=0.8, zorder=3))
-    far = corners[:, 2].max()
-    for ray in rays:  # the view's edges, on to the box's far side
-        ax.plot(*(np.stack([ray * depth, ray * far]) @ DISPLAY.T).T, color="#777777", linewidth=0.7, linestyle=":")
-    ax.text(*apex @ DISPLAY.T, "camera ", fontsize=8, ha="right", va="top")
-    # the ground: the plane of the box's BOTTOM face, under the box and the camera, and the camera's height over it
-    ground, foot = _ground(geometry, corners)
-    ax.add_collection3d(Poly3DCollection([ground @ DISPLAY.T], facecolors="#8c8c8c", alpha=0.18, edgecolors="#8c8c8c",
-                                         linewidths=0.6, zorder=1))
-    ax.plot(*(np.stack([apex, foot]) @ DISPLAY.T).T, color="black", linewidth=0.8, linestyle=(0, (1, 2)))
-    # equal scale on every axis
-    every = np.concatenate([show, (base @ DISPLAY.T), apex[None], (rays * far) @ DISPLAY.T, ground @ DISPLAY.T])
-    lo, hi = every.min(axis=0), every.max(axis=0)
-    pad = 0.04 * (hi - lo).max()
-    lo, hi = lo - pad, hi + pad
-    ax.set_xlim(lo[0], hi[0])
-    ax.set_ylim(lo[1], hi[1])
-    ax.set_zlim(lo[2], hi[2])
-    ax.set_box_aspect(hi - lo, zoom=1.35)
-    ax.set_proj_type("ortho")
-    ax.view_init(elev=VIEW_ELEVATION, azim=VIEW_AZIMUTH)
-    for axis, label in zip((ax.xaxis, ax.yaxis, ax.zaxis), ("x, right", "z, forward", "up (-y)")):
-        axis.set_major_locator(MaxNLocator(4))
-        axis.set_label_text(label, fontsize=7)
-        axis.labelpad = -6
-    ax.tick_params(labelsize=6, pad=-2)
-    if box.nominal:
-        where = "weak perspective (no finite focal length): the box drawn near a camera that is really infinitely far"
-    elif squeezed:
-        where = f"focal {box.focal:.0f} px; the box drawn nearer, in a wider view: it is {distance:.1f} box heights away"
-    else:
-        where = f"focal {f:.0f} px; the box {distance:.1f} box heights away"
-    given = fit.cuboid.given
-    said = ", ".join(f"{name.split('_')[0]} {'given' if name in given else 'fitted'}" for name in ("focal_px", "principal_px"))
-    spread = "" if depth_sd is None else f"; depth x/ {math.exp(depth_sd):.2f} (1 sd) dashed"
-    ax.set_title(f"the fitted box in 3D and its camera (oblique view): {said}\n{where}; units: box height{spread}",
-                 fontsize=9)
-
-
-def _depth_bounds(ax, fit: Fit, box, corners: np.ndarray) -> float | None:
-    """The box at plus and minus one sd of its depth, dashed (`mesh.depth_band`, of the box as drawn:
-    `corners`); s, the sd of log depth, returned, None without error bars."""
-    band = depth_band(replace(box, corners=corners), fit.ratios, fit.cuboid.fit.spread)
-    if band is None:
-        return None
-    relative, *bounds = band
-    for moved in bounds:
-        moved = moved @ DISPLAY.T
-        for a, b in box.shape.edges:
-            ax.plot(*moved[[a, b]].T, color="#444444", linewidth=0.8, linestyle=(0, (3, 2)), zorder=3)
-    return relative
-
-
-def _ground(geometry: Shape, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(4, 3) a rectangle of the plane of the (first) part's BOTTOM face, around that face and the
-    camera's foot on it, and (3,) the foot: camera-frame points."""
-    bottom = corners[[i for i in geometry.parts[0] if i in set(geometry.having("BOTTOM").tolist())]]
-    origin = bottom.mean(axis=0)
-    u = bottom[1] - bottom[0] if np.linalg.norm(bottom[1] - bottom[0]) > 1e-9 else bottom[2] - bottom[0]
-    u /= np.linalg.norm(u)
-    normal = np.cross(u, bottom[-1] - bottom[0])
-    normal /= np.linalg.norm(normal)
-    v = np.cross(normal, u)
-    foot = (origin @ normal) * normal  # the camera (the origin) dropped onto the plane
-    every = np.concatenate([corners, foot[None]]) - origin
-    (u0, v0), (u1, v1) = (every @ np.stack([u, v]).T).min(axis=0), (every @ np.stack([u, v]).T).max(axis=0)
-    pad = 0.15 * max(u1 - u0, v1 - v0)
-    u0, u1, v0, v1 = u0 - pad, u1 + pad, v0 - pad, v1 + pad
-    return np.array([origin + a * u + b * v for a, b in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]), foot
-
-
 def _cuboid_row(fig, grid, fit: Fit) -> None:
-    """With `--cuboid`: the networks' corners against the fitted box, the silhouette residual,
-    and the box in 3D with its camera (two tiles wide)."""
+    """With `--cuboid`: the networks' corners against the fitted box, the silhouette residual, the
+    box in 3D in its own axes, and the camera and the box from above (`box_view`)."""
     _corners_tile(fig.add_subplot(grid[0, 0]), fit)
     _residual_tile(fig.add_subplot(grid[0, 1]), fit)
-    _box3d_tile(fig.add_subplot(grid[0, 2:], projection="3d"), fit)
+    box = fig.add_subplot(grid[0, 2], projection="3d")
+    _legend_below(box, box3d_tile(box, fit), False)
+    plan = fig.add_subplot(grid[0, 3])
+    _legend_below(plan, camera_plan_tile(plan, fit), False)
 
 
 def _heatmap_tiles(fig, grid, geometry: Shape, heatmaps: np.ndarray, keypoints: np.ndarray,
@@ -365,7 +245,7 @@ def _heatmap_tiles(fig, grid, geometry: Shape, heatmaps: np.ndarray, keypoints: 
         _show(ax, heatmap, f"{k} {name}\npeak {heatmap.max():.2f}", cmap="magma", vmin=0, vmax=max(heatmap.max(), 1e-6))
         ax.title.set_fontsize(7)
         ax.contour(refined > 0, levels=[0.5], colors="white", linewidths=0.6, alpha=0.45)
-        ax.scatter([keypoints[k, 0]], [keypoints[k, 1]], s=40, marker="+", color="#00ff66", linewidths=1.2)
+        ax.scatter([keypoints[k, 0]], [keypoints[k, 1]], s=40, marker="+", color=HEAT_POINT_COLOUR, linewidths=1.2)
 
 
 def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoints: np.ndarray | None = None):
@@ -375,20 +255,23 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
     columns = min(MAX_TILES_PER_ROW, geometry.num_keypoints)
     heat_rows = math.ceil(geometry.num_keypoints / columns)
     tops = 5 if photo is not None else 4
-    # Lay out in inches, then convert: a title band, the big tiles, [the cuboid's row,] the heat-map tiles.
+    # Lay out in inches, then convert: a title band, the big tiles and their legend, [the cuboid's
+    # row,] the heat-map tiles and their legend.
     width = 16.0
-    title, big, small = 0.75, width / tops * 0.92 + 0.35, width / columns * 0.92 + 0.45
+    title, big, small = 0.95, width / tops * 0.92 + 0.35, width / columns * 0.92 + 0.45
     cuboid = CUBOID_ROW if fit.cuboid is not None else 0.0  # its tiles, their titles and legends below them
-    height = title + big + 0.25 + cuboid + small * heat_rows
+    height = title + big + LEGEND_ROW + cuboid + small * heat_rows + LEGEND_ROW
     fig = plt.figure(figsize=(width, height))
     top_edge = 1 - title / height
     top_grid = fig.add_gridspec(1, tops, top=top_edge, bottom=top_edge - big / height, left=0.01, right=0.99,
                                 wspace=0.06)
     tiles = [fig.add_subplot(top_grid[0, k]) for k in range(tops)]
     input_tile(tiles[0], fit.explanation.mask, geometry, input_keypoints(fit))
+    fig.legend(handles=wireframe_handles(), loc="upper center", ncol=5, fontsize=8, frameon=False,
+               bbox_to_anchor=(0.5, top_edge - (big + 0.02) / height))
     if fit.cuboid is not None:
-        row_top = top_edge - (big + 0.25 + 0.5) / height  # under the top row, room for the titles
-        grid = fig.add_gridspec(1, 4, top=row_top, bottom=row_top - (cuboid - 1.2) / height, left=0.01, right=0.99,
+        row_top = top_edge - (big + LEGEND_ROW + 0.5) / height  # under the top row's legend, room for the titles
+        grid = fig.add_gridspec(1, 4, top=row_top, bottom=row_top - (cuboid - 1.5) / height, left=0.01, right=0.99,
                                 wspace=0.08)
         _cuboid_row(fig, grid, fit)
     size = candidate.refined.shape[0]
@@ -402,11 +285,31 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
         _show(tiles[4], photo, "photo with the fit")
         draw_fit(tiles[4], geometry, photo_keypoints, indices=False, scale=max(1.0, photo.shape[1] / 800))
         mark_outside(tiles[4], *photo.shape[:2])
-    heat_grid = fig.add_gridspec(heat_rows, columns, top=(small * heat_rows) / height, bottom=0.01,
-                                 left=0.01, right=0.99, hspace=0.35, wspace=0.06)
+    heat_grid = fig.add_gridspec(heat_rows, columns, top=(small * heat_rows + LEGEND_ROW) / height,
+                                 bottom=(LEGEND_ROW + 0.05) / height, left=0.01, right=0.99, hspace=0.35, wspace=0.06)
     _heatmap_tiles(fig, heat_grid, geometry, candidate.heatmaps, keypoints, candidate.refined)
-    fig.suptitle(caption(fit), fontsize=11, y=1 - 0.12 / height)
+    fig.legend(handles=heatmap_handles(), loc="lower center", ncol=2, fontsize=8, frameon=False,
+               bbox_to_anchor=(0.5, 0.02 / height))
+    fig.suptitle(caption(fit), fontsize=11, y=1 - 0.1 / height, va="top")
     return fig
+
+
+def wireframe_handles() -> list:
+    """The legend of the top row's marks: the wireframe, its corners and numbers, the front arrow."""
+    return [Line2D([], [], color=FRONT_COLOUR, linewidth=1.6, label="fit, FRONT edges"),
+            Line2D([], [], color=BACK_COLOUR, linewidth=1.6, label="fit, other edges"),
+            Line2D([], [], marker="o", color=POINT_COLOUR, markeredgecolor="black", linestyle="", label="corner"),
+            Line2D([], [], marker="$k$", color="black", linestyle="", markersize=7,
+                   label="corner k (docs/contract.md's order)"),
+            Line2D([], [], color=ARROW_COLOUR, linewidth=2.0, marker=">", markersize=6,
+                   label="front-facing direction (from the FRONT face, away from the BACK)")]
+
+
+def heatmap_handles() -> list:
+    """The legend of the heat-map tiles' marks."""
+    return [Line2D([], [], marker="+", color=HEAT_POINT_COLOUR, linestyle="", markersize=9, markeredgewidth=1.2,
+                   label="the corner read from this map"),
+            Line2D([], [], color="#bbbbbb", linewidth=0.8, label="the refined mask's outline")]
 
 
 def input_keypoints(fit: Fit) -> np.ndarray:
@@ -415,18 +318,36 @@ def input_keypoints(fit: Fit) -> np.ndarray:
 
 
 def caption(fit: Fit) -> str:
-    """The panel's title: the input, the chosen shape and its confidence beside the others', the ratios."""
-    ratios = fit.ratios
-    if "depth_height" not in ratios:
-        ratios = {f"{part}.{k}": v for part, values in ratios.items() for k, v in values.items()}
-    rivals = {s: c for s, c in fit.candidates.items() if s != fit.shape}
-    digits = distinct_digits(fit.confidence, rivals.values())
-    others = ", ".join(f"{s} {c:.{digits}f}" for s, c in rivals.items())
-    name = Path(fit.input).name if fit.input is not None else "mask"  # an array fitted through the API has no file
-    text = (f"{name}: {fit.shape}, confidence {fit.confidence:.{digits}f}"
-            + (f" (vs {others})" if others else "")
-            + "   ratios " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
-    return text + ("\nwarning: " + fit.warnings[0] if fit.warnings else "")
+    """The panel's title: the line `infer` prints for the fit, why its shape won where another scored
+    higher, and its first warning in full."""
+    record = to_record(fit, fit.component is not None, fit.cuboid is not None)
+    lines = [Answer.of(record).line(), choice_reason(fit)]
+    if fit.warnings:
+        lines.append("warning: " + fit.warnings[0])
+    return "\n".join(line for line in lines if line)
+
+
+def choice_reason(fit: Fit) -> str | None:
+    """Why the chosen shape won though another class scored higher, in the words of the rule that
+    chose (fit/candidates.py `choose`, fit/cuboid.py `choose_cuboid`): a richer class must score more
+    than the margin higher, and a fit set aside says why in its warning. None where the chosen one
+    scored highest, or alone."""
+    score = "IoU" if fit.cuboid is not None else "confidence"
+    margin = CUBOID_MARGIN if fit.cuboid is not None else RICHER_SHAPE_MARGIN
+    chosen = fit.candidates.get(fit.shape, fit.confidence)
+    higher = {s: c for s, c in fit.candidates.items() if s != fit.shape and c > chosen}
+    if not higher:
+        return None
+    rival, value = max(higher.items(), key=lambda item: item[1])
+    digits = max(3, distinct_digits(chosen, [value]))  # 0.906 against 0.903: the margin's own digits
+    said = f"{rival}'s {score} {value:.{digits}f}"
+    aside = next((w for w in fit.warnings if w.startswith(f"the {rival} cuboid") and "set aside: " in w), None)
+    if aside is not None:
+        return f"{fit.shape}: {said} is higher, but the {rival} was set aside: {aside.split('set aside: ', 1)[1]}"
+    if get_shape(rival).num_keypoints > get_shape(fit.shape).num_keypoints:
+        return (f"{fit.shape}: {said} is not {margin:g} above the {fit.shape}'s {chosen:.{digits}f}, "
+                f"the margin a richer shape must win by")
+    return f"{fit.shape}: {said} is higher, but the {rival} was set aside (see the warnings)"
 
 
 def distinct_digits(value: float, others: Iterable[float], most: int = 4) -> int:

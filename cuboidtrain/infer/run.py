@@ -113,6 +113,15 @@ def with_photos(options: FitOptions, photos: list[Path], inputs: list[str]) -> F
     return replace(options, photos=tuple((name, camera) for name, camera in zip(inputs, cameras) if camera))
 
 
+def json_destination(json_out: str | None, jsonl: Path | None, terminal: bool) -> str | None:
+    """Where `infer`'s JSON list goes: where --json says; without --json or --jsonl, to stdout when
+    stdout is no terminal (a pipe or a file: scripts read it there, as they always did), and nowhere
+    at a terminal, where each input's answer line and the total say what was fitted."""
+    if json_out is not None or jsonl is not None:
+        return json_out
+    return None if terminal else "-"
+
+
 def check_request(request: InferRequest, options: FitOptions) -> None:
     """The outputs and the combinations of options, before any input is read: one-line UsageErrors."""
     check_outputs(("--json", request.json_out), ("--jsonl", request.jsonl))
