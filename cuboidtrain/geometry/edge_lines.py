@@ -278,7 +278,8 @@ class BoxOutline:
         before = np.roll(lines, 1, axis=1)
         vertices = cross(before, lines)  # (B, V, 3): vertex i between edges i - 1 and i
         sine = np.abs(before[..., 0] * lines[..., 1] - before[..., 1] * lines[..., 0])
-        points = vertices[..., :2] / vertices[..., 2:]
+        with np.errstate(divide="ignore", invalid="ignore"):  # parallel lines: no vertex, NaN below
+            points = vertices[..., :2] / vertices[..., 2:]
         points[sine < MIN_SINE] = np.nan
         out[:, self.labels] = points
         if self.pairs is None:
