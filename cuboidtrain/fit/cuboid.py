@@ -5,7 +5,10 @@ class's Candidate here with the input component: the networks' corners, mapped b
 input's pixels, start `cuboidtrain.geometry.mask_fit.fit_masks` at the input's own resolution and
 pull the corners the outline leaves free, each weighted by its heat map's peak; the
 Tabulator's ratios anchor the extents; the Refiner's completion speaks for the parts an
-occluder hides (`cuboidtrain.fit.completion`). The record's keypoints are then the fitted box's
+occluder hides (`cuboidtrain.fit.completion`). On a box whose outline is sharp, the corners its
+edge lines fix (`cuboidtrain.geometry.edge_lines`: the vertices, and the interior where the
+outline is a hexagon) take the networks' place in the start and the pull, weighed by their
+variances (`outline_start`). The record's keypoints are then the fitted box's
 projection, its ratios the box's own, and the shape class is chosen by the fitted
 silhouettes' IoU with the input among the plausible fits (`choose_cuboid`).
 

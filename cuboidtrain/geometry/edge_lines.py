@@ -1,5 +1,5 @@
 """A box's corners from its outline's straight edges (issue 37, Must haves 2 and 3): the mask's
-outline split into the runs of a labelled polygon's edges (a fit's or the networks' box outline),
+outline split into the runs of a labelled polygon's edges (the networks' box's outline),
 each run fitted by a robust line, the outline vertices where neighbouring lines cross, and the
 interior corners where lines from outline vertices toward the vanishing points cross.
 
@@ -26,7 +26,7 @@ import numpy as np
 from shared.shapes import BOX_EDGES, Shape
 
 # Tukey's scale, px: the first pass's, from the points' commonest offset along the polygon edge's
-# normal (`densest_offset`), wide enough to take the edge's tilt against the polygon's; then the
+# normal (`densest_offsets`), wide enough to take the edge's tilt against the polygon's; then the
 # inliers' own spread's (4.685 robust sd, Tukey's 95% efficiency), within these bounds: narrow on
 # an exact mask (a notch's sides near the line weigh nothing), wide on a rough one.
 FIRST_TUKEY_PX = 4.0
@@ -36,7 +36,9 @@ GATE_PX = 12.0  # outline points farther than this from every polygon edge belon
 CORNER_MARGIN = 0.12  # the share of an edge's length at each end left out: rounded, contested corners
 MIN_POINTS = 6  # an edge with fewer inliers has no line of its own
 MIN_SINE = 0.05  # lines crossing at less than ~3 degrees give no vertex (it would run along them)
-CORRELATION_POINTS = 20.0  # outline points per independent one: the contour noise's correlation length
+# Outline points per independent one (the contour noise's correlation length), in the lines' error
+# bars: 8 left the truth a median 1.8 sd from noisy masks' corners (true labels, 100 dev masks a set).
+CORRELATION_POINTS = 20.0
 MIN_RMS_PX = 0.15  # a line's residual floor: the binary mask's own staircase
 PRECISION_FLOOR_PX = 0.2  # a crack's least error across a line: the contour's own, on an exact mask
 STEP = 1e-4  # the propagation's step: radians, px
@@ -323,7 +325,6 @@ def corner_spread(edges: OutlineEdges, layout: BoxOutline, keypoints: np.ndarray
     centre by a small step, all at once. A line's offset sd is its inliers' rms over the square
     root of their independent count (contour noise is correlated along CORRELATION_POINTS), its
     angle's that over their spread along it. NaN where a corner is not fixed."""
-    v = len(edges.lines)
     base = np.array([np.full(3, np.nan) if line is None else line.homogeneous() for line in edges.lines])
     steps, sds = [], []
     for i, line in enumerate(edges.lines):
