@@ -148,7 +148,7 @@ def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
         return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
     return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),
                      np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts], known=known,
-                     plausible=plausible)
+                     plausible=plausible, networks=np.array([s.network_corners() for s in starts]))
 
 
 @dataclass(frozen=True)
@@ -161,6 +161,11 @@ class FitStart:
     peaks: np.ndarray  # (N,) heat-map peaks: each corner's pull
     prior_ratios: np.ndarray | None  # `ratio_prior`
     interior: str = FROM_HEAT_MAPS  # what placed the interior corners' pull (`outline_start`)
+    networks: np.ndarray | None = None  # (N, 2) the networks' corners where `corners` moved from them
+
+    def network_corners(self) -> np.ndarray:
+        """(N, 2) the networks' own corners, which the error bars' evidence reads (`mask_fit.evidence`)."""
+        return self.corners if self.networks is None else self.networks
 
 
 def fit_start(candidate: Candidate, target: MaskTarget, completion: bool = True) -> FitStart:
@@ -190,7 +195,7 @@ def outline_start(start: FitStart, mask: np.ndarray, shape: Shape, model_scale: 
     moved = np.where(fixed.from_outline[:, None], fixed.keypoints, corners)
     interior = ~fixed.on_outline
     decided = bool(interior.any() and (share[interior] > 0.5).all())
-    return replace(start, corners=corners + share[:, None] * (moved - corners),
+    return replace(start, corners=corners + share[:, None] * (moved - corners), networks=corners,
                    interior=FROM_OUTLINE if decided else FROM_HEAT_MAPS)
 
 
