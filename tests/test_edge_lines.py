@@ -148,29 +148,34 @@ def noisy(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.where(edge & (rng.random(mask.shape) < 0.03), ~mask, mask)
 
 
-def test_the_fit_on_a_noisy_mask_follows_the_geometric_interior():
-    """Networks' interior corners 8 px off, outline ones 2 px off, on a noisy mask: the start moves
-    the interior onto the outline's geometry (within 3 px of the truth), the record says so, and the
-    fit started from and pulled toward it ends within a pixel of the true interior."""
-    rng = np.random.default_rng(5)
-    truth = views(1, seed=5)[0]
+@pytest.mark.parametrize("seed", [5, 6, 7, 8])
+def test_the_fit_on_a_noisy_mask_follows_the_geometric_interior(seed):
+    """Networks' interior corners 12 px off at full confidence, outline ones 2 px off, on a noisy
+    mask: the start moves the interior onto the outline's geometry (within 3 px of the truth), the
+    record says so, and the fit started from and pulled toward it ends within 1.1 px of the true
+    interior, no farther than the fit from the networks' corners, which their pull drags (up to
+    2.2 px on these boxes)."""
+    rng = np.random.default_rng(seed)
+    truth = views(1, seed=seed)[0]
     mask = noisy(rasterize(BOX, truth, SIZE), rng)
     on_outline = np.zeros(8, dtype=bool)
     on_outline[outline_polygon(truth)] = True
     offsets = rng.normal(0, 1, truth.shape)
-    offsets *= np.where(on_outline, 2.0, 8.0)[:, None] / np.linalg.norm(offsets, axis=1, keepdims=True)
-    networks = FitStart(MaskTarget.of(mask), truth + offsets, np.full(8, 0.5), None)
+    offsets *= np.where(on_outline, 2.0, 12.0)[:, None] / np.linalg.norm(offsets, axis=1, keepdims=True)
+    networks = FitStart(MaskTarget.of(mask), truth + offsets, np.ones(8), None)
     start = outline_start(networks, mask, BOX, model_scale=0.25)
     assert start.interior == FROM_OUTLINE
     interior = ~on_outline
     assert np.linalg.norm(start.corners - truth, axis=1)[interior].max() < 3.0
+    np.testing.assert_array_equal(start.network_corners(), networks.corners)  # what the error bars read
 
     def interior_error(s: FitStart) -> float:
         fit = fit_mask(s.target, BOX, s.corners, s.peaks)
         image = project(fit.camera.vector, BOX, fit.camera.mirror)  # the start's corner order
         return float(np.linalg.norm(image - truth, axis=1)[interior].mean())
 
-    assert interior_error(start) < 1.0
+    geometric = interior_error(start)
+    assert geometric < 1.1 and geometric <= interior_error(networks) + 0.05
 
 
 def test_a_twobox_start_is_left_to_the_heat_maps():
