@@ -49,9 +49,10 @@ SEAM_HEIGHT_RATIO = 0.9
 # a clean 256 px mask puts its fitted corners within about 1 px of it (rasterised corners).
 CORNER_SCORE_PX = 2.0
 # The networks' corner error as a standard deviation, in model px, against which the outline's
-# geometry is weighed (`outline_start`). Measured on 60 generated box masks a set (dev seeds, not
-# bench_accuracy's): 1 model px gave clean box corners a mean of 3.6 px (4.3 without), 0.5 3.7,
-# 2 3.6; on the noisy sets each was within the run-to-run scatter of the mean (about 0.5 px).
+# geometry is weighed (`outline_start`). Measured on 60 generated box masks a set (seeds 71-73, not
+# bench_accuracy's; the edge lines' first version, Tukey at fixed scales, unweighed cracks): 1 model
+# px gave clean box corners a mean of 3.6 px (4.3 without), 0.5 3.7, 2 3.6; on the noisy sets each
+# was within the run-to-run scatter of the mean (about 0.5 px).
 NETWORK_SD_MODEL_PX = 1.0
 MIN_SD_PX = 0.25  # the outline's geometry is never taken as surer than this
 # Outlines whose edge lines' median rms residual is above this (px) are left to the fit as it was: on
