@@ -74,7 +74,9 @@ def test_the_cuboid_object_is_whole_and_finite(records):
         json_text(record)  # strict JSON: no NaN or Infinity anywhere
         cuboid = record["cuboid"]
         assert set(cuboid) == {"yaw_deg", "yaw_sd_deg", "pitch_deg", "roll_deg", "focal_px", "focal_sd_px",
-                               "principal_px", "intrinsics", "mirror", "iou", "outline_rms_px", "corners"}
+                               "principal_px", "intrinsics", "mirror", "iou", "outline_rms_px", "interior", "corners"}
+        assert cuboid["interior"] in ("from outline", "from heat maps")
+        assert record["shape"] == "box" or cuboid["interior"] == "from heat maps"  # a twobox's outline is no hexagon
         assert cuboid["intrinsics"] == {"focal_px": "fitted", "principal_px": "fitted"}  # nothing was given
         assert cuboid["yaw_sd_deg"] > 0 and (cuboid["focal_sd_px"] is None) == (cuboid["focal_px"] is None)
         assert set(record["ratios_sd"]) == set(record["ratios"]) and list(record)[5] == "ratios_sd"

@@ -200,6 +200,8 @@ def main() -> None:
     parser.add_argument("--no-eval", action="store_true", help="skip eval's figures and the error budget")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--cuboid", action="store_true", help="also score `infer --cuboid` on the same masks")
+    parser.add_argument("--no-selection", action="store_true",
+                        help="skip shape selection (every mask again through both models): the rows only")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     paths = default_checkpoints(args.checkpoint)
@@ -225,7 +227,7 @@ def main() -> None:
                     if not args.no_eval and variant == "networks":
                         row |= eval_figures(model, spool, args.samples)
                     rows.append(row)
-                    if (scene in NOISY_SETS or args.cuboid) and len(models) > 1:
+                    if (scene in NOISY_SETS or args.cuboid) and len(models) > 1 and not args.no_selection:
                         fitter = Fitter(list(models.values()), given)
                         for file in files:  # one call a mask: its time is the whole infer path's
                             start = time.perf_counter()

@@ -50,11 +50,14 @@ def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, c
 def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, confidence: np.ndarray,
               prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights = MaskFitWeights(),
               starts: int = STARTS, iterations: int = ITERATIONS,
-              known: Sequence[KnownCamera | None] | None = None, plausible: bool = False) -> list[CuboidFit]:
+              known: Sequence[KnownCamera | None] | None = None, plausible: bool = False,
+              networks: np.ndarray | None = None) -> list[CuboidFit]:
     """`fit_mask` for K masks of one shape class at once: `targets` (K), corners (K, N, 2),
     confidence (K, N), prior_ratios (K) each (R,) or None; one CuboidFit a mask, in order.
     `known` (K): each mask's given camera (`intrinsics.KnownCamera`), held in the lift and the fit;
-    `plausible`: every camera kept to a plausible one for its mask's frame (`intrinsics.PlausibleRows`)."""
+    `plausible`: every camera kept to a plausible one for its mask's frame (`intrinsics.PlausibleRows`).
+    `networks` (K, N, 2): the networks' own corners where `corners` were moved from them
+    (`fit.cuboid.outline_start`): the error bars' evidence reads the networks' (default `corners`)."""
     cameras = CameraTerms.of(shape, known, [t.mask.shape for t in targets] if plausible else None, weights.camera)
     lifted = lift_starts(corners, confidence, shape, cameras)
     chosen = [lifted.best(k, starts) for k in range(len(targets))]
@@ -63,6 +66,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
     residual, jacobian = _objective(StackedTargets.of(targets), shape, corners, confidence, prior_ratios,
                                     weights, owner, mirrors, cameras)
     solved = levenberg_marquardt(residual, lifted.params[rows], iterations, tolerance=1e-7, jacobian=jacobian)
+    networks = corners if networks is None else networks
     fits, first = [], 0
     for k, (target, mine) in enumerate(zip(targets, chosen)):
         best = first + int(np.argmin(solved.cost[first : first + len(mine)]))
@@ -72,7 +76,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
         fit = described(target, shape, camera, weights)
         starts_k = lifted.params[lifted.owner == k]  # every lift hypothesis of this mask, not just those fitted
         bars = spread(camera, 2 * solved.cost[best], solved.normal[best], solved.residuals, focal_given,
-                      evidence(camera, fit.residual_px, target, corners[k], confidence[k], starts_k))
+                      evidence(camera, fit.residual_px, target, networks[k], confidence[k], starts_k))
         fits.append(replace(fit, spread=bars))
     return fits
 
