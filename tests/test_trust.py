@@ -16,7 +16,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry.accuracy import Truth, against_truth
 from cuboidtrain.geometry.silhouette import extent_px
-from cuboidtrain.geometry.uncertainty import SIZE_REFERENCE_PX, inflation
+from cuboidtrain.geometry.uncertainty import SIZE_INFLATION, SIZE_REFERENCE_PX, inflation
 from tests.conftest import build_sample
 from tests.test_contract import documented_keys, section
 
@@ -85,11 +85,13 @@ def test_merged_buildings_are_flagged_more_often_than_whole_ones(fitter):
     assert sum(flagged) >= 4 and sum(flagged) > sum(whole_flagged), (flagged, whole_flagged)
 
 
-def test_the_inflation_widens_only_small_silhouettes_and_more_the_smaller():
-    for key in (False, "ratio"), (True, "yaw"):
-        assert inflation(*key, SIZE_REFERENCE_PX) == 1.0 and inflation(*key, 4 * SIZE_REFERENCE_PX) == 1.0
-        assert inflation(*key, 32) >= inflation(*key, 64) >= inflation(*key, 100) >= 1.0
-    assert inflation(False, "ratio", 32) > 1.0  # fitted: small masks' bars were too narrow
+def test_the_size_leaves_large_silhouettes_alone_and_scales_small_ones_the_more_the_smaller():
+    for key, exponent in SIZE_INFLATION.items():
+        assert inflation(*key, SIZE_REFERENCE_PX) == inflation(*key, 4 * SIZE_REFERENCE_PX) == 1.0
+        sizes = [32, 64, 100, SIZE_REFERENCE_PX]
+        factors = [inflation(*key, px) for px in sizes]
+        assert factors == sorted(factors, reverse=exponent > 0)  # monotone in the size, its way
+    assert inflation(False, "ratio", 32) > 1.0  # small masks' ratio bars were too narrow
 
 
 def test_small_masks_error_bars_cover_the_truth_at_least_as_often_as_before(fitter):
@@ -103,7 +105,8 @@ def test_small_masks_error_bars_cover_the_truth_at_least_as_often_as_before(fitt
         if fit.shape != truth.shape.name or fit.cuboid.fit.spread is None:
             continue
         z = against_truth(fit.keypoints, fit.ratios, truth, fit.cuboid.fit.camera, fit.cuboid.fit.spread).z_scores
-        grown = inflation(False, "ratio", extent_px(sample.noisy.astype(bool)))
+        size = extent_px(sample.noisy.astype(bool))
+        grown = inflation(False, "ratio", size)
         ratios = z[: len(fit.cuboid.fit.spread.ratios)]
         within += list(ratios <= 2)
         before += list(ratios * grown <= 2)

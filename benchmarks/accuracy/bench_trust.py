@@ -37,7 +37,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_accuracy import SETS, fit_records, spool_for, with_cameras, write_masks  # noqa: E402
-from bench_coverage import _miss  # noqa: E402
+from bench_coverage import miss  # noqa: E402
 
 from cuboidtrain.fit import trust  # noqa: E402
 from cuboidtrain.fit.fitter import Fitter  # noqa: E402
@@ -339,27 +339,25 @@ def z_rows(rows: list[dict], group: str) -> list[tuple]:
 
 
 def inflated(z: list[tuple], inflations: dict) -> dict:
-    """(path, kind, size) -> (share within 1 sd, within 2 sd, count) with the sds widened by
-    `inflations` ((focal given, kind) -> (g, a), `uncertainty.inflation`'s form)."""
+    """(path, kind, size) -> (share within 1 sd, within 2 sd, count) with the sds scaled by
+    `inflations` ((focal given, kind) -> a, `uncertainty.inflation`'s form)."""
     cells = {}
     for path, kind, size, px, value in z:
-        scale, exponent = inflations[path == "cuboid_camera_given", kind]
-        cells.setdefault((path, kind, size), []).append(value / (scale * max(1.0, SIZE_REFERENCE_PX / px) ** exponent))
+        exponent = inflations[path == "cuboid_camera_given", kind]
+        cells.setdefault((path, kind, size), []).append(value / max(1.0, SIZE_REFERENCE_PX / px) ** exponent)
     return {key: (float(np.mean(np.array(v) <= 1)), float(np.mean(np.array(v) <= 2)), len(v)) for key, v in cells.items()}
 
 
 def fit_inflation(rows: list[dict]) -> dict:
-    """Each (focal given, kind)'s (g, a), on the `fit` set: the smallest miss of the 64, 128 and 256 px
-    cells from 70% within 1 sd (+- 5 points) and 92.5% within 2 (`bench_coverage._miss`)."""
+    """Each (focal given, kind)'s exponent a, on the `fit` set: the smallest miss of the 64, 128 and
+    256 px cells from 70% within 1 sd (+- 5 points) and 92.5% within 2 (`bench_coverage.miss`)."""
     z = z_rows(rows, "fit")
     fitted = {}
     for given, kind in SIZE_INFLATION:
         mine = [q for q in z if (q[0] == "cuboid_camera_given") == given and q[1] == kind]
-        scored = []
-        for scale, exponent in itertools.product(np.linspace(0.85, 1.3, 10), np.linspace(0, 2, 41)):
-            cells = inflated(mine, {(given, kind): (scale, exponent)})
-            scored.append((_miss([cell[:2] for cell in cells.values()]), float(scale), float(exponent)))
-        fitted[given, kind] = min(scored)[1:]
+        scored = [(miss([cell[:2] for cell in inflated(mine, {(given, kind): a}).values()]), float(a))
+                  for a in np.linspace(-1, 2, 61)]
+        fitted[given, kind] = min(scored)[1]
     return fitted
 
 
@@ -394,7 +392,7 @@ def main() -> None:
     if args.fit:
         inflations = fit_inflation(rows)
         SIZE_INFLATION.update(inflations)  # the signs' ratio_sd under the fitted inflation (this process only)
-        print("SIZE_INFLATION = {" + ", ".join(f"{key}: ({g:.2f}, {a:.2f})" for key, (g, a) in inflations.items()) + "}")
+        print("SIZE_INFLATION = {" + ", ".join(f"{key}: {a:.2f}" for key, a in inflations.items()) + "}")
         print(fit_trust(rows))
         print(fit_limits(rows))
     coverage_table(rows, inflations)

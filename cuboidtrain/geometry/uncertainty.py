@@ -72,21 +72,20 @@ CALIBRATIONS = {
     (False, "focal"): Calibration((0.339, 0.596, -0.309, 0.072, -0.310, 0.372, 0.099), 0.000),
 }
 
-# The calibration above was fitted on 256 px masks of bench_accuracy's spools, its shape class forced;
-# a smaller silhouette's error is larger than its features say (a corner is a few px; the outline's
-# steps are a larger share of it). Each sd is multiplied by g max(1, SIZE_REFERENCE_PX / px) ** a, px
-# the silhouette's size (`silhouette.extent_px`), (g, a) fitted per (focal length given, quantity) on
-# generated 64, 128 and 256 px masks fitted as `infer` fits them, both classes tried
-# (benchmarks/accuracy/bench_trust.py --fit; BENCHMARKS.md, "Error bars").
+# The calibration above was fitted on 256 px masks; a smaller silhouette's error differs from what its
+# features say (a corner is a few px; the outline's steps are a larger share of it). Each sd is
+# multiplied by max(1, SIZE_REFERENCE_PX / px) ** a, px the silhouette's size (`silhouette.extent_px`),
+# a fitted per (focal length given, quantity) on generated 64, 128 and 256 px masks fitted as `infer`
+# fits them (benchmarks/accuracy/bench_trust.py --fit; BENCHMARKS.md, "Error bars"); a silhouette of
+# SIZE_REFERENCE_PX or more keeps the calibration's sd.
 SIZE_REFERENCE_PX = 128.0
-SIZE_INFLATION = {(False, "ratio"): (1.05, 0.15), (True, "ratio"): (1.00, 0.20), (False, "yaw"): (0.95, 0.45),
-                  (True, "yaw"): (0.90, 0.00), (False, "focal"): (0.95, 0.50)}
+SIZE_INFLATION = {(False, "ratio"): 0.20, (True, "ratio"): 0.20, (False, "yaw"): 0.35, (True, "yaw"): -0.30,
+                  (False, "focal"): 0.45}
 
 
 def inflation(focal_given: bool, kind: str, silhouette_px: float) -> float:
-    """The factor a `kind` sd ("ratio", "yaw", "focal") of a silhouette `silhouette_px` across is widened by."""
-    scale, exponent = SIZE_INFLATION[focal_given, kind]
-    return scale * max(1.0, SIZE_REFERENCE_PX / max(silhouette_px, 1.0)) ** exponent
+    """The factor a `kind` sd ("ratio", "yaw", "focal") of a silhouette `silhouette_px` across is scaled by."""
+    return max(1.0, SIZE_REFERENCE_PX / max(silhouette_px, 1.0)) ** SIZE_INFLATION[focal_given, kind]
 
 
 def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: int, focal_given: bool,
