@@ -149,34 +149,34 @@ def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
     found = []
     if values["border_cut"] > LIMITS["border_cut"]:
         found.append(NamedWarning("border-cut", f"{100 * values['border_cut']:.0f}% of the silhouette's outline lies on the "
-                             f"image's edge: the building is cut by the frame, its hidden corners guessed",
-                             "fit a crop that shows the whole building, or read only its visible corners"))
+                                  f"image's edge: the building is cut by the frame, its hidden corners guessed",
+                                  "fit a crop that shows the whole building, or read only its visible corners"))
     if values["unexplained"] > LIMITS["unexplained"] or values["outline_rms"] > LIMITS["outline_rms"]:
         found.append(NamedWarning("not-a-box", f"the fitted cuboid leaves {100 * values['unexplained']:.0f}% of the silhouette "
-                             f"out, with an outline residual of {values['outline_rms']:.1f}% of its size: it is no whole "
-                             f"box or twobox (merged buildings, a fragment, no building)",
-                             "give one building a mask (split a row of houses), or do not use the 3D answer"))
+                                  f"out, with an outline residual of {values['outline_rms']:.1f}% of its size: it is no whole "
+                                  f"box or twobox (merged buildings, a fragment, no building)",
+                                  "give one building a mask (split a row of houses), or do not use the 3D answer"))
     if values["corners_moved"] > LIMITS["corners_moved"]:
         found.append(NamedWarning("corners-moved", f"the networks' corners moved {values['corners_moved']:.0f}% of the "
-                             f"silhouette's size on average ({values['corners_moved_max']:.0f}% at most) to reach the "
-                             f"fitted cuboid: the networks and the box disagree",
-                             "check the fit with --explain; give the camera (--focal-px) if it is known"))
+                                  f"silhouette's size on average ({values['corners_moved_max']:.0f}% at most) to reach the "
+                                  f"fitted cuboid: the networks and the box disagree",
+                                  "check the fit with --explain; give the camera (--focal-px) if it is known"))
     if values["heatmap_peak"] < LIMITS["heatmap_peak"]:
         found.append(NamedWarning("weak-heatmaps", f"the Estimator's heat maps peak at {values['heatmap_peak']:.2f} on average: "
-                             f"it is unsure where the corners are", "check with --explain that the mask is one building "
-                             "seen whole; an unusual view or shape is out of what the networks learnt"))
+                                  f"it is unsure where the corners are", "check with --explain that the mask is one building "
+                                  "seen whole; an unusual view or shape is out of what the networks learnt"))
     if values["shape_margin"] < LIMITS["shape_margin"]:
-        found.append(NamedWarning("shape-undecided", f"the other shape class explains the silhouette within "
-                             f"{values['shape_margin']:+.3f} IoU of the chosen one: the shape is a guess",
-                             "read `candidates`; pass --shape box or --shape twobox if you know it"))
+        found.append(NamedWarning("shape-undecided", f"the chosen shape class explains the silhouette by only "
+                                  f"{values['shape_margin']:+.3f} IoU against the other: the shape is a guess",
+                                  "read `candidates`; pass --shape box or --shape twobox if you know it"))
     if values["mask_px"] < LIMITS["mask_px"]:
         found.append(NamedWarning("small-mask", f"the silhouette is {2 ** values['mask_px']:.0f} px across: its corners "
-                             f"are a few pixels each", "use a larger crop or a mask at the photo's full resolution"))
+                                  f"are a few pixels each", "use a larger crop or a mask at the photo's full resolution"))
     if values["ratio_sd"] > LIMITS["ratio_sd"]:
         found.append(NamedWarning("wide-error-bars", f"a ratio's error bar is {100 * math.exp(values['ratio_sd']):.0f}% of "
-                             f"the ratio: the silhouette hardly fixes the 3D shape",
-                             "give the camera (--focal-px, --camera); read the ratios as a range, not a value"))
+                                  f"the ratio: the silhouette hardly fixes the 3D shape",
+                                  "give the camera (--focal-px, --camera); read the ratios as a range, not a value"))
     if value < LOW_SCORE and not found:
         found.append(NamedWarning("low-trust", f"the trust score is {value:.2f}: the signs together say doubt, none alone",
-                             "check the fit with --explain before using it"))
+                                  "check the fit with --explain before using it"))
     return found
