@@ -112,3 +112,12 @@ def test_small_masks_error_bars_cover_the_truth_at_least_as_often_as_before(fitt
         before += list(ratios * grown <= 2)
     assert len(within) >= 20
     assert np.mean(within) > np.mean(before)
+
+
+def test_a_silhouette_smaller_than_any_measured_says_its_error_bars_are_untested(fitter):
+    small = clean(7, size=32)
+    fit = fitter.fit(small)
+    [warning] = [w for w in fit.trust.warnings if w.code == "small-mask"]
+    assert "untested" in warning.message
+    [larger] = [w for w in fitter.fit(clean(7, size=56)).trust.warnings if w.code == "small-mask"] or [None]
+    assert larger is None or "untested" not in larger.message

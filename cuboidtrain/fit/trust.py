@@ -141,6 +141,9 @@ def judge(values: dict[str, float]) -> Trust:
 LIMITS = {"corners_moved": 8.22, "heatmap_peak": 0.433, "unexplained": 0.038, "outline_rms": 2.41,
           "shape_margin": -0.0098, "mask_px": 5.55, "ratio_sd": -0.352, "border_cut": 0.05}
 LOW_SCORE = 0.241  # below it, "low-trust": the signs together say doubt even where none alone does
+# The error bars' size scaling (`uncertainty.inflation`) was fitted and measured on silhouettes of
+# 31-231 px (64, 128, 256 px images): below this one, the small-mask warning says they are untested.
+SMALLEST_MEASURED_PX = 32.0
 FLAGS = ("not-a-box", "border-cut")  # the warnings that say a silhouette is no whole box or twobox
 
 
@@ -170,8 +173,10 @@ def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
                                   f"{values['shape_margin']:+.3f} IoU against the other: the shape is a guess",
                                   "read `candidates`; pass --shape box or --shape twobox if you know it"))
     if values["mask_px"] < LIMITS["mask_px"]:
+        untested = ("" if 2 ** values["mask_px"] >= SMALLEST_MEASURED_PX else
+                    f"; its error bars are untested below {SMALLEST_MEASURED_PX:.0f} px (measured on silhouettes of 31-231 px)")
         found.append(NamedWarning("small-mask", f"the silhouette is {2 ** values['mask_px']:.0f} px across: its corners "
-                                  f"are a few pixels each", "use a larger crop or a mask at the photo's full resolution"))
+                                  f"are a few pixels each{untested}", "use a larger crop or a mask at the photo's full resolution"))
     if values["ratio_sd"] > LIMITS["ratio_sd"]:
         found.append(NamedWarning("wide-error-bars", f"a ratio's error bar is {100 * math.exp(values['ratio_sd']):.0f}% of "
                                   f"the ratio: the silhouette hardly fixes the 3D shape",
