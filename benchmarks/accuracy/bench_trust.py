@@ -343,7 +343,7 @@ def flag_table(rows: list[dict]) -> None:
 def z_rows(rows: list[dict], group: str) -> list[tuple]:
     """(path, kind, image size, silhouette px, z under the calibration without size inflation) of
     every quantity of the group's whole-building rows that have error bars."""
-    return [(r["path"], kind, r["size"], 2 ** r["signs"]["mask_px"], z / r.get("inflation", {}).get(kind, 1.0))
+    return [(r["path"], kind, r["size"], 2 ** r["signs"]["mask_px"], z * r.get("inflation", {}).get(kind, 1.0))
             for r in whole(rows, group) for kind, z in r.get("z", [])]
 
 
