@@ -102,15 +102,18 @@ def cuboidgen_command() -> list[str]:
     return [sys.executable, "-c", "import sys; from cuboidgen.cli import main; sys.argv[0] = 'cuboidgen'; main()"]
 
 
-def spool_for(root: Path, shape: str, scene: str, samples: int) -> Path:
-    """The seeded 256 px validation spool of (shape, scene), its first `samples` samples the seeded
-    sequence's. One that holds fewer is drawn afresh, not topped up: a second draw with the same
-    seed repeats the first's samples (spools topped up so held 82 distinct masks in their first 200)."""
-    spool = root / f"val-{scene}-{shape}-256"
+def spool_for(root: Path, shape: str, scene: str, samples: int, size: int = 256, seed: int | None = None) -> Path:
+    """The seeded `size` px validation spool of (shape, scene) (`seed`: SEEDS' unless given; shape
+    `mix` for both classes), its first `samples` samples the seeded sequence's. One that holds
+    fewer is drawn afresh, not topped up: a second draw with the same seed repeats the first's
+    samples (spools topped up so held 82 distinct masks in their first 200)."""
+    seed = SEEDS[shape, scene] if seed is None else seed
+    spool = root / (f"val-{scene}-{shape}-{size}" if (size, seed) == (256, SEEDS.get((shape, scene))) else
+                    f"val-{scene}-{shape}-{size}-seed{seed}")
     if not spool.is_dir() or len(enumerate_spool(spool)) < samples:
         shutil.rmtree(spool, ignore_errors=True)
         subprocess.run([*cuboidgen_command(), "run", "--spool", str(spool), "--shape", shape,
-                        "--size", "256", "--scene", scene, "--seed", str(SEEDS[shape, scene]), "--limit", "0",
+                        "--size", str(size), "--scene", scene, "--seed", str(seed), "--limit", "0",
                         "--max-samples", str(samples), "--workers", "1", "--no-dashboard"],
                        check=True, capture_output=True)
     return spool

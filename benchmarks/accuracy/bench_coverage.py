@@ -115,12 +115,12 @@ def fit_calibrations(rows: list[dict]) -> dict:
         for scale, floor in itertools.product(SCALES, floors):
             calibration = Calibration(tuple(coefficients + np.eye(len(coefficients))[0] * np.log(scale)), float(floor))
             shares = [(np.mean(z <= 1), np.mean(z <= 2)) for z in (np.abs(g["error"]) / _sd(g, calibration) for g in mine)]
-            scored.append((_miss(shares), calibration))
+            scored.append((miss(shares), calibration))
         fitted[path == "cuboid_camera_given", kind] = min(scored, key=lambda pair: pair[0])[1]
     return fitted
 
 
-def _miss(shares: list[tuple[float, float]]) -> float:
+def miss(shares: list[tuple[float, float]]) -> float:
     """How far the cells lie from AIM: 1 sd beyond 70 +- 5%, 2 sd under 92.5% (4x), and a little
     for any distance from 70%, so that of the calibrations that meet the aim the centred one wins."""
     centre, slack, both = AIM

@@ -36,6 +36,7 @@ from cuboidtrain.geometry.silhouette import confidence
 from cuboidtrain.models.checkpoint import load_models
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.fit.trust import Trust, judge, signs
 from shared.errors import UsageError
 from shared.files import non_finite
 from shared.shapes import get_shape
@@ -58,6 +59,7 @@ class Fit:
     input: str | None = None  # the file, when one was read
     component: int | None = None  # 0 = largest; set with FitOptions(all_components=True)
     cuboid: FittedCuboid | None = None  # with FitOptions(cuboid=True): the box whose projection is `keypoints`
+    trust: Trust | None = None  # with the cuboid: how far to trust the fit, and why (`cuboidtrain.fit.trust`)
     # What an explanation draws (the winning candidate: refined mask, heat maps, framed input, Framing).
     explanation: Explanation | None = field(default=None, repr=False, compare=False)
 
@@ -73,6 +75,7 @@ class Fit:
                   "refine_steps": self.refine_steps, "refine_converged": self.refine_converged, "error": None,
                   "warnings": list(self.warnings), "candidates": self.candidates}
         if self.cuboid is not None:
+            record["trust"] = None if self.trust is None else self.trust.record()
             record["cuboid"] = self.cuboid.record()
         return record | ({"component": self.component} if with_component else {})
 
@@ -196,10 +199,13 @@ class Fitter:
         cuboid = cuboids.get(best.shape)
         keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
         scores = assess(best, mask, keypoints)
+        trust = None if cuboid is None else judge(signs(best, cuboid, mask, [cuboids[c.shape].fit.iou for c in candidates
+                                                                            if c.shape != best.shape]))
         return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios if cuboid is None else cuboid.fit.ratios,
                    confidence=scores.confidence, refine_steps=best.refine_steps,
-                   refine_converged=best.refine_converged, warnings=scores.warnings + tuple(set_aside),
-                   candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid,
+                   refine_converged=best.refine_converged,
+                   warnings=scores.warnings + tuple(set_aside) + (() if trust is None else trust.lines()),
+                   candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid, trust=trust,
                    explanation=Explanation(candidate=best, mask=mask))
 
     def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None) -> Candidate:

@@ -353,6 +353,9 @@ class Evidence:
     # How far apart the lift's starts put the focal length (the range of their log focal lengths):
     # where the corners admit several cameras, the one the fit settled on is the less certain
     start_spread: float = 0.0
+    # The silhouette's size in px (its bounding box's longer side): a small mask's error bars are
+    # widened (`uncertainty.inflation`); inf: never
+    silhouette_px: float = math.inf
 
 
 @dataclass(frozen=True)

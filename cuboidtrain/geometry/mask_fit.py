@@ -24,7 +24,7 @@ from cuboidtrain.geometry.camera_params import (CameraParams, CuboidFit, Evidenc
                                       project_with_jacobian, ratios)
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, hypotheses, levenberg_marquardt
-from cuboidtrain.geometry.silhouette import confidence
+from cuboidtrain.geometry.silhouette import confidence, extent_px
 from cuboidtrain.geometry.uncertainty import spread
 from cuboidtrain.geometry.outline import MaskFitWeights, MaskTarget, StackedTargets, silhouette_terms
 from shared.shapes import Shape
@@ -92,7 +92,8 @@ def evidence(camera: CameraParams, outline_rms: float, target: MaskTarget, corne
     weight = np.clip(confidence, 0.05, 1.0)
     gap = math.sqrt(float(np.sum(weight * np.sum((image - corners) ** 2, axis=1)) / np.sum(weight)))
     log_focal = starts[:, 7] - np.log(np.maximum(np.abs(starts[:, 8]), 1e-12))  # log f = log s - log |k|
-    return Evidence(outline_rms / side, gap / side, float(np.ptp(log_focal)) if len(starts) else 0.0)
+    return Evidence(outline_rms / side, gap / side, float(np.ptp(log_focal)) if len(starts) else 0.0,
+                    extent_px(target.mask))
 
 
 def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,

@@ -34,3 +34,12 @@ def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
     fitted = model_silhouette(shape, keypoints, target.shape)
     union = np.logical_or(fitted, target).sum()
     return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
+
+
+def extent_px(mask: np.ndarray) -> float:
+    """A silhouette's size: its bounding box's longer side in px (at least 1): what a mask shows of
+    a building's corners (`uncertainty.inflation`, `cuboidtrain.fit.trust`)."""
+    rows, columns = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not len(rows):
+        return 1.0
+    return float(max(rows[-1] - rows[0] + 1, columns[-1] - columns[0] + 1))

@@ -72,6 +72,21 @@ CALIBRATIONS = {
     (False, "focal"): Calibration((0.339, 0.596, -0.309, 0.072, -0.310, 0.372, 0.099), 0.000),
 }
 
+# The calibration above was fitted on 256 px masks; a smaller silhouette's error differs from what its
+# features say (a corner is a few px; the outline's steps are a larger share of it). Each sd is
+# multiplied by max(1, SIZE_REFERENCE_PX / px) ** a, px the silhouette's size (`silhouette.extent_px`),
+# a fitted per (focal length given, quantity) on generated 64, 128 and 256 px masks fitted as `infer`
+# fits them (benchmarks/accuracy/bench_trust.py --fit; BENCHMARKS.md, "Error bars"); a silhouette of
+# SIZE_REFERENCE_PX or more keeps the calibration's sd.
+SIZE_REFERENCE_PX = 128.0
+SIZE_INFLATION = {(False, "ratio"): 0.20, (True, "ratio"): 0.20, (False, "yaw"): 0.35, (True, "yaw"): -0.30,
+                  (False, "focal"): 0.45}
+
+
+def inflation(focal_given: bool, kind: str, silhouette_px: float) -> float:
+    """The factor a `kind` sd ("ratio", "yaw", "focal") of a silhouette `silhouette_px` across is scaled by."""
+    return max(1.0, SIZE_REFERENCE_PX / max(silhouette_px, 1.0)) ** SIZE_INFLATION[focal_given, kind]
+
 
 def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: int, focal_given: bool,
            evidence: Evidence) -> Spread | None:
@@ -95,7 +110,8 @@ def spread(camera: CameraParams, squares: float, normal: np.ndarray, residuals: 
     # A given focal length holds every start to it: what spread is left is its row's give, not the corners' doubt.
     x = features(np.array(raws), np.array(units), camera, yaw,
                  replace(evidence, start_spread=0.0) if focal_given else evidence)
-    sds = np.array([CALIBRATIONS[focal_given, kind].sd(row, unit) for kind, row, unit in zip(kinds, x, units)])
+    sds = np.array([CALIBRATIONS[focal_given, kind].sd(row, unit) * inflation(focal_given, kind, evidence.silhouette_px)
+                    for kind, row, unit in zip(kinds, x, units)])
     bars = Spread(sds[: len(values)], float(sds[len(values)]), None if raw_focal is None else float(sds[-1]), x)
     return bars if np.isfinite(sds).all() else None
 

@@ -1,0 +1,187 @@
+"""How far to trust a fit: a score and named warnings from what the fit path itself shows.
+
+The record's `confidence` is the fitted silhouette's IoU with the input: it stays high when the
+box explains the outline and nothing else agrees (issue 38: a wall at a grazing angle fitted at
+0.86 with its networks' corners moved 36 px to reach the box). The trust signal reads the signs
+the fit already computes, each named (`SIGNS`):
+
+* `corners_moved`, `corners_moved_max`: how far the networks' corners moved to reach the fitted
+  box (mean and largest, in % of the silhouette's size: its bounding box's longer side);
+* `heatmap_peak`: the Estimator's heat maps' mean peak (its own confidence in its corners);
+* `silhouette_miss`: 1 - the fitted silhouette's IoU with the input;
+* `unexplained`: the share of the silhouette's pixels the fitted cuboid's silhouette leaves out (an
+  occluder's hole makes the box overhang the mask, which this does not count; a second building
+  beside the first is left out);
+* `outline_rms`: the outline's rms residual, in % of the silhouette's size;
+* `shape_margin`: how much better the chosen class explains the input than the other (IoU);
+* `mask_px`: log2 of the silhouette's size in px (small masks show little);
+* `hidden_corners`: the share of corners the fitted outline does not show (decided by the networks,
+  not the outline);
+* `ratio_sd`: log of the widest ratio error bar relative to its ratio;
+* `border_cut`: the share of the silhouette's outline on the image's edge.
+
+The score is a logistic regression of "a good fit" (mean corner error under 3 px in 256 px units) on
+these signs (standardised), fitted on generated noisy masks (`benchmarks/accuracy/bench_trust.py
+--fit`, masks of other seeds than those it is measured on); each warning is one sign past a limit
+chosen there, or the score under one, with what to do.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cuboidtrain.fit.candidates import Candidate, border_cut
+from cuboidtrain.fit.cuboid import FittedCuboid, heatmap_peaks
+from cuboidtrain.geometry.silhouette import extent_px, model_silhouette
+from shared.shapes import get_shape
+
+SIGNS = ("corners_moved", "corners_moved_max", "heatmap_peak", "silhouette_miss", "unexplained", "outline_rms",
+         "shape_margin", "mask_px", "hidden_corners", "ratio_sd", "border_cut")
+
+# The logistic model of P(good fit | signs): weights of the standardised signs (mean, sd) and an
+# intercept, fitted by benchmarks/accuracy/bench_trust.py --fit on 1,798 records of generated noisy
+# masks (the `fit` seeds: paper-clean, paper, street; box and twobox mixed; 64, 128 and 256 px; the
+# camera free and given), a good fit's mean corner error under 3 px in 256 px units (663 of them).
+# The border cut is 0 on every generated mask: it weighs nothing here, and warns below; the largest
+# corner move and the IoU weigh nothing either (bench_trust.UNWEIGHED: beside the mean move and the
+# unexplained share their weights came out the wrong way round).
+MEANS = (3.253, 7.625, 0.5954, 0.1109, 0.007036, 0.7988, 0.05684, 6.678, 0.3542, -1.381, 0.0)
+SCALES = (2.555, 5.978, 0.0938, 0.162, 0.008697, 0.5427, 0.06895, 0.8282, 0.09872, 0.6908, 1.0)
+WEIGHTS = (-0.3395, 0.0, 0.7714, 0.0, -1.103, -0.1885, 0.163, 0.4489, -0.503, -0.7941, 0.0)
+INTERCEPT = -1.177
+# "high": a score at least HIGH and no warning; "low": a score under LOW_SCORE (below) or a flag (no
+# whole building); "medium" the rest. On the `measure` seeds: high 34% of the records (73% of them
+# under 3 px, 2% over 10), medium 22% (29%, 11%), low 44% (7%, 42%).
+HIGH = 0.5
+
+
+@dataclass(frozen=True)
+class NamedWarning:
+    """One named reason to doubt a fit: a short code, what was seen, and what to do."""
+
+    code: str
+    message: str
+    action: str
+
+    def record(self) -> dict:
+        return {"code": self.code, "message": self.message, "action": self.action}
+
+
+@dataclass(frozen=True)
+class Trust:
+    """A fit's trust: a score in [0, 1] (P(good fit) under the model), its level, the signs it read, why."""
+
+    score: float
+    level: str  # "high", "medium" or "low" (`level`)
+    signs: dict[str, float]
+    warnings: tuple[NamedWarning, ...]
+
+    def lines(self) -> tuple[str, ...]:
+        """The warnings as the record's `warnings` entries: "code: what was seen; what to do"."""
+        return tuple(f"{w.code}: {w.message}; {w.action}" for w in self.warnings)
+
+    def record(self) -> dict:
+        """The infer record's `trust` object (docs/contract.md, "The trust object")."""
+        return {"level": self.level, "score": round(self.score, 4),
+                "warnings": [w.record() for w in self.warnings],
+                "signs": {name: round(value, 4) for name, value in self.signs.items()}}
+
+
+def signs(candidate: Candidate, cuboid: FittedCuboid, mask: np.ndarray, other_ious: list[float]) -> dict[str, float]:
+    """The named signs (`SIGNS`) of one fitted component: `candidate` the chosen shape class's, `cuboid`
+    its fit, `mask` (H, W) bool the component in the input's pixels, `other_ious` the other classes'
+    fitted IoUs."""
+    fit = cuboid.fit
+    size = extent_px(mask)
+    network = candidate.framing.to_input(candidate.keypoints)[fit.camera.naming()]  # in the fit's corner order
+    moved = np.linalg.norm(network - fit.keypoints, axis=1) / size * 100
+    relative = np.asarray(cuboid.fit.spread.ratios) / np.abs(_ratios(cuboid)) if fit.spread is not None else np.array([1.0])
+    iou = fit.iou if fit.iou is not None else 0.0
+    return {"corners_moved": float(moved.mean()), "corners_moved_max": float(moved.max()),
+            "heatmap_peak": float(heatmap_peaks(candidate.heatmaps).mean()), "silhouette_miss": 1.0 - iou,
+            "unexplained": float((mask & ~model_silhouette(fit.shape, fit.keypoints, mask.shape)).sum() / max(mask.sum(), 1)),
+            "outline_rms": fit.residual_px / size * 100,
+            "shape_margin": iou - max(other_ious, default=0.0), "mask_px": math.log2(size),
+            "hidden_corners": float(1.0 - np.mean(fit.on_outline)),
+            "ratio_sd": math.log(max(float(np.max(relative)), 1e-6)), "border_cut": border_cut(mask)}
+
+
+def _ratios(cuboid: FittedCuboid) -> np.ndarray:
+    return np.maximum(np.abs(get_shape(cuboid.fit.shape).ratio_vector(cuboid.fit.ratios)), 1e-9)
+
+
+def score(values: dict[str, float]) -> float:
+    """P(good fit | signs) under the stored logistic model, in [0, 1]."""
+    x = (np.array([values[name] for name in SIGNS]) - np.array(MEANS)) / np.array(SCALES)
+    return float(1.0 / (1.0 + math.exp(-float(np.clip(INTERCEPT + x @ np.array(WEIGHTS), -40, 40)))))
+
+
+def level(value: float, found: list[NamedWarning]) -> str:
+    """"high", "medium" or "low" for a score and its warnings (HIGH, LOW_SCORE, FLAGS)."""
+    if value < LOW_SCORE or any(w.code in FLAGS for w in found):
+        return "low"
+    return "high" if value >= HIGH and not found else "medium"
+
+
+def judge(values: dict[str, float]) -> Trust:
+    """The trust of a fit with these signs: its score, level and warnings."""
+    value = score(values)
+    found = warnings(values, value)
+    return Trust(value, level(value, found), dict(values), tuple(found))
+
+
+# Each warning: the sign it reads and the limit past which it is raised (above it; `heatmap_peak`,
+# `shape_margin`, `mask_px` below it). Chosen on the same records as the model
+# (bench_trust.fit_limits): a flag's (no whole building: `unexplained`, `outline_rms`, `border_cut`)
+# where 99% of whole generated buildings lie on its safe side; the others' and the low score's as
+# the pair that warned the most of the worst fifth by corner error (86%) while warning at most 12%
+# of the good fits (< 3 px).
+LIMITS = {"corners_moved": 8.22, "heatmap_peak": 0.433, "unexplained": 0.038, "outline_rms": 2.41,
+          "shape_margin": -0.0098, "mask_px": 5.55, "ratio_sd": -0.352, "border_cut": 0.05}
+LOW_SCORE = 0.241  # below it, "low-trust": the signs together say doubt even where none alone does
+# The error bars' size scaling (`uncertainty.inflation`) was fitted and measured on silhouettes of
+# 31-231 px (64, 128, 256 px images): below this one, the small-mask warning says they are untested.
+SMALLEST_MEASURED_PX = 32.0
+FLAGS = ("not-a-box", "border-cut")  # the warnings that say a silhouette is no whole box or twobox
+
+
+def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
+    """The named warnings these signs (and their score `value`) earn, each with what was seen and what to do."""
+    found = []
+    if values["border_cut"] > LIMITS["border_cut"]:
+        found.append(NamedWarning("border-cut", f"{100 * values['border_cut']:.0f}% of the silhouette's outline lies on the "
+                                  f"image's edge: the building is cut by the frame, its hidden corners guessed",
+                                  "fit a crop that shows the whole building, or read only its visible corners"))
+    if values["unexplained"] > LIMITS["unexplained"] or values["outline_rms"] > LIMITS["outline_rms"]:
+        found.append(NamedWarning("not-a-box", f"the fitted cuboid leaves {100 * values['unexplained']:.0f}% of the silhouette "
+                                  f"out, with an outline residual of {values['outline_rms']:.1f}% of its size: it is no whole "
+                                  f"box or twobox (merged buildings, a fragment, no building)",
+                                  "give one building a mask (split a row of houses), or do not use the 3D answer"))
+    if values["corners_moved"] > LIMITS["corners_moved"]:
+        found.append(NamedWarning("corners-moved", f"the networks' corners moved {values['corners_moved']:.0f}% of the "
+                                  f"silhouette's size on average ({values['corners_moved_max']:.0f}% at most) to reach the "
+                                  f"fitted cuboid: the networks and the box disagree",
+                                  "check the fit with --explain; give the camera (--focal-px) if it is known"))
+    if values["heatmap_peak"] < LIMITS["heatmap_peak"]:
+        found.append(NamedWarning("weak-heatmaps", f"the Estimator's heat maps peak at {values['heatmap_peak']:.2f} on average: "
+                                  f"it is unsure where the corners are", "check with --explain that the mask is one building "
+                                  "seen whole; an unusual view or shape is out of what the networks learnt"))
+    if values["shape_margin"] < LIMITS["shape_margin"]:
+        found.append(NamedWarning("shape-undecided", f"the chosen shape class explains the silhouette by only "
+                                  f"{values['shape_margin']:+.3f} IoU against the other: the shape is a guess",
+                                  "read `candidates`; pass --shape box or --shape twobox if you know it"))
+    if values["mask_px"] < LIMITS["mask_px"]:
+        untested = ("" if 2 ** values["mask_px"] >= SMALLEST_MEASURED_PX else
+                    f"; its error bars are untested below {SMALLEST_MEASURED_PX:.0f} px (measured on silhouettes of 31-231 px)")
+        found.append(NamedWarning("small-mask", f"the silhouette is {2 ** values['mask_px']:.0f} px across: its corners "
+                                  f"are a few pixels each{untested}", "use a larger crop or a mask at the photo's full resolution"))
+    if values["ratio_sd"] > LIMITS["ratio_sd"]:
+        found.append(NamedWarning("wide-error-bars", f"a ratio's error bar is {100 * math.exp(values['ratio_sd']):.0f}% of "
+                                  f"the ratio: the silhouette hardly fixes the 3D shape",
+                                  "give the camera (--focal-px, --camera); read the ratios as a range, not a value"))
+    if value < LOW_SCORE and not found:
+        found.append(NamedWarning("low-trust", f"the trust score is {value:.2f}: the signs together say doubt, none alone",
+                                  "check the fit with --explain before using it"))
+    return found
