@@ -23,7 +23,9 @@ Each row: corner error in 256 px, all corners (mean / median of the per-mask mea
 bench_accuracy's `infer`), the outline (hull) and interior corners pooled (mean, median, p90),
 and the depth/height median relative error, the camera free (plausible, `infer`'s default) and
 given (each mask's true focal length and principal point, `KnownCamera`). The corners are the
-free fit's, but the `silhouette`'s, which are the true camera's. With `silhouette`, two shares of masks the silhouette cannot decide:
+free fit's, but the `outline` and `silhouette` rows', which are the true camera's (the outline's
+lift with a free camera leaves the interior far off wherever the outline has four corners:
+`street`'s level views). With `silhouette`, two shares of masks the silhouette cannot decide:
 
 * `edge-on`: a face of the true box (of either part) is less than EDGE_ON_PX wide in the
   picture (its projected area over its longest side): the silhouette hides where its edge is;
@@ -101,7 +103,7 @@ def lifted(truth: Truth, sigma: float, rng: np.random.Generator) -> Answer:
     weights = outline.astype(np.float64)
     answers = [describe(lift(points, truth.shape, weights, known=known, frame=(256, 256)).camera, 0.0)
                for known in (None, truth.known_camera())]
-    return Answer(answers[0].keypoints, answers[0].ratios, answers[1].ratios)
+    return Answer(answers[1].keypoints, answers[0].ratios, answers[1].ratios)
 
 
 def silhouette_fit(target: MaskTarget, truth: Truth, corners: np.ndarray, known: KnownCamera | None):
@@ -165,13 +167,13 @@ def row_figures(answers: list[Answer], truths: list[Truth]) -> dict:
     return figures
 
 
-def budget(model, samples: list, seed: int) -> list[dict]:
+def budget(model, samples: list, seed: int, stages=STAGES) -> list[dict]:
     """Every stage's row for one set and shape."""
     fitter = Fitter([model], FitOptions(device="cpu", cuboid=True, shape=model.shape))
     truths = [Truth.of_sample(s) for s in samples]
     rng = np.random.default_rng(seed)
     rows = []
-    for stage in STAGES:
+    for stage in stages:
         start = time.perf_counter()
         extra = {}
         if stage in NOISE_PX:
@@ -209,6 +211,7 @@ def main() -> None:
     parser.add_argument("--spools", type=Path, default=Path("spools"))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--sets", nargs="*", default=list(SETS), choices=SETS)
+    parser.add_argument("--stages", nargs="*", default=list(STAGES), choices=STAGES)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -217,7 +220,7 @@ def main() -> None:
     for scene in args.sets:
         for number, (shape, model) in enumerate(models.items()):
             samples = read_samples(spool_for(args.spools, shape, scene, args.samples), args.samples)
-            rows += [{"set": scene, "shape": shape} | r for r in budget(model, samples, seed=number)]
+            rows += [{"set": scene, "shape": shape} | r for r in budget(model, samples, number, args.stages)]
             print(f"{scene} {shape}: done", file=sys.stderr, flush=True)
     show(rows)
     if args.json:

@@ -28,7 +28,7 @@ import torch
 from cuboidtrain.models.device import one_thread, resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, assess, choose
 from cuboidtrain.models.codec import make_codec, render_heatmaps
-from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates
+from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates, outdone
 from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask, warp
 from cuboidtrain.geometry.intrinsics import KnownCamera
@@ -224,6 +224,8 @@ class Fitter:
             candidates.append(self.fit_framed(model, framed, framing, oracle))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
         cuboids = {c.shape: self.fit_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
+        if cuboids:
+            cuboids |= self.reached(candidates, target, known, cuboids)
         set_aside: list[str] = []
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
             best, set_aside = choose_cuboid(candidates, cuboids)
@@ -252,18 +254,32 @@ class Fitter:
         return self.candidate(model, out, 0, framed_mask, framing)
 
     def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
-                    known: Sequence[KnownCamera | None] | None = None) -> list[FittedCuboid | NoCuboid]:
+                    known: Sequence[KnownCamera | None] | None = None,
+                    reach: float | None = None) -> list[FittedCuboid | NoCuboid]:
         """Each candidate's cuboid fitted to its mask (H, W) bool at the input's resolution, by the
         options' optimizer, one shape class's rows solved as one batch (`cuboid.fit_candidates`): a
         component's shape classes for `fit`, a batch of samples for `eval`. NoCuboid where a fit
-        is not finite. `known`: each mask's given camera, or None (fitted)."""
+        is not finite. `known`: each mask's given camera, or None (fitted); `reach`: the IoU below which a
+        clean mask's fit restarts (`mask_fit.reach_silhouette`)."""
         return fit_candidates(candidates, masks, optimizer=self.options.optimizer, known=known,
-                              plausible=self.options.plausible_camera)
+                              plausible=self.options.plausible_camera, reach=reach)
+
+    def reached(self, candidates: Sequence[Candidate], target: MaskTarget, known: KnownCamera | None,
+                cuboids: dict[str, FittedCuboid]) -> dict[str, FittedCuboid]:
+        """The cuboids of the classes another class outdid on a clean mask (`cuboid.outdone`), refitted
+        to reach the IoU it reached (`mask_fit.reach_silhouette`), where that explains the mask better."""
+        refits = {}
+        for shape, iou in outdone(cuboids, target.mask).items():
+            [candidate] = [c for c in candidates if c.shape == shape]
+            again = self.fit_cuboid(candidate, target, known, reach=iou)
+            if again.fit.residual_px < cuboids[shape].fit.residual_px:
+                refits[shape] = again
+        return refits
 
     def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget,
-                   known: KnownCamera | None = None) -> FittedCuboid:
+                   known: KnownCamera | None = None, reach: float | None = None) -> FittedCuboid:
         """`fit_cuboids` for one candidate; NonFiniteCuboid where its fit is not finite."""
-        [fitted] = self.fit_cuboids([candidate], [mask], [known])
+        [fitted] = self.fit_cuboids([candidate], [mask], [known], reach)
         if isinstance(fitted, NoCuboid):
             raise NonFiniteCuboid(fitted.reason)
         return fitted

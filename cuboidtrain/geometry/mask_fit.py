@@ -67,11 +67,13 @@ def fit_mask(mask: np.ndarray | MaskTarget, shape: Shape, corners: np.ndarray, c
 def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, confidence: np.ndarray,
               prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights = MaskFitWeights(),
               starts: int = STARTS, iterations: int = ITERATIONS,
-              known: Sequence[KnownCamera | None] | None = None, plausible: bool = False) -> list[CuboidFit]:
+              known: Sequence[KnownCamera | None] | None = None, plausible: bool = False,
+              reach: float | None = None) -> list[CuboidFit]:
     """`fit_mask` for K masks of one shape class at once: `targets` (K), corners (K, N, 2),
     confidence (K, N), prior_ratios (K) each (R,) or None; one CuboidFit a mask, in order.
     `known` (K): each mask's given camera (`intrinsics.KnownCamera`), held in the lift and the fit;
-    `plausible`: every camera kept to a plausible one for its mask's frame (`intrinsics.PlausibleRows`)."""
+    `plausible`: every camera kept to a plausible one for its mask's frame (`intrinsics.PlausibleRows`);
+    `reach`: the IoU below which a fit of a clean mask has stopped short (`reach_silhouette`; None: RESTART_IOU)."""
     cameras = CameraTerms.of(shape, known, [t.mask.shape for t in targets] if plausible else None, weights.camera)
     lifted = lift_starts(corners, confidence, shape, cameras)
     chosen = [lifted.best(k, starts) for k in range(len(targets))]
@@ -85,7 +87,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
     answers = [Solution(solved, row, bool(mirrors[row])) for row in best]
     fits = [described(target, shape, a.camera(shape), weights) for target, a in zip(targets, answers)]
     answers, fits = reach_silhouette(targets, stacked, shape, corners, confidence, prior_ratios, weights, cameras,
-                                     answers, fits, iterations)
+                                     answers, fits, iterations, reach)
     for k, (target, answer) in enumerate(zip(targets, answers)):
         camera = answer.camera(shape)
         focal_given = known is not None and known[k] is not None and known[k].focal_px is not None
@@ -115,13 +117,13 @@ class Solution:
 def reach_silhouette(targets: Sequence[MaskTarget], stacked: StackedTargets, shape: Shape, corners: np.ndarray,
                      confidence: np.ndarray, prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights,
                      cameras: CameraTerms | None, answers: list[Solution], fits: list[CuboidFit],
-                     iterations: int) -> tuple[list[Solution], list[CuboidFit]]:
-    """The answers and fits with every fit that stopped short of a clean mask's silhouette (RESTART_IOU)
+                     iterations: int, reach: float | None = None) -> tuple[list[Solution], list[CuboidFit]]:
+    """The answers and fits with every fit that stopped short of a clean mask's silhouette (IoU below `reach`)
     restarted (`restarted`), a restart kept where its silhouette explains the mask better (the
     outline's rms, the objective's silhouette terms: the corners' pull can hold a fit off the
     silhouette it should reach); one kept and still short is restarted again, RESTART_ROUNDS in all."""
-    answers, fits = list(answers), list(fits)
-    pending = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < RESTART_IOU and polygonal(targets[k].mask)]
+    answers, fits, reach = list(answers), list(fits), RESTART_IOU if reach is None else reach
+    pending = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < reach and polygonal(targets[k].mask)]
     for _ in range(RESTART_ROUNDS):
         if not pending:
             break
@@ -131,7 +133,7 @@ def reach_silhouette(targets: Sequence[MaskTarget], stacked: StackedTargets, sha
             other = described(targets[k], shape, again.camera(shape), weights)
             if other.residual_px < fits[k].residual_px:
                 answers[k], fits[k] = again, other
-                moved += [k] if other.iou < RESTART_IOU else []
+                moved += [k] if other.iou < reach else []
         pending = moved
     return answers, fits
 
