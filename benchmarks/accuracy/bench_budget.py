@@ -23,9 +23,8 @@ Each row: corner error in 256 px, all corners (mean / median of the per-mask mea
 bench_accuracy's `infer`), the outline (hull) and interior corners pooled (mean, median, p90),
 and the depth/height median relative error, the camera free (plausible, `infer`'s default) and
 given (each mask's true focal length and principal point, `KnownCamera`). The corners are the
-free fit's, but the `outline` and `silhouette` rows', which are the true camera's (the outline's
-lift with a free camera leaves the interior far off wherever the outline has four corners:
-`street`'s level views). With `silhouette`, two shares of masks the silhouette cannot decide:
+free fit's (the outline's lift with a free camera leaves the interior far off where the outline
+has four corners: `street`'s level views), but the `silhouette`'s, which are the true camera's. With `silhouette`, two shares of masks the silhouette cannot decide:
 
 * `edge-on`: a face of the true box (of either part) is less than EDGE_ON_PX wide in the
   picture (its projected area over its longest side): the silhouette hides where its edge is;
@@ -103,7 +102,7 @@ def lifted(truth: Truth, sigma: float, rng: np.random.Generator) -> Answer:
     weights = outline.astype(np.float64)
     answers = [describe(lift(points, truth.shape, weights, known=known, frame=(256, 256)).camera, 0.0)
                for known in (None, truth.known_camera())]
-    return Answer(answers[1].keypoints, answers[0].ratios, answers[1].ratios)
+    return Answer(answers[0].keypoints, answers[0].ratios, answers[1].ratios)
 
 
 def silhouette_fit(target: MaskTarget, truth: Truth, corners: np.ndarray, known: KnownCamera | None):
