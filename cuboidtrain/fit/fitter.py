@@ -28,7 +28,8 @@ import torch
 from cuboidtrain.models.device import one_thread, resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, assess, choose
 from cuboidtrain.models.codec import make_codec, render_heatmaps
-from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates, outdone
+from cuboidtrain.fit.cuboid import (FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates,
+                                   stopped_short)
 from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask, warp
 from cuboidtrain.geometry.intrinsics import KnownCamera
@@ -223,7 +224,8 @@ class Fitter:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing, oracle))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
-        cuboids = {c.shape: self.fit_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
+        # First without restarts (reach 0), then only the classes that stopped short where it matters
+        cuboids = {c.shape: self.fit_cuboid(c, target, known, reach=0.0) for c in candidates} if self.options.cuboid else {}
         if cuboids:
             cuboids |= self.reached(candidates, target, known, cuboids)
         set_aside: list[str] = []
@@ -266,15 +268,15 @@ class Fitter:
 
     def reached(self, candidates: Sequence[Candidate], target: MaskTarget, known: KnownCamera | None,
                 cuboids: dict[str, FittedCuboid]) -> dict[str, FittedCuboid]:
-        """The cuboids of the classes another class outdid on a clean mask (`cuboid.outdone`), refitted
-        to reach the IoU it reached (`mask_fit.reach_silhouette`), where that explains the mask better."""
-        refits = {}
-        for shape, iou in outdone(cuboids, target.mask).items():
-            [candidate] = [c for c in candidates if c.shape == shape]
-            again = self.fit_cuboid(candidate, target, known, reach=iou)
-            if again.fit.residual_px < cuboids[shape].fit.residual_px:
-                refits[shape] = again
-        return refits
+        """The chosen class's cuboid, where it stopped short of a clean mask's silhouette
+        (`cuboid.stopped_short`), refitted to reach it (`mask_fit.reach_silhouette`) if that explains
+        the mask better; else nothing."""
+        chosen, _ = choose_cuboid(list(candidates), cuboids)
+        reach = stopped_short(cuboids, chosen.shape, target.mask)
+        if reach is None:
+            return {}
+        again = self.fit_cuboid(chosen, target, known, reach=reach)
+        return {chosen.shape: again} if again.fit.residual_px < cuboids[chosen.shape].fit.residual_px else {}
 
     def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget,
                    known: KnownCamera | None = None, reach: float | None = None) -> FittedCuboid:
