@@ -8,14 +8,23 @@ share of masks whose chosen cuboid's silhouette IoU is at least 0.99, the "box w
 warnings, the share given their own class and the corner error (px of the mask, mean and median
 of the per-mask mean, over the masks given their own class).
 
+`--records N` times instead what the restart costs, as `bench_infer.py --records` does: the whole
+record of each of N generated masks (box and twobox, three scenes), networks only, `--cuboid`
+before and after, interleaved mask by mask, `--repeats` rounds; the medians' ratios.
+
     .venv/bin/python benchmarks/accuracy/bench_reach.py --samples 200 --size 256 --seeds 41 42
+    .venv/bin/python benchmarks/accuracy/bench_reach.py --records 40 --repeats 3
 """
 from __future__ import annotations
 
 import argparse
 import json
 import shutil
+import statistics
 import subprocess
+import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -60,15 +69,51 @@ def summary(rows: list[dict]) -> dict:
             "error_mean_px": float(errors.mean()), "error_median_px": float(np.median(errors))}
 
 
+def timed(count: int, repeats: int) -> dict:
+    """Median ms of the whole record, networks only and `--cuboid` before and after, interleaved."""
+    sys.path.insert(0, str(Path(__file__).parents[1] / "speed"))
+    from bench_infer import record_masks
+
+    reached = Fitter.reached
+    fitters = {"networks": Fitter.from_shipped(FitOptions(device="cpu")),
+               "before": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)),
+               "after": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))}
+    times = {name: [] for name in fitters}
+    with tempfile.TemporaryDirectory() as folder:
+        paths = record_masks(count, Path(folder))
+        for _ in range(repeats):
+            for path in paths:
+                for name, fitter in fitters.items():
+                    mask_fit.RESTART_IOU = -1.0 if name == "before" else REACHED
+                    Fitter.reached = (lambda self, *args: {}) if name == "before" else reached
+                    start = time.perf_counter()
+                    fitter.outcomes([path])
+                    times[name].append(time.perf_counter() - start)
+    Fitter.reached = reached
+    medians = {name: 1000 * statistics.median(t) for name, t in times.items()}
+    return medians | {"before_ratio": medians["before"] / medians["networks"],
+                      "after_ratio": medians["after"] / medians["networks"],
+                      "mean_after_over_before": float(np.mean(times["after"]) / np.mean(times["before"]))}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--samples", type=int, default=200, help="masks a class")
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--seeds", type=int, nargs=2, default=(41, 42), help="the box and twobox spools' seeds")
     parser.add_argument("--spools", type=Path, default=Path("spools"))
+    parser.add_argument("--records", type=int, default=0, metavar="N", help="time the record instead, on N masks")
+    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.records:
+        row = timed(args.records, args.repeats)
+        print(f"networks {row['networks']:.1f} ms; --cuboid before {row['before']:.1f} ms ({row['before_ratio']:.3f}x), "
+              f"after {row['after']:.1f} ms ({row['after_ratio']:.3f}x); mean after / before {row['mean_after_over_before']:.3f}")
+        if args.json:
+            args.json.write_text(json.dumps(row, indent=2) + "\n")
+        return
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
     reached = Fitter.reached
     result = {}

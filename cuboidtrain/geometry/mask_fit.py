@@ -11,6 +11,10 @@ One mask (`fit_mask`) is a batch of one, and gives the same numbers as before ba
 Measured (docs/research/geometric-fit/RESULTS.md, 3a/3b): from true corners + 3 px noise on
 clean masks, hull corners to a median 0.4-0.5 px; from the shipped networks' corners,
 clean-mask medians improve strongly (box 2.8 -> 0.7 px) while noisy means barely move.
+
+A fit that stops short of a clean mask's silhouette (a face seen nearly edge-on drawn on the wrong
+side) is restarted from its corners moved onto the mask's own hull (`reach_silhouette`): on 200
+held-out clean masks a class (BENCHMARKS.md, "A fit that reaches the silhouette").
 """
 from __future__ import annotations
 
@@ -82,8 +86,7 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
     stacked = StackedTargets.of(targets)
     residual, jacobian = _objective(stacked, shape, corners, confidence, prior_ratios, weights, owner, mirrors, cameras)
     solved = levenberg_marquardt(residual, lifted.params[rows], iterations, tolerance=1e-7, jacobian=jacobian)
-    ends = np.cumsum([len(mine) for mine in chosen])
-    best = [int(end - len(mine) + np.argmin(solved.cost[end - len(mine) : end])) for end, mine in zip(ends, chosen)]
+    best = cheapest(solved.cost, chosen)
     answers = [Solution(solved, row, bool(mirrors[row])) for row in best]
     fits = [described(target, shape, a.camera(shape), weights) for target, a in zip(targets, answers)]
     answers, fits = reach_silhouette(targets, stacked, shape, corners, confidence, prior_ratios, weights, cameras,
@@ -96,6 +99,12 @@ def fit_masks(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, 
                       evidence(camera, fits[k].residual_px, target, corners[k], confidence[k], starts_k))
         fits[k] = replace(fits[k], spread=bars)
     return fits
+
+
+def cheapest(cost: np.ndarray, chosen: Sequence[np.ndarray]) -> list[int]:
+    """The row of least cost of each mask, whose rows lie one mask after another (`chosen`: each one's)."""
+    ends = np.cumsum([len(mine) for mine in chosen])
+    return [int(end - len(mine) + np.argmin(cost[end - len(mine) : end])) for end, mine in zip(ends, chosen)]
 
 
 @dataclass(frozen=True)
@@ -226,8 +235,7 @@ def restarted(targets: Sequence[MaskTarget], stacked: StackedTargets, shape: Sha
     owner, flags = owner_mask[rows], lifted.mirrors[rows]
     residual, jacobian = _objective(stacked, shape, corners, confidence, prior_ratios, weights, owner, flags, cameras)
     solved = levenberg_marquardt(residual, lifted.params[rows], iterations, tolerance=1e-7, jacobian=jacobian)
-    ends = np.cumsum([len(mine) for mine in chosen])
-    best = [int(end - len(mine) + np.argmin(solved.cost[end - len(mine) : end])) for end, mine in zip(ends, chosen)]
+    best = cheapest(solved.cost, chosen)
     return [Solution(solved, row, bool(flags[row])) for row in best]
 
 
