@@ -20,7 +20,7 @@ from cuboidtrain.geometry.uncertainty import SIZE_INFLATION, SIZE_REFERENCE_PX, 
 from tests.conftest import build_sample
 from tests.test_contract import documented_keys, section
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy"))
+sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "benchmarks" / room) for room in ("calibration", "accuracy")]
 from bench_trust import auroc, cut_by_border, merged  # noqa: E402
 
 

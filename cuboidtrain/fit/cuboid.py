@@ -30,7 +30,8 @@ from cuboidtrain.fit.completion import completed_target
 from cuboidtrain.geometry.camera_params import CuboidFit
 from cuboidtrain.geometry.edge_lines import corners_from_edges, edge_lines, outline_polygon
 from cuboidtrain.geometry.intrinsics import KnownCamera
-from cuboidtrain.geometry.mask_fit import fit_masks
+from cuboidtrain.geometry import mask_fit
+from cuboidtrain.geometry.mask_fit import fit_masks, polygonal
 from cuboidtrain.geometry.outline import MaskTarget, bilinear
 from shared.shapes import Shape, get_shape
 
@@ -118,14 +119,15 @@ class FittedCuboid:
 def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
                    completion: bool = True, optimizer: str = "lm",
                    known: Sequence[KnownCamera | None] | None = None,
-                   plausible: bool = False) -> list[FittedCuboid | NoCuboid]:
+                   plausible: bool = False, reach: float | None = None) -> list[FittedCuboid | NoCuboid]:
     """The cuboid of each candidate's class fitted to its mask (H, W) bool, the input component (or
     its MaskTarget, shared by the shape classes tried), each shape class's fits solved as one
     batch (`mask_fit.fit_masks`), or one by one by the soft-rasterised fit (`optimizer="soft"`,
     `soft_mask_fit.fit_soft`); a fit that is not finite is a NoCuboid saying why, in its place.
     `completion=False` leaves the Refiner's completion out (benchmarks/accuracy/bench_cuboid_fit.py).
     `known`: each pair's given camera (or None), held by the fit (LM only); `plausible`: every
-    camera kept to a plausible one (`intrinsics.PlausibleRows`)."""
+    camera kept to a plausible one (`intrinsics.PlausibleRows`); `reach`: the IoU below which a clean
+    mask's fit restarts (`mask_fit.reach_silhouette`, LM only)."""
     if any(c.framing is None for c in candidates):
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
     targets = [m if isinstance(m, MaskTarget) else MaskTarget.of(m) for m in masks]
@@ -135,7 +137,7 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
         batch = [i for i, c in enumerate(candidates) if c.shape == name]
         starts = [outline_start(fit_start(candidates[i], targets[i], completion), targets[i].mask, get_shape(name),
                                 candidates[i].framing.scale) for i in batch]
-        fits = _solve(starts, get_shape(name), optimizer, [known[i] for i in batch], plausible)
+        fits = _solve(starts, get_shape(name), optimizer, [known[i] for i in batch], plausible, reach)
         for i, fit, start in zip(batch, fits, starts):
             try:
                 check_finite(fit)
@@ -149,7 +151,7 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
 
 
 def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
-           known: Sequence[KnownCamera | None], plausible: bool = False) -> list[CuboidFit]:
+           known: Sequence[KnownCamera | None], plausible: bool = False, reach: float | None = None) -> list[CuboidFit]:
     """The fits of one shape class's starts by `optimizer` (FitOptions.optimizer), each held to its
     given camera, if any (LM only: FitOptions refuses a camera with the soft optimiser)."""
     if optimizer == "soft":
@@ -158,7 +160,8 @@ def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
         return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
     return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),
                      np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts], known=known,
-                     plausible=plausible, networks=np.array([s.network_corners() for s in starts]))
+                     plausible=plausible, networks=np.array([s.network_corners() for s in starts]),
+                     reach=reach)
 
 
 @dataclass(frozen=True)
@@ -260,6 +263,18 @@ def choose_cuboid(candidates: list[Candidate], cuboids: dict[str, FittedCuboid])
     if broken[best.shape] is not None:
         warnings.append(f"the {best.shape} cuboid is no building: {broken[best.shape]}; its 3D answer is not to be trusted")
     return best, warnings
+
+
+def stopped_short(cuboids: dict[str, FittedCuboid], chosen: str, mask: np.ndarray) -> float | None:
+    """The IoU the chosen class's cuboid should reach on a clean mask (`mask_fit.polygonal`) and did
+    not, or None: `mask_fit.RESTART_IOU` (a clean generated mask has a cuboid of IoU about 1), or a
+    set-aside class's that explains the mask better by CUBOID_MARGIN (a clean box mask's box a little
+    short, and its twobox, a box with a seam, past it: a warning). The classes not chosen are left
+    as they are: one that cannot explain the mask (a box on a twobox mask) stops short every time,
+    and restarting every class that did cost a tenth of the record (40 masks, bench_infer's)."""
+    iou = cuboids[chosen].fit.iou
+    reach = max([mask_fit.RESTART_IOU] + [c.fit.iou for c in cuboids.values() if c.fit.iou > iou + CUBOID_MARGIN])
+    return reach if iou < reach and polygonal(mask) else None
 
 
 def heatmap_peaks(heatmaps: np.ndarray) -> np.ndarray:

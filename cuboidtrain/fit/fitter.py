@@ -27,14 +27,16 @@ import torch
 
 from cuboidtrain.models.device import one_thread, resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, assess, choose
-from cuboidtrain.models.codec import make_codec
-from cuboidtrain.fit.cuboid import FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates
+from cuboidtrain.models.codec import make_codec, render_heatmaps
+from cuboidtrain.fit.cuboid import (FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates,
+                                   stopped_short)
 from cuboidtrain.geometry.outline import MaskTarget
-from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask
+from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask, warp
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.silhouette import confidence
 from cuboidtrain.models.checkpoint import load_models
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
+from cuboidtrain.models.refine import refine
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.fit.trust import Trust, judge, signs
 from shared.errors import UsageError
@@ -92,6 +94,34 @@ class FitFailure:
 Outcome = Fit | FitFailure  # what `records` gives for an input (a Fit per component)
 
 
+@dataclass(frozen=True)
+class Oracle:
+    """Stages of the chain replaced by the truth for one input, in its pixels (the error budget:
+    benchmarks/accuracy/bench_budget.py): the rest of the fit runs as `infer` runs it."""
+
+    refined: np.ndarray | None = None  # (H, W) bool, the true clean mask: R's output, framed as the input is
+    keypoints: np.ndarray | None = None  # (N, 2) px, the true corners: S's maps, Gaussians there (the training targets)
+
+    def chain(self, model: CuboidNet, x1: torch.Tensor, steps: int | None, framing: Framing) -> ChainOutput:
+        """T(S(R^K(x1))) with R's output and S's maps given where the oracle gives them."""
+        if self.refined is None:
+            refined, steps, converged = refine(model.refiner, x1, steps)
+        else:
+            framed = np.where(warp(self.refined, framing), 1.0, -1.0).astype(np.float32)
+            refined, steps, converged = torch.from_numpy(framed)[None, None].to(x1.device), 0, True
+        if self.keypoints is None:
+            heatmaps = model.estimator(refined)
+        elif len(self.keypoints) != get_shape(model.shape).num_keypoints:
+            raise ValueError(f"oracle keypoints {np.shape(self.keypoints)}: expected the {model.shape} model's "
+                             f"{get_shape(model.shape).num_keypoints} corners")
+        else:
+            true = torch.from_numpy(framing.to_model(self.keypoints))[None].to(x1.device)
+            heatmaps = render_heatmaps(true, model.size, model.sigma)
+        keypoints, ratios = model.tabulator(heatmaps)
+        return ChainOutput(refined=refined, heatmaps=heatmaps, keypoints=keypoints, tabulated=keypoints,
+                           ratios=ratios, refine_steps=steps, refine_converged=converged)
+
+
 class NonFiniteFit(ValueError):
     """A model gave NaN or Infinity for a mask: no fit, and in `records` a FitFailure (its weights
     are a diverged training's, or the input broke its arithmetic)."""
@@ -125,12 +155,13 @@ class Fitter:
 
     # --- fitting ---------------------------------------------------------------------------
 
-    def fit(self, mask: str | Path | np.ndarray, camera: KnownCamera | None = None) -> Fit:
+    def fit(self, mask: str | Path | np.ndarray, camera: KnownCamera | None = None, oracle: Oracle | None = None) -> Fit:
         """The building of a mask image file, URL (`s3://...`, read by fsspec: `storage`) or array (H, W)
         (object > half its maximum, or `label_id`, `threshold`, `invert`: `masks.to_mask`): its pieces of at least 1% of the largest one's area,
         together (`masks.silhouette`); ValueError when it has none, or the file cannot be read.
-        `camera`: what is known of its camera, in its pixels (else the options', `FitOptions.camera_for`)."""
-        return self._fit_parts(mask, all_components=False, camera=camera)[0]
+        `camera`: what is known of its camera, in its pixels (else the options', `FitOptions.camera_for`);
+        `oracle`: stages replaced by the truth (the error budget)."""
+        return self._fit_parts(mask, all_components=False, camera=camera, oracle=oracle)[0]
 
     def fit_all(self, mask: str | Path | np.ndarray) -> list[Fit]:
         """One Fit per component (>= 16 px, largest first) with `all_components`, else `fit`'s one."""
@@ -153,10 +184,15 @@ class Fitter:
         return outcomes
 
     @torch.inference_mode()
-    def predict(self, model: CuboidNet, x1: torch.Tensor) -> ChainOutput:
+    def predict(self, model: CuboidNet, x1: torch.Tensor, oracle: Oracle | None = None,
+                framing: Framing | None = None) -> ChainOutput:
         """The chain T(S(R^K(x1))) on a (B, 1, S, S) +-1 batch, K the options' Refiner passes, its
-        `keypoints` read by the options' extractor (`tabulated` keeps T's)."""
-        out = model(x1.to(self.device), self.options.refine_steps)
+        `keypoints` read by the options' extractor (`tabulated` keeps T's); with an `oracle`
+        (one mask, its `framing`), the stages it gives replaced by the truth."""
+        if oracle is not None and framing is None:
+            raise ValueError("an oracle needs the framing: the map from the input's pixels to the model's")
+        out = (model(x1.to(self.device), self.options.refine_steps) if oracle is None
+               else oracle.chain(model, x1.to(self.device), self.options.refine_steps, framing))
         return replace(out, keypoints=self.codecs[model.shape].decode(out.heatmaps, out.tabulated).keypoints)
 
     def _read(self, mask: str | Path | np.ndarray) -> np.ndarray:
@@ -164,7 +200,8 @@ class Fitter:
             return load_mask(mask, self.options.label_id, self.options.threshold, self.options.invert)  # a URL stays a string
         return to_mask(mask, self.options.label_id, threshold=self.options.threshold, invert=self.options.invert)
 
-    def _fit_parts(self, mask, all_components: bool, camera: KnownCamera | None = None) -> list[Fit]:
+    def _fit_parts(self, mask, all_components: bool, camera: KnownCamera | None = None,
+                   oracle: Oracle | None = None) -> list[Fit]:
         name = str(mask) if isinstance(mask, (str, Path)) else None
         mask = self._read(mask)
         if all_components:  # a mask of several objects: each fitted alone
@@ -175,21 +212,25 @@ class Fitter:
         if not parts:
             raise UsageError(f"{name or 'mask'}: no component of at least 16 px")
         known = camera or (self.options.camera_for(name, mask.shape) if self.options.cuboid else None)
-        fits = [self._fit_component(part, name, known) for part in parts]
+        fits = [self._fit_component(part, name, known, oracle) for part in parts]
         if all_components:
             fits = [replace(f, component=k) for k, f in enumerate(fits)]
         return fits
 
-    def _fit_component(self, mask: np.ndarray, name: str | None, known: KnownCamera | None = None) -> Fit:
+    def _fit_component(self, mask: np.ndarray, name: str | None, known: KnownCamera | None = None,
+                       oracle: Oracle | None = None) -> Fit:
         """Frame one component for every candidate model and keep the best-explained fit,
         its keypoints mapped back to the input's pixels; with `cuboid`, each candidate's cuboid
         fitted to the component, judged by its own silhouette, and its projection kept."""
         candidates = []
         for model in self.models:
             framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
-            candidates.append(self.fit_framed(model, framed, framing))
+            candidates.append(self.fit_framed(model, framed, framing, oracle))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
-        cuboids = {c.shape: self.fit_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
+        # First without restarts (reach 0), then only the classes that stopped short where it matters
+        cuboids = {c.shape: self.fit_cuboid(c, target, known, reach=0.0) for c in candidates} if self.options.cuboid else {}
+        if cuboids:
+            cuboids |= self.reached(candidates, target, known, cuboids)
         set_aside: list[str] = []
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
             best, set_aside = choose_cuboid(candidates, cuboids)
@@ -208,30 +249,45 @@ class Fitter:
                    candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid, trust=trust,
                    explanation=Explanation(candidate=best, mask=mask))
 
-    def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None) -> Candidate:
+    def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None,
+                   oracle: Oracle | None = None) -> Candidate:
         """One framed bool (S, S) mask at model resolution -> its Candidate: keypoints (N, 2) model
         px, ratios, confidence, refine passes, and what an explanation draws (refined, heatmaps).
-        `framing`, the map back to the input's pixels, is carried along."""
+        `framing`, the map back to the input's pixels, is carried along (`oracle`: `predict`'s)."""
         if framed_mask.shape != (model.size, model.size):
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
         x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
         with one_thread(self.device):  # the same numbers however many threads this machine gives torch
-            out = self.predict(model, x1)
+            out = self.predict(model, x1, oracle, framing)
         return self.candidate(model, out, 0, framed_mask, framing)
 
     def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
-                    known: Sequence[KnownCamera | None] | None = None) -> list[FittedCuboid | NoCuboid]:
+                    known: Sequence[KnownCamera | None] | None = None,
+                    reach: float | None = None) -> list[FittedCuboid | NoCuboid]:
         """Each candidate's cuboid fitted to its mask (H, W) bool at the input's resolution, by the
         options' optimizer, one shape class's rows solved as one batch (`cuboid.fit_candidates`): a
         component's shape classes for `fit`, a batch of samples for `eval`. NoCuboid where a fit
-        is not finite. `known`: each mask's given camera, or None (fitted)."""
+        is not finite. `known`: each mask's given camera, or None (fitted); `reach`: the IoU below which a
+        clean mask's fit restarts (`mask_fit.reach_silhouette`)."""
         return fit_candidates(candidates, masks, optimizer=self.options.optimizer, known=known,
-                              plausible=self.options.plausible_camera)
+                              plausible=self.options.plausible_camera, reach=reach)
+
+    def reached(self, candidates: Sequence[Candidate], target: MaskTarget, known: KnownCamera | None,
+                cuboids: dict[str, FittedCuboid]) -> dict[str, FittedCuboid]:
+        """The chosen class's cuboid, where it stopped short of a clean mask's silhouette
+        (`cuboid.stopped_short`), refitted to reach it (`mask_fit.reach_silhouette`) if that explains
+        the mask better; else nothing."""
+        chosen, _ = choose_cuboid(list(candidates), cuboids)
+        reach = stopped_short(cuboids, chosen.shape, target.mask)
+        if reach is None:
+            return {}
+        again = self.fit_cuboid(chosen, target, known, reach=reach)
+        return {chosen.shape: again} if again.fit.residual_px < cuboids[chosen.shape].fit.residual_px else {}
 
     def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget,
-                   known: KnownCamera | None = None) -> FittedCuboid:
+                   known: KnownCamera | None = None, reach: float | None = None) -> FittedCuboid:
         """`fit_cuboids` for one candidate; NonFiniteCuboid where its fit is not finite."""
-        [fitted] = self.fit_cuboids([candidate], [mask], [known])
+        [fitted] = self.fit_cuboids([candidate], [mask], [known], reach)
         if isinstance(fitted, NoCuboid):
             raise NonFiniteCuboid(fitted.reason)
         return fitted

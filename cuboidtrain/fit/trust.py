@@ -21,7 +21,7 @@ the fit already computes, each named (`SIGNS`):
 * `border_cut`: the share of the silhouette's outline on the image's edge.
 
 The score is a logistic regression of "a good fit" (mean corner error under 3 px in 256 px units) on
-these signs (standardised), fitted on generated noisy masks (`benchmarks/accuracy/bench_trust.py
+these signs (standardised), fitted on generated noisy masks (`benchmarks/calibration/bench_trust.py
 --fit`, masks of other seeds than those it is measured on); each warning is one sign past a limit
 chosen there, or the score under one, with what to do.
 """
@@ -41,7 +41,7 @@ SIGNS = ("corners_moved", "corners_moved_max", "heatmap_peak", "silhouette_miss"
          "shape_margin", "mask_px", "hidden_corners", "ratio_sd", "border_cut")
 
 # The logistic model of P(good fit | signs): weights of the standardised signs (mean, sd) and an
-# intercept, fitted by benchmarks/accuracy/bench_trust.py --fit on 1,798 records of generated noisy
+# intercept, fitted by benchmarks/calibration/bench_trust.py --fit on 1,798 records of generated noisy
 # masks (the `fit` seeds: paper-clean, paper, street; box and twobox mixed; 64, 128 and 256 px; the
 # camera free and given), a good fit's mean corner error under 3 px in 256 px units (663 of them).
 # The border cut is 0 on every generated mask: it weighs nothing here, and warns below; the largest

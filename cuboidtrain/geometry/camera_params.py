@@ -365,7 +365,7 @@ class Spread:
     ratios: np.ndarray  # (R,) in `shape.ratio_names` order, in the ratios' own units
     yaw_deg: float
     focal_px: float | None  # None where the focal length is given, or infinite (weak perspective)
-    # What they were calibrated from (benchmarks/accuracy/bench_coverage.py refits the calibration on them):
+    # What they were calibrated from (benchmarks/calibration/bench_coverage.py refits the calibration on them):
     # each quantity's features (`uncertainty.features`), ratios first, then the yaw and the focal length
     features: np.ndarray | None = field(default=None, repr=False, compare=False)
 

@@ -29,7 +29,7 @@ settled on are the less certain; without it the free focal length's sd could not
 and `street` at once). The coefficients c are a least-squares fit of log |error| on x over
 generated masks (paper-clean, paper, street; box, twobox), scaled and floored so that the truth
 lies within one sd for 60-80% of the values and within two for at least 90% in each scene,
-separately for a given and a fitted focal length (`benchmarks/accuracy/bench_coverage.py --fit-from`).
+separately for a given and a fitted focal length (`benchmarks/calibration/bench_coverage.py --fit-from`).
 """
 from __future__ import annotations
 
@@ -76,7 +76,7 @@ CALIBRATIONS = {
 # features say (a corner is a few px; the outline's steps are a larger share of it). Each sd is
 # multiplied by max(1, SIZE_REFERENCE_PX / px) ** a, px the silhouette's size (`silhouette.extent_px`),
 # a fitted per (focal length given, quantity) on generated 64, 128 and 256 px masks fitted as `infer`
-# fits them (benchmarks/accuracy/bench_trust.py --fit; BENCHMARKS.md, "Error bars"); a silhouette of
+# fits them (benchmarks/calibration/bench_trust.py --fit; BENCHMARKS.md, "Error bars"); a silhouette of
 # SIZE_REFERENCE_PX or more keeps the calibration's sd.
 SIZE_REFERENCE_PX = 128.0
 SIZE_INFLATION = {(False, "ratio"): 0.20, (True, "ratio"): 0.20, (False, "yaw"): 0.35, (True, "yaw"): -0.30,

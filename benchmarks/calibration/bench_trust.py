@@ -12,9 +12,9 @@ It also makes silhouettes that are no whole box or twobox from the `measure` mas
 image's border, two or three buildings merged into one region (side by side or overlapping),
 random blobs; and reports how often each is flagged (`trust.FLAGS`), beside whole generated buildings.
 
-    .venv/bin/python benchmarks/accuracy/bench_trust.py --sets fit --rows fit.json          # two processes,
-    .venv/bin/python benchmarks/accuracy/bench_trust.py --sets measure --rows measure.json  # one core each
-    .venv/bin/python benchmarks/accuracy/bench_trust.py --from-rows fit.json measure.json [--fit]
+    .venv/bin/python benchmarks/calibration/bench_trust.py --sets fit --rows fit.json          # two processes,
+    .venv/bin/python benchmarks/calibration/bench_trust.py --sets measure --rows measure.json  # one core each
+    .venv/bin/python benchmarks/calibration/bench_trust.py --from-rows fit.json measure.json [--fit]
 
 `--fit` fits the error bars' size scaling (`uncertainty.SIZE_INFLATION`), then the trust model
 (`trust.MEANS`, `SCALES`, `WEIGHTS`, `INTERCEPT`) and its warnings' limits (`trust.LIMITS`,
@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parent.parent / "accuracy")]
 from bench_accuracy import SETS, fit_records, spool_for, with_cameras, write_masks  # noqa: E402
 from bench_coverage import miss  # noqa: E402
 

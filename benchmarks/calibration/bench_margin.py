@@ -5,7 +5,7 @@ For each set (`paper`, `street`, `paper-clean`) and shape class, masks --offset 
 margin in turn, and the masks given their own class are counted; the twobox's IoU less the box's
 (`Fit.candidates`) is summarised at the shipped margin.
 
-    .venv/bin/python benchmarks/accuracy/bench_margin.py --samples 40 --offset 80
+    .venv/bin/python benchmarks/calibration/bench_margin.py --samples 40 --offset 80
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parent.parent / "accuracy")]
 import cuboidtrain.fit.cuboid as stage  # noqa: E402
 from bench_accuracy import spool_for  # noqa: E402
 from cuboidtrain.fit.fitter import Fitter  # noqa: E402

@@ -14,8 +14,8 @@ within 1 sd and 92.5% within 2) on masks A..B-1, and reports the cells on the re
 a change of the constants is chosen on masks it is then not judged on; it prints the fitted
 `CALIBRATIONS` to paste.
 
-    .venv/bin/python benchmarks/accuracy/bench_coverage.py --samples 400 --fit-from 0 400 --rows rows.json
-    .venv/bin/python benchmarks/accuracy/bench_coverage.py --samples 200 --offset 400
+    .venv/bin/python benchmarks/calibration/bench_coverage.py --samples 400 --fit-from 0 400 --rows rows.json
+    .venv/bin/python benchmarks/calibration/bench_coverage.py --samples 200 --offset 400
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parent.parent / "accuracy")]
 from bench_accuracy import SETS, fit_records, spool_for, with_cameras, write_masks  # noqa: E402
 
 from cuboidtrain.fit.fitter import Fitter  # noqa: E402

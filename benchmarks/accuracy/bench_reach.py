@@ -1,0 +1,135 @@
+"""A fit that reaches the silhouette (issue 37, Must have 4): clean generated masks through `infer --cuboid`, the restart off and on.
+
+Each class's `paper-clean` masks (seeded spools of their own, not the ones the restart was tuned
+on: seeds 31 and 32) are fitted as `infer` fits them (both shipped models, the shape chosen), twice
+in the same process, mask by mask: **before**, the first start alone (`mask_fit.RESTART_IOU` below
+any IoU, `Fitter.reached` refitting nothing), and **after**, as shipped. Per class and size: the
+share of masks whose chosen cuboid's silhouette IoU is at least 0.99, the "box with a seam"
+warnings, the share given their own class and the corner error (px of the mask, mean and median
+of the per-mask mean, over the masks given their own class).
+
+`--records N` times instead what the restart costs, as `bench_infer.py --records` does: the whole
+record of each of N generated masks (box and twobox, three scenes), networks only, `--cuboid`
+before and after, interleaved mask by mask, `--repeats` rounds; the medians' ratios.
+
+    .venv/bin/python benchmarks/accuracy/bench_reach.py --samples 200 --size 256 --seeds 41 42
+    .venv/bin/python benchmarks/accuracy/bench_reach.py --records 40 --repeats 3
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bench_accuracy import cuboidgen_command
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.geometry import mask_fit
+from shared.sample import decode
+from shared.spool import enumerate_spool, read_sample_bytes
+
+REACHED = 0.99
+
+
+def clean_spool(root: Path, shape: str, seed: int, samples: int, size: int) -> Path:
+    """A seeded `paper-clean` spool of `samples` masks of `shape` at `size` px, drawn once."""
+    spool = root / f"clean-{shape}-{seed}-{size}"
+    if not spool.is_dir() or len(enumerate_spool(spool)) < samples:
+        shutil.rmtree(spool, ignore_errors=True)
+        subprocess.run([*cuboidgen_command(), "run", "--spool", str(spool), "--shape", shape, "--size", str(size),
+                        "--scene", "paper-clean", "--seed", str(seed), "--limit", "0", "--max-samples", str(samples),
+                        "--workers", "1", "--no-dashboard"], check=True, capture_output=True)
+    return spool
+
+
+def fitted(fitter: Fitter, sample, restart: bool, monkeypatch_reached) -> dict:
+    """One mask's fit, the restart on or off."""
+    mask_fit.RESTART_IOU = REACHED if restart else -1.0
+    Fitter.reached = monkeypatch_reached if restart else (lambda self, *args: {})
+    fit = fitter.fit(sample.clean.astype(np.uint8) * 255)
+    own = fit.shape == sample.shape
+    return {"iou": fit.cuboid.fit.iou, "own": own, "seam": any("a box with a seam" in w for w in fit.warnings),
+            "error": float(np.linalg.norm(fit.keypoints - sample.keypoints, axis=1).mean()) if own else None}
+
+
+def summary(rows: list[dict]) -> dict:
+    errors = np.array([r["error"] for r in rows if r["error"] is not None])
+    return {"masks": len(rows), "reached": float(np.mean([r["iou"] >= REACHED for r in rows])),
+            "iou_min": float(min(r["iou"] for r in rows)), "own_class": float(np.mean([r["own"] for r in rows])),
+            "seam_warnings": int(sum(r["seam"] for r in rows)),
+            "error_mean_px": float(errors.mean()), "error_median_px": float(np.median(errors))}
+
+
+def timed(count: int, repeats: int) -> dict:
+    """Median ms of the whole record, networks only and `--cuboid` before and after, interleaved."""
+    sys.path.insert(0, str(Path(__file__).parents[1] / "speed"))
+    from bench_infer import record_masks
+
+    reached = Fitter.reached
+    fitters = {"networks": Fitter.from_shipped(FitOptions(device="cpu")),
+               "before": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)),
+               "after": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))}
+    times = {name: [] for name in fitters}
+    with tempfile.TemporaryDirectory() as folder:
+        paths = record_masks(count, Path(folder))
+        for _ in range(repeats):
+            for path in paths:
+                for name, fitter in fitters.items():
+                    mask_fit.RESTART_IOU = -1.0 if name == "before" else REACHED
+                    Fitter.reached = (lambda self, *args: {}) if name == "before" else reached
+                    start = time.perf_counter()
+                    fitter.outcomes([path])
+                    times[name].append(time.perf_counter() - start)
+    Fitter.reached = reached
+    medians = {name: 1000 * statistics.median(t) for name, t in times.items()}
+    return medians | {"before_ratio": medians["before"] / medians["networks"],
+                      "after_ratio": medians["after"] / medians["networks"],
+                      "mean_after_over_before": float(np.mean(times["after"]) / np.mean(times["before"]))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--samples", type=int, default=200, help="masks a class")
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--seeds", type=int, nargs=2, default=(41, 42), help="the box and twobox spools' seeds")
+    parser.add_argument("--spools", type=Path, default=Path("spools"))
+    parser.add_argument("--records", type=int, default=0, metavar="N", help="time the record instead, on N masks")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    if args.records:
+        row = timed(args.records, args.repeats)
+        print(f"networks {row['networks']:.1f} ms; --cuboid before {row['before']:.1f} ms ({row['before_ratio']:.3f}x), "
+              f"after {row['after']:.1f} ms ({row['after_ratio']:.3f}x); mean after / before {row['mean_after_over_before']:.3f}")
+        if args.json:
+            args.json.write_text(json.dumps(row, indent=2) + "\n")
+        return
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+    reached = Fitter.reached
+    result = {}
+    for shape, seed in zip(("box", "twobox"), args.seeds):
+        spool = clean_spool(args.spools, shape, seed, args.samples, args.size)
+        samples = [decode(read_sample_bytes(spool, name)) for name in enumerate_spool(spool)[:args.samples]]
+        for restart, label in ((False, "before"), (True, "after")):
+            result[f"{shape} {label}"] = summary([fitted(fitter, s, restart, reached) for s in samples])
+    Fitter.reached = reached
+    for name, row in result.items():
+        print(f"{args.size} px {name}: IoU >= {REACHED} {100 * row['reached']:.1f}% (least {row['iou_min']:.3f}), "
+              f"own class {100 * row['own_class']:.1f}%, seam warnings {row['seam_warnings']}, "
+              f"corners {row['error_mean_px']:.2f} / {row['error_median_px']:.2f} px")
+    if args.json:
+        args.json.write_text(json.dumps({"size": args.size, "seeds": list(args.seeds), "rows": result}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""A fit that reaches the silhouette (issue 37, Must have 4), and the error budget's oracles (Must have 1)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cuboidgen.config import SCENES
+from cuboidgen.synth import make_sample
+from cuboidtrain.fit.fitter import Fitter, Oracle
+from cuboidtrain.fit.masks import warp
+from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.geometry import mask_fit
+from cuboidtrain.geometry.camera_params import CameraParams, from_sample_params
+from shared.shapes import get_shape
+from tests.conftest import small_library
+
+# Clean generated box masks (`paper-clean`, 256 px) whose fit stopped short of their silhouette before
+# the restart (IoU 0.986-0.988): masks 9, 39 and 57 of a spool drawn with seed 31.
+SHORT_BOXES = (13363269863109141259, 14377397759793473315, 4119973520403393625)
+
+
+def generated(seed: int, shape: str = "box", scene: str = "paper-clean"):
+    return make_sample(shape, SCENES[scene], 256, seed, small_library())
+
+
+@pytest.fixture(scope="module")
+def box_fitter() -> Fitter:
+    return Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape="box"))
+
+
+@pytest.fixture(scope="module")
+def networks() -> Fitter:
+    return Fitter.from_shipped(FitOptions(device="cpu", shape="box"))
+
+
+@pytest.mark.parametrize("seed", SHORT_BOXES)
+def test_a_clean_box_that_stopped_short_reaches_its_silhouette(box_fitter, seed, monkeypatch):
+    mask = generated(seed).clean
+    assert box_fitter.fit(mask).cuboid.fit.iou >= 0.99
+    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)  # the first start alone, as before the restart
+    assert box_fitter.fit(mask).cuboid.fit.iou < 0.99
+
+
+@pytest.mark.parametrize("shape", ["box", "twobox"])
+def test_the_restart_keeps_the_fit_whose_silhouette_explains_the_mask_better(shape, monkeypatch):
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape=shape))
+    seeds = (*SHORT_BOXES, 0, 1, 2) if shape == "box" else (5, 6, 7, 8, 9)
+    masks = [generated(seed, shape).clean for seed in seeds]
+    restarted = [fitter.fit(mask).cuboid.fit for mask in masks]
+    short = mask_fit.RESTART_IOU
+    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    first = [fitter.fit(mask).cuboid.fit for mask in masks]
+    assert any(once.iou < short for once in first)  # the property is tried where a restart ran
+    for again, once in zip(restarted, first):
+        assert again.residual_px <= once.residual_px  # the objective's silhouette terms never worse
+        if once.iou >= short or again.residual_px == once.residual_px:
+            np.testing.assert_array_equal(again.keypoints, once.keypoints)  # not restarted, or the restart not kept
+
+
+def test_a_clean_box_is_no_box_with_a_seam(monkeypatch):
+    # mask 122 of a clean box spool drawn with seed 41: its box fit reached IoU 0.991, its twobox 0.996
+    mask = generated(3641783572217877967).clean
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+    fit = fitter.fit(mask)
+    assert fit.shape == "box" and not any("a box with a seam" in w for w in fit.warnings)
+    monkeypatch.setattr(Fitter, "reached", lambda self, *args: {})  # no class refitted when another outdoes it
+    assert any("a box with a seam" in w for w in fitter.fit(mask).warnings)
+
+
+def test_a_noisy_mask_is_never_restarted(box_fitter, monkeypatch):
+    masks = [generated(seed, scene="paper").noisy for seed in range(4)]
+    assert not any(mask_fit.polygonal(mask) for mask in masks)
+    restarted = [box_fitter.fit(mask).keypoints for mask in masks]
+    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    for mask, keypoints in zip(masks, restarted):
+        np.testing.assert_array_equal(box_fitter.fit(mask).keypoints, keypoints)
+
+
+def test_the_necker_twin_draws_the_same_picture_under_weak_perspective():
+    sample = generated(3)
+    camera = from_sample_params(get_shape("box"), sample.params)
+    vector = camera.vector.copy()
+    vector[8] = 0.0  # weak perspective: depth leaves the picture
+    weak = CameraParams(camera.shape, vector, camera.mirror)
+    twin = mask_fit.necker_twin(weak)
+    np.testing.assert_allclose(twin.keypoints(), weak.keypoints(), atol=1e-9)
+    assert twin.mirror != weak.mirror and not np.allclose(twin.vector[2:5], weak.vector[2:5])
+
+
+@pytest.mark.parametrize("seed", SHORT_BOXES)
+def test_the_hull_vertices_of_a_clean_mask_are_its_corners(seed):
+    sample = generated(seed)
+    vertices = mask_fit.hull_vertices(sample.clean)
+    nearest = np.linalg.norm(vertices[:, None] - sample.keypoints[None], axis=2).min(1)
+    assert len(vertices) >= 4 and nearest.max() < 3.0, nearest  # a sharp corner's tip is lost to the pixels
+    assert mask_fit.signed_area(vertices) > 0
+
+
+def test_the_true_heat_maps_put_the_networks_corners_on_the_truth(networks):
+    sample = generated(3, scene="paper")
+    plain = networks.fit(sample.noisy)
+    told = networks.fit(sample.noisy, oracle=Oracle(keypoints=sample.keypoints))
+
+    def error(fit) -> float:
+        return float(np.linalg.norm(fit.keypoints - sample.keypoints, axis=1).mean())
+
+    assert error(told) < 2.0 and error(told) < error(plain)
+
+
+def test_the_true_clean_mask_stands_for_the_refiners_output(networks):
+    sample = generated(3, scene="paper")
+    told = networks.fit(sample.noisy, oracle=Oracle(refined=sample.clean))
+    candidate = told.explanation.candidate
+    assert told.refine_steps == 0
+    np.testing.assert_array_equal(candidate.refined > 0, warp(sample.clean, candidate.framing))
+
+
+def test_true_corners_of_another_class_are_refused():
+    sample = generated(3)
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", shape="twobox"))
+    with pytest.raises(ValueError, match="expected the twobox model's 14 corners"):
+        fitter.fit(sample.clean, oracle=Oracle(keypoints=sample.keypoints))
