@@ -187,10 +187,21 @@ def start_page_server(*options: str):
     return f"http://127.0.0.1:{port}/", server
 
 
+def pytest_configure(config):
+    config.addinivalue_line("markers", "stops_page_server: stops the session's page server; run after every other test")
+
+
+def pytest_collection_modifyitems(items):
+    """The tests that stop the session's page server (`stops_page_server`) last: one server start (its
+    worker importing torch and the models, ~5 s) serves every page test, the stop included."""
+    last = [item for item in items if item.get_closest_marker("stops_page_server")]
+    items[:] = [item for item in items if item not in last] + last
+
+
 @pytest.fixture(scope="session")
 def page_server():
     """The page's server for its tests (tests/test_web.py, tests/test_web_browser.py), uploads up to 2 MB;
-    stopped with Ctrl-C at the end."""
+    stopped with Ctrl-C at the end, by the test of that (tests/test_web.py) where it ran."""
     import signal
 
     pytest.importorskip("starlette", reason="the web extra is not installed (pip install 'cuboid-fit[web]')")
