@@ -7,7 +7,6 @@ never imports fsspec. Skipped without fsspec (torch brings it; Dask too)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import uuid
@@ -191,9 +190,11 @@ def masks(tmp_path_factory) -> list[str]:
 
 
 def infer(*args: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "cuboidtrain", "infer", *args, "--device", "cpu", "--networks-only"]
-    return subprocess.run(command, cwd=ROOT, env=os.environ | {"OMP_NUM_THREADS": "1"}, capture_output=True,
-                          text=True, timeout=180)
+    """`infer ARGS --device cpu --networks-only` in this process (click's runner), its exit status and
+    stderr: the URLs cross processes where `--workers` fit them, each worker reading its own."""
+    result = runner.invoke(app, ["infer", *args, "--device", "cpu", "--networks-only"])
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
+    return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
 
 
 def stored(out: Path) -> list[dict]:
@@ -213,10 +214,8 @@ def test_two_workers_read_file_urls_and_resume_a_store_keyed_by_url(tmp_path, ma
     folder = Path(masks[0]).parent
     url = folder.as_uri() + "/"
     (listing := tmp_path / "first.txt").write_text("".join(f"{url}{Path(p).name}\n" for p in masks[:3]))
-    # the store's first 3 records, in this process: what crosses processes is the resumed run's workers
-    first = runner.invoke(app, ["infer", "--from-list", str(listing), "--jsonl", str(tmp_path / "urls.jsonl"),
-                                "--device", "cpu", "--networks-only"])
-    assert first.exit_code == 0, first.output
+    first = infer("--from-list", str(listing), "--jsonl", str(tmp_path / "urls.jsonl"))
+    assert first.returncode == 0, first.stderr
     resumed = infer(url, "--jsonl", str(tmp_path / "urls.jsonl"), "--workers", "2")
     assert resumed.returncode == 0 and "holds 3 of the 8 inputs" in resumed.stderr, resumed.stderr
     remote = stored(tmp_path / "urls.jsonl")
