@@ -83,6 +83,21 @@ def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     return to_records(fitter.outcomes(paths, explain=explain), fitter.options)
 
 
+def command_here(args: list[str]):
+    """`cuboidtrain ARGS` in this process (click's runner), read as a finished process is: exit status,
+    stdout and stderr. For the runs whose process boundary is not what a test is about: a process of
+    their own spends ~3 s of CPU starting Python and loading torch and the models."""
+    import subprocess
+
+    from typer.testing import CliRunner
+
+    from cuboidtrain.cli import app
+
+    result = CliRunner().invoke(app, args)
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
+    return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
+
+
 def with_generated_pdm(model):
     """`model` with the shape model a model file would carry, drawn from the generator."""
     from cuboidtrain.experiments.generated_pdm import generated_pdm

@@ -15,15 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 from rich.console import Console
-from typer.testing import CliRunner
 
-from cuboidtrain.cli import app
 from cuboidtrain.infer.batch import Batch, run_batch
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.records import read_records, to_records
 from cuboidtrain.models.zoo import default_checkpoints
-from tests.conftest import write_mask_pngs
+from tests.conftest import command_here, write_mask_pngs
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refiner passes: ~0.1 s a mask
@@ -60,12 +58,9 @@ def infer_command(folder: str, out: Path, *extra: str) -> list[str]:
 
 
 def resume_here(command: list[str]) -> subprocess.CompletedProcess:
-    """A resumed run of `command` (`[python, -m, cuboidtrain, infer, ...]`) in this process, through click's
-    runner: the kill or the full disk came to the first run's process; the rerun only reads its store
-    and fits the rest, and a process of its own would add ~3 s of starting Python and torch."""
-    result = CliRunner().invoke(app, command[3:])
-    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
-    return subprocess.CompletedProcess(command, result.exit_code, result.stdout, result.stderr)
+    """A resumed run of `command` (`[python, -m, cuboidtrain, infer, ...]`) in this process: the kill or
+    the full disk came to the first run's process; the rerun only reads its store and fits the rest."""
+    return command_here(command[3:])
 
 
 def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp_path, masks):

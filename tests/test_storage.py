@@ -22,7 +22,7 @@ from cuboidtrain.cli import app
 from cuboidtrain.infer.inputs import gather_inputs
 from cuboidtrain.fit.masks import load_mask
 from shared.errors import UsageError
-from tests.conftest import infer_paths, tiny_model, write_mask_pngs
+from tests.conftest import command_here, infer_paths, tiny_model, write_mask_pngs
 
 fsspec = pytest.importorskip("fsspec")
 ROOT = Path(__file__).resolve().parents[1]
@@ -190,11 +190,9 @@ def masks(tmp_path_factory) -> list[str]:
 
 
 def infer(*args: str) -> subprocess.CompletedProcess:
-    """`infer ARGS --device cpu --networks-only` in this process (click's runner), its exit status and
-    stderr: the URLs cross processes where `--workers` fit them, each worker reading its own."""
-    result = runner.invoke(app, ["infer", *args, "--device", "cpu", "--networks-only"])
-    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
-    return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
+    """`infer ARGS --device cpu --networks-only` in this process: the URLs cross processes where
+    `--workers` fit them, each worker reading its own."""
+    return command_here(["infer", *args, "--device", "cpu", "--networks-only"])
 
 
 def stored(out: Path) -> list[dict]:
