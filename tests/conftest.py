@@ -83,17 +83,25 @@ def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     return to_records(fitter.outcomes(paths, explain=explain), fitter.options)
 
 
-def command_here(args: list[str]):
-    """`cuboidtrain ARGS` in this process (click's runner), read as a finished process is: exit status,
-    stdout and stderr. For the runs whose process boundary is not what a test is about: a process of
-    their own spends ~3 s of CPU starting Python and loading torch and the models."""
+def command_here(args: list[str], env: dict[str, str] | None = None):
+    """`cuboidtrain ARGS` in this process (click's runner, no terminal; `env` set meanwhile), read as a
+    finished process is: exit status, stdout and stderr. For the runs whose process boundary is not
+    what a test is about: a process of their own spends ~3 s of CPU starting Python and loading torch
+    and the models."""
+    import logging
     import subprocess
 
     from typer.testing import CliRunner
 
     from cuboidtrain.cli import app
 
-    result = CliRunner().invoke(app, args)
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        result = CliRunner().invoke(app, args, env=env)
+    finally:  # the command's log handler writes to the runner's stream, closed once it returns
+        root.handlers[:] = handlers
+        root.setLevel(level)
     assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
     return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
 

@@ -14,10 +14,10 @@ import pytest
 import typer
 from rich.console import Console
 from rich.text import Text
-from typer.testing import CliRunner
 
 from cuboidtrain.cli import app as train_app
 from cuboidgen.cli import app as gen_app
+from tests.conftest import command_here
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,9 +67,8 @@ def test_the_panel_title_shows_the_digits_that_tell_the_shapes_apart():
 
 
 def test_the_model_table_splits_no_number_in_80_columns_without_a_terminal():
-    # in this process (click's runner is no terminal): a process of its own would spend ~3 s loading torch
-    done = CliRunner().invoke(train_app, ["models"], env={"COLUMNS": "80", "PATH": ""})
-    assert done.exit_code == 0, done.output
+    done = command_here(["models"], env={"COLUMNS": "80", "PATH": ""})
+    assert done.returncode == 0
     rows = [line for line in done.stderr.splitlines() if line.startswith("│ ")]
     assert [row.split("│")[1].strip() for row in rows] == ["box", "twobox"]  # one line a model: nothing wrapped
     for row in rows:
