@@ -224,7 +224,8 @@ def pytest_collection_modifyitems(items):
 @pytest.fixture(scope="session")
 def page_server():
     """The page's server for its tests (tests/test_web.py, tests/test_web_browser.py), uploads up to 2 MB;
-    stopped with Ctrl-C at the end, by the test of that (tests/test_web.py) where it ran."""
+    stopped with Ctrl-C by tests/test_web.py's test of that, which runs last (`stops_page_server`), or
+    here at the end where that test did not run."""
     import signal
 
     pytest.importorskip("starlette", reason="the web extra is not installed (pip install 'cuboid-fit[web]')")
