@@ -83,6 +83,29 @@ def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     return to_records(fitter.outcomes(paths, explain=explain), fitter.options)
 
 
+def command_here(args: list[str], env: dict[str, str] | None = None):
+    """`cuboidtrain ARGS` in this process (click's runner, no terminal; `env` set meanwhile), read as a
+    finished process is: exit status, stdout and stderr. For the runs whose process boundary is not
+    what a test is about: a process of their own spends ~3 s of CPU starting Python and loading torch
+    and the models."""
+    import logging
+    import subprocess
+
+    from typer.testing import CliRunner
+
+    from cuboidtrain.cli import app
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        result = CliRunner().invoke(app, args, env=env)
+    finally:  # the command's log handler writes to the runner's stream, closed once it returns
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
+    return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
+
+
 def with_generated_pdm(model):
     """`model` with the shape model a model file would carry, drawn from the generator."""
     from cuboidtrain.experiments.generated_pdm import generated_pdm
@@ -187,10 +210,22 @@ def start_page_server(*options: str):
     return f"http://127.0.0.1:{port}/", server
 
 
+def pytest_configure(config):
+    config.addinivalue_line("markers", "stops_page_server: stops the session's page server; run after every other test")
+
+
+def pytest_collection_modifyitems(items):
+    """The tests that stop the session's page server (`stops_page_server`) last: one server start (its
+    worker importing torch and the models, ~5 s) serves every page test, the stop included."""
+    last = [item for item in items if item.get_closest_marker("stops_page_server")]
+    items[:] = [item for item in items if item not in last] + last
+
+
 @pytest.fixture(scope="session")
 def page_server():
     """The page's server for its tests (tests/test_web.py, tests/test_web_browser.py), uploads up to 2 MB;
-    stopped with Ctrl-C at the end."""
+    stopped with Ctrl-C by tests/test_web.py's test of that, which runs last (`stops_page_server`), or
+    here at the end where that test did not run."""
     import signal
 
     pytest.importorskip("starlette", reason="the web extra is not installed (pip install 'cuboid-fit[web]')")

@@ -21,7 +21,7 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.records import read_records, to_records
 from cuboidtrain.models.zoo import default_checkpoints
-from tests.conftest import write_mask_pngs
+from tests.conftest import command_here, write_mask_pngs
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refiner passes: ~0.1 s a mask
@@ -57,6 +57,12 @@ def infer_command(folder: str, out: Path, *extra: str) -> list[str]:
             "--device", "cpu", "--networks-only", *extra]  # the references are the networks' records
 
 
+def resume_here(command: list[str]) -> subprocess.CompletedProcess:
+    """A resumed run of `command` (`[python, -m, cuboidtrain, infer, ...]`) in this process: the kill or
+    the full disk came to the first run's process; the rerun only reads its store and fits the rest."""
+    return command_here(command[3:])
+
+
 def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp_path, masks):
     out, folder = tmp_path / "out.jsonl", str(Path(masks[0]).parent)
     env = os.environ | {"OMP_NUM_THREADS": "1"}
@@ -71,7 +77,7 @@ def test_a_run_killed_mid_way_resumes_to_the_records_of_an_uninterrupted_run(tmp
     assert 8 <= len(kept) < COUNT, "killed mid-way"
     with out.open("a") as torn:  # as if the kill had come mid-write
         torn.write(f'{{"index": {COUNT - 1}, "input": "')
-    resumed = subprocess.run(infer_command(folder, out), cwd=ROOT, env=env, capture_output=True, text=True)
+    resumed = resume_here(infer_command(folder, out))
     assert resumed.returncode == 1, resumed.stderr  # one is no image
     assert f"holds {len(kept)} of the {COUNT} inputs" in resumed.stderr
     records = read_records(out)
@@ -124,8 +130,7 @@ def test_two_workers_killed_leave_no_process_behind_and_resume_to_one_process_s_
     while time.monotonic() < deadline and any(map(running, under)):
         time.sleep(0.1)
     assert not [pid for pid in under if running(pid)], "workers outlived a killed infer"
-    resumed = subprocess.run(infer_command(folder, out, "--workers", "2"), cwd=ROOT, env=env, capture_output=True,
-                             text=True, timeout=120)
+    resumed = resume_here(infer_command(folder, out, "--workers", "2"))
     assert resumed.returncode == 1 and f"holds {kept} of the {COUNT} inputs" in resumed.stderr  # one is no image
     records = read_records(out)
     assert [r["index"] for r in records] == list(range(COUNT))
@@ -177,7 +182,7 @@ def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun
     assert lines == [f"error: --jsonl {out}: file size limit reached after {len(kept)} records (all kept); "
                      f"expected free space: make some and rerun to resume"]
     assert out.read_bytes().endswith(b"\n") and out.read_bytes().count(b"\n") == len(kept)  # whole records only
-    resumed = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    resumed = resume_here(command)
     assert resumed.returncode == 1 and f"holds {len(kept)} of the {COUNT} inputs" in resumed.stderr  # one is no image
     records = read_records(out)
     assert [r["index"] for r in records] == list(range(COUNT))

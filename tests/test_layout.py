@@ -222,12 +222,8 @@ def test_no_import_climbs_back_up_a_floor():
     assert climbs(graph) == []
 
 
-def test_importing_the_fitter_loads_neither_the_trainer_nor_the_runners():
-    code = ("import sys, cuboidtrain.fit.fitter\n"
-            "print(sorted(m for m in sys.modules if m.startswith(('cuboidtrain.train', 'cuboidtrain.infer'))))")
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.strip() == "[]"
+def test_importing_the_fitter_loads_neither_the_trainer_nor_the_runners(fresh_interpreter):
+    assert fresh_interpreter["fitter_loads"] == []
 
 
 def private_imports(path: Path) -> list[str]:
@@ -290,15 +286,18 @@ SLOW_IMPORTS = ("torchvision", "torch._dynamo", "matplotlib", "dask", "distribut
 @pytest.fixture(scope="module")
 def fresh_interpreter() -> dict:
     """In a fresh interpreter at the repository's root (torch and the shipped models load once):
-    the README's example as written, then the same mask fitted from an array, and which
-    cuboidgen modules and SLOW_IMPORTS all of that loaded."""
+    which trainer and runner modules importing the fitter alone loaded, the README's example as
+    written, then the same mask fitted from an array, and which cuboidgen modules and SLOW_IMPORTS
+    all of that loaded."""
     example = readme_python_example()
     # One torch thread, as this process has (conftest): the same sums in the same order, the same floats.
-    code = (f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.fit.candidates\n"
+    code = ("import sys, cuboidtrain.fit.fitter\nFITTER_LOADS = sorted(m for m in sys.modules if m.startswith("
+            "('cuboidtrain.train', 'cuboidtrain.infer')))\n"
+            f"SLOW_IMPORTS = {SLOW_IMPORTS!r}\nimport torch\ntorch.set_num_threads(1)\n" + example + "\nimport json, sys, cv2\nimport cuboidtrain.cli, cuboidtrain.fit.candidates\n"
             "from cuboidtrain import FitOptions\n"
             "fitter = Fitter.from_shipped(FitOptions(device='cpu', cuboid=True))\n"
             "array = fitter.fit(cv2.imread('examples/building.png', cv2.IMREAD_UNCHANGED))\n"
-            "print(json.dumps({'example': fit.record(), 'array': array.record(), 'generator': "
+            "print(json.dumps({'fitter_loads': FITTER_LOADS, 'example': fit.record(), 'array': array.record(), 'generator': "
             "sorted(m for m in sys.modules if m.split('.')[0] == 'cuboidgen'), "
             "'slow_imports': sorted(m for m in SLOW_IMPORTS if m in sys.modules)}))\n")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)

@@ -19,7 +19,7 @@ from cuboidgen.synth import sample_seed
 from shared.sample import decode
 from shared.spool import TMP_PREFIX, enumerate_spool, read_sample_bytes
 
-LIMIT, EVICT_EVERY, SAMPLES, SEED = 40, 8, 800, 5
+LIMIT, EVICT_EVERY, SAMPLES, SEED = 40, 8, 400, 5  # 400 a daemon: ten times the limit, each writer evicting many times over
 # (workers, --seed): two daemons share a seed, as scaled replicas given one CUBOIDGEN_SEED would.
 DAEMONS = ((1, SEED), (1, SEED), (2, None))
 

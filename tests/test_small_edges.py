@@ -17,6 +17,7 @@ from rich.text import Text
 
 from cuboidtrain.cli import app as train_app
 from cuboidgen.cli import app as gen_app
+from tests.conftest import command_here
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -74,8 +75,7 @@ def test_the_panel_title_says_why_a_lower_score_won_in_digits_that_tell_them_apa
 
 
 def test_the_model_table_splits_no_number_in_80_columns_without_a_terminal():
-    done = subprocess.run([sys.executable, "-c", "from cuboidtrain.cli import main; main()", "models"], cwd=ROOT,
-                          capture_output=True, text=True, env={"COLUMNS": "80", "PATH": ""}, timeout=300)
+    done = command_here(["models"], env={"COLUMNS": "80", "PATH": ""})
     assert done.returncode == 0
     rows = [line for line in done.stderr.splitlines() if line.startswith("│ ")]
     assert [row.split("│")[1].strip() for row in rows] == ["box", "twobox"]  # one line a model: nothing wrapped

@@ -7,7 +7,6 @@ never imports fsspec. Skipped without fsspec (torch brings it; Dask too)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import uuid
@@ -23,7 +22,7 @@ from cuboidtrain.cli import app
 from cuboidtrain.infer.inputs import gather_inputs
 from cuboidtrain.fit.masks import load_mask
 from shared.errors import UsageError
-from tests.conftest import infer_paths, tiny_model, write_mask_pngs
+from tests.conftest import command_here, infer_paths, tiny_model, write_mask_pngs
 
 fsspec = pytest.importorskip("fsspec")
 ROOT = Path(__file__).resolve().parents[1]
@@ -191,9 +190,9 @@ def masks(tmp_path_factory) -> list[str]:
 
 
 def infer(*args: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "cuboidtrain", "infer", *args, "--device", "cpu", "--networks-only"]
-    return subprocess.run(command, cwd=ROOT, env=os.environ | {"OMP_NUM_THREADS": "1"}, capture_output=True,
-                          text=True, timeout=180)
+    """`infer ARGS --device cpu --networks-only` in this process: the URLs cross processes where
+    `--workers` fit them, each worker reading its own."""
+    return command_here(["infer", *args, "--device", "cpu", "--networks-only"])
 
 
 def stored(out: Path) -> list[dict]:
@@ -228,6 +227,7 @@ def test_a_dask_cluster_reads_file_urls_into_the_records_of_local_paths(masks, l
     from tests.test_cluster import run
 
     urls = [Path(p).as_uri() for p in masks]
-    remote = run(urls, workers=2, cluster="local")
+    # one worker process reads the URLs (tests/test_cluster.py shows two share the inputs as one does)
+    remote = run(urls, workers=1, cluster="local")
     assert [r["input"] for r in remote] == urls
     assert without_input(remote, "", "") == without_input(local_records, "", "")

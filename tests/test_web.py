@@ -16,7 +16,6 @@ import pytest
 from typer.testing import CliRunner
 
 from cuboidtrain.cli import app
-from tests.conftest import start_page_server
 from tests.test_not_a_mask import building, photo
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,8 +108,10 @@ def test_a_generated_mask_comes_with_its_truth_and_the_errors(page_server):
     assert status == 400 and answer["error"] == "scene 'moon': expected one of paper, paper-clean, street"
 
 
+@pytest.mark.stops_page_server  # the session's server, after every other test that uses it
 def test_ctrl_c_stops_the_server_cleanly(page_server):
-    _, server = start_page_server("--workers", "1")  # its own: the session's serves the browser test
+    _, server = page_server
+    assert server.poll() is None  # it served every page test before this one
     server.send_signal(signal.SIGINT)
     assert server.wait(30) == 0
     said = server.stderr.read()
