@@ -151,3 +151,26 @@ def test_the_readme_caption_quotes_the_line_infer_prints_for_its_picture(monkeyp
     caption = readme.split("](docs/explain-building.png)", 1)[1].split("\n\n", 2)[1]
     quoted = re.findall(r"`([^`]*)`", caption)
     assert script.answer_line() in quoted, quoted
+
+
+def test_a_long_title_wraps_inside_the_panel(random_models):
+    # A twobox's answer line and a warning in full run past 16 inches at 11 pt: the title wraps, and
+    # every line of it lies inside the figure (a long warning once ran off both edges).
+    from dataclasses import replace
+
+    import matplotlib.pyplot as plt
+
+    from cuboidtrain.fit.fitter import Fitter
+    from cuboidtrain.fit.options import FitOptions
+    from cuboidtrain.infer.explain import caption, explanation_figure
+
+    fit = Fitter(random_models, FitOptions(device="cpu", cuboid=True)).fit(rectangles((90, 150), (10, 20, 140, 70)))
+    fit = replace(fit, warnings=("weak-heatmaps: " + "the Estimator's heat maps peak low; check the mask " * 8,))
+    assert max(len(line) for line in caption(fit, 60).splitlines()) <= 60
+    fig = explanation_figure(fit)
+    fig.canvas.draw()
+    title, frame = fig._suptitle.get_window_extent(), fig.bbox
+    assert frame.x0 <= title.x0 and title.x1 <= frame.x1 and title.y1 <= frame.y1
+    highest = max(ax.title.get_window_extent().y1 for ax in fig.axes if ax.get_title())
+    assert title.y0 >= highest  # above every tile's title: the band grew with the lines
+    plt.close(fig)

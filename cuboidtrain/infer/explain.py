@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import textwrap
 from dataclasses import replace
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -67,6 +68,10 @@ NETWORK_COLOUR = "#e7298a"  # the networks' corners, against the fitted cuboid's
 MISSED_COLOUR, EXTRA_COLOUR = (1.0, 0.15, 0.1), (0.2, 0.5, 1.0)  # input minus model, model minus input
 CUBOID_ROW = 6.2  # inches: the --cuboid row, titles and legends included
 LEGEND_ROW = 0.4  # inches: a row of legend under the top tiles, and under the heat maps
+# The title at 11 pt: about 11 characters an inch of figure (DejaVu Sans' mean advance is ~0.55 em),
+# each line about 0.22 in tall.
+CAPTION_CHARS_PER_INCH = 11
+TITLE_LINE_INCHES = 0.22
 ARROW_COLOUR, HEAT_POINT_COLOUR = "#e41a1c", "#00ff66"
 OUTSIDE = dict(facecolor="#8c8c8c", edgecolor="#5e5e5e", hatch="///", linewidth=0)  # beyond the image
 
@@ -258,7 +263,9 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
     # Lay out in inches, then convert: a title band, the big tiles and their legend, [the cuboid's
     # row,] the heat-map tiles and their legend.
     width = 16.0
-    title, big, small = 0.95, width / tops * 0.92 + 0.35, width / columns * 0.92 + 0.45
+    heading = caption(fit, int(width * CAPTION_CHARS_PER_INCH))
+    title = max(0.95, 0.3 + TITLE_LINE_INCHES * (heading.count("\n") + 1))  # a long warning wraps: room for it
+    big, small = width / tops * 0.92 + 0.35, width / columns * 0.92 + 0.45
     cuboid = CUBOID_ROW if fit.cuboid is not None else 0.0  # its tiles, their titles and legends below them
     height = title + big + LEGEND_ROW + cuboid + small * heat_rows + LEGEND_ROW
     fig = plt.figure(figsize=(width, height))
@@ -290,7 +297,7 @@ def explanation_figure(fit: Fit, photo: np.ndarray | None = None, photo_keypoint
     _heatmap_tiles(fig, heat_grid, geometry, candidate.heatmaps, keypoints, candidate.refined)
     fig.legend(handles=heatmap_handles(), loc="lower center", ncol=2, fontsize=8, frameon=False,
                bbox_to_anchor=(0.5, 0.02 / height))
-    fig.suptitle(caption(fit), fontsize=11, y=1 - 0.1 / height, va="top")
+    fig.suptitle(heading, fontsize=11, y=1 - 0.1 / height, va="top")
     return fig
 
 
@@ -317,14 +324,18 @@ def input_keypoints(fit: Fit) -> np.ndarray:
     return np.asarray(fit.keypoints, dtype=np.float64)
 
 
-def caption(fit: Fit) -> str:
+def caption(fit: Fit, columns: int | None = None) -> str:
     """The panel's title: the line `infer` prints for the fit, why its shape won where another scored
-    higher, and its first warning in full."""
+    higher, and its first warning in full; each wrapped to `columns` characters (None: unwrapped), so
+    that a twobox's line and a long warning stay inside the figure."""
     record = to_record(fit, fit.component is not None, fit.cuboid is not None)
     lines = [Answer.of(record).line(), choice_reason(fit)]
     if fit.warnings:
         lines.append("warning: " + fit.warnings[0])
-    return "\n".join(line for line in lines if line)
+    kept = [line for line in lines if line]
+    if columns is not None:
+        kept = [part for line in kept for part in textwrap.wrap(line, columns)]
+    return "\n".join(kept)
 
 
 def choice_reason(fit: Fit) -> str | None:
