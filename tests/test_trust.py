@@ -55,6 +55,20 @@ def test_a_fit_whose_networks_corners_moved_far_says_so_and_scores_lower(fitter)
     assert all(w.message and w.action for w in judged.warnings)
 
 
+def test_a_middling_score_doubts_a_clean_outline_but_not_a_noisy_one(fitter):
+    """A noisy outline's good fits score low (their unexplained share and residual): the low score that
+    warns there is lower than on a clean outline, where a middling score says a hidden corner is doubtful."""
+    fit = fitter.fit(clean(3))
+    values = trust.signs(fit.explanation.candidate, fit.cuboid, fit.explanation.mask, [0.0])
+    middling = (trust.LOW_SCORE + trust.LOW_SCORE_CLEAN) / 2
+    tidy = values | {"outline_rms": trust.CLEAN_OUTLINE / 2}
+    rough = values | {"outline_rms": (trust.CLEAN_OUTLINE + trust.LIMITS["outline_rms"]) / 2}
+    assert not trust.warnings(tidy, 0.9) and not trust.warnings(rough, 0.9)  # nothing else warns
+    assert [w.code for w in trust.warnings(tidy, middling)] == ["low-trust"]
+    assert not trust.warnings(rough, middling)
+    assert [w.code for w in trust.warnings(rough, trust.LOW_SCORE / 2)] == ["low-trust"]
+
+
 def test_the_record_carries_a_trust_level_score_and_its_warnings_as_lines(fitter):
     fit = fitter.fit(clean(5, "twobox"))
     record = fit.record()
