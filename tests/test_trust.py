@@ -75,7 +75,7 @@ def test_the_record_carries_a_trust_level_score_and_its_warnings_as_lines(fitter
     assert record["trust"]["level"] in ("high", "medium", "low") and 0 <= record["trust"]["score"] <= 1
     assert set(record["trust"]["signs"]) == set(trust.SIGNS)
     judged = fit.trust
-    assert record["trust"]["level"] == trust.level(judged.score, list(judged.warnings))
+    assert record["trust"]["level"] == trust.level(judged.score, trust.low_score(judged.signs), list(judged.warnings))
     assert list(record["trust"]) == documented_keys("The trust object")
     assert all(f"`{name}`" in section("The trust object") for name in trust.SIGNS)
     lines = [w for w in record["warnings"] if w.split(":")[0] in {c["code"] for c in record["trust"]["warnings"]}]

@@ -51,9 +51,9 @@ MEANS = (3.253, 7.625, 0.5954, 0.1109, 0.007036, 0.7988, 0.05684, 6.678, 0.3542,
 SCALES = (2.555, 5.978, 0.0938, 0.162, 0.008697, 0.5427, 0.06895, 0.8282, 0.09872, 0.6908, 1.0)
 WEIGHTS = (-0.3395, 0.0, 0.7714, 0.0, -1.103, -0.1885, 0.163, 0.4489, -0.503, -0.7941, 0.0)
 INTERCEPT = -1.177
-# "high": a score at least HIGH and no warning; "low": a score under LOW_SCORE (below) or a flag (no
+# "high": a score at least HIGH and no warning; "low": a score under `low_score` (below) or a flag (no
 # whole building); "medium" the rest. On the `measure` seeds: high 34% of the records (73% of them
-# under 3 px, 2% over 10), medium 35% (23%, 16%), low 31% (4%, 51%).
+# under 3 px, 2% over 10), medium 32% (24%, 16%), low 34% (5%, 47%).
 HIGH = 0.5
 
 
@@ -118,9 +118,10 @@ def score(values: dict[str, float]) -> float:
     return float(1.0 / (1.0 + math.exp(-float(np.clip(INTERCEPT + x @ np.array(WEIGHTS), -40, 40)))))
 
 
-def level(value: float, found: list[NamedWarning]) -> str:
-    """"high", "medium" or "low" for a score and its warnings (HIGH, LOW_SCORE, FLAGS)."""
-    if value < LOW_SCORE or any(w.code in FLAGS for w in found):
+def level(value: float, low: float, found: list[NamedWarning]) -> str:
+    """"high", "medium" or "low" for a score, the score under which its signs are doubted (`low_score`)
+    and its warnings (HIGH, FLAGS)."""
+    if value < low or any(w.code in FLAGS for w in found):
         return "low"
     return "high" if value >= HIGH and not found else "medium"
 
@@ -129,7 +130,7 @@ def judge(values: dict[str, float]) -> Trust:
     """The trust of a fit with these signs: its score, level and warnings."""
     value = score(values)
     found = warnings(values, value)
-    return Trust(value, level(value, found), dict(values), tuple(found))
+    return Trust(value, level(value, low_score(values), found), dict(values), tuple(found))
 
 
 # Each warning: the sign it reads and the limit past which it is raised (above it; `heatmap_peak`,
