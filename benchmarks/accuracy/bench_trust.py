@@ -308,6 +308,8 @@ def fit_limits(rows: list[dict]) -> str:
         shares = warned([worst, *scenes])
         if max(shares[1:]) <= GOOD_WARNED and (best is None or shares[0] > best[0]):
             best = (shares[0], max(shares[1:]), limits, trust.LOW_SCORE)
+    if best is None:
+        raise SystemExit(f"no limits warn at most {GOOD_WARNED:.0%} of every scene's good fits: the flags alone warn more")
     trust.LIMITS, trust.LOW_SCORE = best[2], best[3]  # as fit_trust's: this process only
     clean = (0.0, trust.CLEAN_OUTLINE, 0.0)
     for rms, low in itertools.product((0.3, 0.4, 0.5, 0.6), np.linspace(best[3], 0.6, 50)):
