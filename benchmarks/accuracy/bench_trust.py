@@ -18,7 +18,8 @@ random blobs; and reports how often each is flagged (`trust.FLAGS`), beside whol
 
 `--fit` fits the error bars' size scaling (`uncertainty.SIZE_INFLATION`), then the trust model
 (`trust.MEANS`, `SCALES`, `WEIGHTS`, `INTERCEPT`) and its warnings' limits (`trust.LIMITS`,
-`LOW_SCORE`) on the `fit` set, prints them to paste and uses them for the tables; without it the
+`LOW_SCORE`, `CLEAN_OUTLINE`, `LOW_SCORE_CLEAN`: each scene's good fits warned at most `GOOD_WARNED`)
+on the `fit` set, prints them to paste and uses them for the tables; without it the
 tables are the constants in the code's. The tables are always the `measure` set's: the error bars'
 coverage (within 1 / 2 sd per quantity and size), the warning rates and AUROC per scene, and the
 flag rates per kind of silhouette.
