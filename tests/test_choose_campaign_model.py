@@ -15,14 +15,18 @@ SAMPLES, BATCH, SHARES = 8, 4, 2
 CANDIDATES = ["tiny:32", "tiny:64"]
 
 
+def options(folder: Path) -> list[str]:
+    return ["--samples", str(SAMPLES), "--batch", str(BATCH), "--shares", str(SHARES), "--sets", "paper",
+            "--masks", "2", "--latency-masks", "1", "--latency-rounds", "1", "--spools", str(folder / "spools"),
+            "--runs", str(folder / "runs")]
+
+
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     folder = tmp_path_factory.mktemp("choose")
-    out = choose.main(["--candidates", *CANDIDATES, "--rate-only", "tiny:96", "--samples", str(SAMPLES),
-                       "--batch", str(BATCH), "--shares", str(SHARES), "--sets", "paper", "--masks", "2",
-                       "--latency-masks", "1", "--latency-rounds", "1", "--rate-steps", "2",
-                       "--spools", str(folder / "spools"), "--json", str(folder / "choose.json")])
-    return out, json.loads((folder / "choose.json").read_text())
+    out = choose.main(["--candidates", *CANDIDATES, "--rate-only", "tiny:96", "--rate-steps", "2",
+                       "--rate-batch", "2", *options(folder), "--json", str(folder / "choose.json")])
+    return out, json.loads((folder / "choose.json").read_text()), folder
 
 
 def trained_rows(out: dict) -> list[dict]:
@@ -30,7 +34,7 @@ def trained_rows(out: dict) -> list[dict]:
 
 
 def test_every_candidate_trains_on_the_same_samples_in_the_same_order(result):
-    out, _ = result
+    out, *_ = result
     rows = trained_rows(out)
     assert [row["candidate"] for row in rows] == CANDIDATES
     for shape in ("box", "twobox"):
@@ -41,7 +45,7 @@ def test_every_candidate_trains_on_the_same_samples_in_the_same_order(result):
 
 
 def test_each_curve_is_scored_from_random_weights_at_equal_shares_with_its_gain(result):
-    out, _ = result
+    out, *_ = result
     for row in trained_rows(out):
         for run in row["shapes"].values():
             curve = run["curve"]
@@ -59,7 +63,7 @@ def test_each_curve_is_scored_from_random_weights_at_equal_shares_with_its_gain(
 
 
 def test_latency_is_against_the_shipped_models_in_the_same_process(result):
-    out, written = result
+    out, written, _ = result
     for path in ("networks", "record"):
         timed = out["latency"][path]
         assert set(timed) == {"shipped", *CANDIDATES, "tiny:96"}
@@ -94,3 +98,12 @@ def test_a_candidate_takes_its_sizes_sigma_unless_given():
     assert choose.Candidate.parse("compact:64").sigma == 2.0
     assert choose.Candidate.parse("slim:128").sigma == 3.0
     assert choose.Candidate.parse("slim:128:2.5") == choose.Candidate("slim", 128, 2.5)
+
+
+def test_a_later_call_reports_the_runs_kept_without_training_again(result):
+    out, _, folder = result
+    again = choose.main(["--candidates", CANDIDATES[1], "--rate-only", "--cached-only", *options(folder)])
+    assert again["rows"][0]["shapes"] == json.loads(json.dumps(trained_rows(out)[1]["shapes"]))
+    other = choose.main(["--candidates", CANDIDATES[1], "--rate-only", "--cached-only", *options(folder)[2:],
+                         "--samples", str(2 * SAMPLES)])
+    assert other["rows"][0]["shapes"] == {}  # trained for another number of samples: not reused

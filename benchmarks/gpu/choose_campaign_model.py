@@ -200,10 +200,10 @@ def shape_accuracy(checkpoints: dict[str, str], masks: dict[str, list[str]]) -> 
     return right / total
 
 
-def rate_only(c: Candidate, spool: Path, args, out: Path) -> float:
+def rate_only(c: Candidate, shape: str, spool: Path, args, out: Path) -> float:
     """CPU samples/s of a candidate too slow to train to N: the median step time of a few steps."""
-    config = TrainConfig(phase="1", spool=str(spool), shape="box", size=c.size, arch=c.arch, sigma=c.sigma,
-                         steps=args.rate_steps, batch_size=args.batch, lr=args.lr, seed=args.seed,
+    config = TrainConfig(phase="1", spool=str(spool), shape=shape, size=c.size, arch=c.arch, sigma=c.sigma,
+                         steps=args.rate_steps, batch_size=args.rate_batch, lr=args.lr, seed=args.seed,
                          out=str(out), overwrite=True, threads=1, loader_workers=0, device="cpu",
                          dashboard=False, checkpoint_every=10 ** 6, log_every=1, max_minutes=args.max_minutes)
     train(config.validate())
@@ -257,6 +257,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--latency-masks", type=int, default=5)
     parser.add_argument("--latency-rounds", type=int, default=4)
     parser.add_argument("--max-minutes", type=float, default=30.0, help="guard on each training chunk")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="train nothing: report the runs --runs already holds, time and project them")
+    parser.add_argument("--rate-batch", type=int, default=8, help="batch of the --rate-only candidates' steps")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -273,36 +276,65 @@ def main(argv: list[str] | None = None) -> dict:
 
 def compare(candidates: list[Candidate], slow: list[Candidate], args, runs: Path, tmp: Path) -> dict:
     """Every measurement of the module docstring, as one JSON-ready dict."""
-    trained: dict[str, dict] = {c.name: {} for c in candidates}
-    masks = {}
+    cache = Cache(runs / CACHE, settings(args))
+    spools, val, masks = {}, {}, {}
     for shape in args.shapes:
-        spool = draw_spool(args.spools, shape, args.samples, args.spool_seed + SHAPES.index(shape))
-        val = {name: spool_for(args.spools, shape, name, args.masks) for name in args.sets}
-        masks[shape] = write_masks(val.get("paper", next(iter(val.values()))), args.masks, tmp)[0]
-        for c in candidates:
-            trained[c.name][shape] = train_candidate(c, shape, spool, args, val, runs / c.name.replace(":", "-") / shape)
-            print(f"{c.name} {shape}: {trained[c.name][shape]['curve'][-1]['error']:.2f} px after "
-                  f"{trained[c.name][shape]['samples']} samples", flush=True)
-            if args.json:  # what is done so far, should the run be cut short
-                args.json.with_suffix(".partial.json").write_text(json.dumps(trained, indent=2) + "\n")
-    rows = []
-    for c in candidates:
-        row = {"candidate": c.name, "arch": c.arch, "size": c.size, "sigma": c.sigma, "shapes": trained[c.name],
-               "gpu": projection(c)}
-        if len(args.shapes) == len(SHAPES):
-            points = list(trained[c.name][SHAPES[0]]["checkpoints"])
-            row["shape_accuracy"] = {step * args.batch: shape_accuracy(
-                {s: trained[c.name][s]["checkpoints"][step] for s in SHAPES}, masks) for step in points}
-        rows.append(row)
+        spools[shape] = draw_spool(args.spools, shape, args.samples, args.spool_seed + SHAPES.index(shape))
+        val[shape] = {name: spool_for(args.spools, shape, name, args.masks) for name in args.sets}
+        masks[shape] = write_masks(val[shape].get("paper", next(iter(val[shape].values()))), args.masks, tmp)[0]
+    for c in candidates:  # a candidate's both shapes before the next candidate: a run cut short has whole ones
+        for shape in args.shapes:
+            if cache.has(c.name, shape) or args.cached_only:
+                continue
+            run = train_candidate(c, shape, spools[shape], args, val[shape], runs / c.name.replace(":", "-") / shape)
+            cache.keep(c.name, shape, run)
+            print(f"{c.name} {shape}: {run['curve'][-1]['error']:.2f} px after {run['samples']} samples", flush=True)
+    rows = [candidate_row(c, cache.trained.get(c.name, {}), args, masks) for c in candidates]
     for c in slow:
-        spool = draw_spool(args.spools, "box", args.samples, args.spool_seed)
         rows.append({"candidate": c.name, "arch": c.arch, "size": c.size, "sigma": c.sigma, "rate_only": True,
-                     "cpu_samples_per_s": rate_only(c, spool, args, runs / c.name.replace(":", "-") / "rate"),
+                     "cpu_samples_per_s": rate_only(c, args.shapes[0], spools[args.shapes[0]], args,
+                                                    runs / c.name.replace(":", "-") / "rate"),
                      "gpu": projection(c)})
     files = write_masks(spool_for(args.spools, "box", "paper", args.latency_masks), args.latency_masks, tmp)[0]
     return {"command": " ".join(sys.argv), "samples": args.samples, "batch": args.batch, "sets": args.sets,
             "masks": args.masks, "lease_minutes": LEASE_MINUTES, "rows": rows,
             "latency": latencies(candidates + slow, files, args.latency_rounds)}
+
+
+def candidate_row(c: Candidate, runs: dict, args, masks: dict[str, list[str]]) -> dict:
+    """A trained candidate's figures: its runs by shape (those done), and with both shapes done its
+    shape accuracy from the curve's middle on."""
+    row = {"candidate": c.name, "arch": c.arch, "size": c.size, "sigma": c.sigma,
+           "shapes": {shape: runs[shape] for shape in args.shapes if shape in runs}, "gpu": projection(c)}
+    if set(row["shapes"]) == set(SHAPES):
+        points = [int(step) for step in row["shapes"][SHAPES[0]]["checkpoints"]]
+        row["shape_accuracy"] = {step * args.batch: shape_accuracy(
+            {s: runs[s]["checkpoints"][str(step)] for s in SHAPES}, masks) for step in points[(len(points) - 1) // 2:]}
+    return row
+
+
+CACHE = "trained.json"  # in --runs: each candidate's finished runs, so a later call goes on where one stopped
+
+
+def settings(args) -> dict:
+    """What a cached run must have been trained and scored with to be reused."""
+    return {key: getattr(args, key) for key in ("samples", "shares", "batch", "lr", "seed", "spool_seed", "sets", "masks")}
+
+
+class Cache:
+    """The runs done, by candidate and shape, in --runs/trained.json (JSON keys: steps as strings)."""
+
+    def __init__(self, path: Path, wanted: dict):
+        self.path, self.wanted = path, wanted
+        kept = json.loads(path.read_text()) if path.is_file() else {}
+        self.trained = kept.get("trained", {}) if kept.get("settings") == wanted else {}
+
+    def has(self, name: str, shape: str) -> bool:
+        return shape in self.trained.get(name, {})
+
+    def keep(self, name: str, shape: str, run: dict) -> None:
+        self.trained.setdefault(name, {})[shape] = json.loads(json.dumps(run))  # as read back: string keys
+        self.path.write_text(json.dumps({"settings": self.wanted, "trained": self.trained}, indent=2) + "\n")
 
 
 def show(result: dict) -> None:
