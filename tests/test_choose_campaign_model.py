@@ -57,6 +57,7 @@ def test_each_curve_is_scored_from_random_weights_at_equal_shares_with_its_gain(
                 assert point["error"] == pytest.approx(figures["mean_256"])  # one set: its mean
             assert run["gain_per_1k"] == pytest.approx(1000 * (curve[0]["error"] - curve[-1]["error"]) / SAMPLES)
             assert run["cpu_samples_per_s"] > 0
+            assert 0 <= run["budget"]["refiner_iou"] <= 1 and run["budget"]["t_alone_256"] >= 0
         assert set(row["shape_accuracy"]) == {SAMPLES // 2, SAMPLES}
         assert all(0 <= a <= 1 for a in row["shape_accuracy"].values())
         assert row["gpu"] is None  # no H100 figure for the tiny arch
@@ -103,7 +104,7 @@ def test_a_candidate_takes_its_sizes_sigma_unless_given():
 def test_a_later_call_reports_the_runs_kept_without_training_again(result):
     out, _, folder = result
     again = choose.main(["--candidates", CANDIDATES[1], "--rate-only", "--cached-only", *options(folder)])
-    assert again["rows"][0]["shapes"] == json.loads(json.dumps(trained_rows(out)[1]["shapes"]))
+    assert again["rows"][0]["shapes"] == json.loads(json.dumps(trained_rows(out)[1]["shapes"]))  # budget: the same model's
     other = choose.main(["--candidates", CANDIDATES[1], "--rate-only", "--cached-only", *options(folder)[2:],
                          "--samples", str(2 * SAMPLES)])
     assert other["rows"][0]["shapes"] == {}  # trained for another number of samples: not reused

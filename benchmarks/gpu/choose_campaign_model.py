@@ -55,7 +55,7 @@ from shared.spool import enumerate_spool
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "accuracy"))
 sys.path.insert(0, str(HERE.parent / "speed"))
-from bench_accuracy import cuboidgen_command, spool_for, write_masks  # noqa: E402
+from bench_accuracy import cuboidgen_command, eval_figures, spool_for, write_masks  # noqa: E402
 from bench_infer import interleaved_ms  # noqa: E402
 
 SHAPES = ("box", "twobox")
@@ -289,7 +289,7 @@ def compare(candidates: list[Candidate], slow: list[Candidate], args, runs: Path
             run = train_candidate(c, shape, spools[shape], args, val[shape], runs / c.name.replace(":", "-") / shape)
             cache.keep(c.name, shape, run)
             print(f"{c.name} {shape}: {run['curve'][-1]['error']:.2f} px after {run['samples']} samples", flush=True)
-    rows = [candidate_row(c, cache.trained.get(c.name, {}), args, masks) for c in candidates]
+    rows = [candidate_row(c, cache.trained.get(c.name, {}), args, val, masks) for c in candidates]
     for c in slow:
         rows.append({"candidate": c.name, "arch": c.arch, "size": c.size, "sigma": c.sigma, "rate_only": True,
                      "cpu_samples_per_s": rate_only(c, args.shapes[0], spools[args.shapes[0]], args,
@@ -301,16 +301,24 @@ def compare(candidates: list[Candidate], slow: list[Candidate], args, runs: Path
             "latency": latencies(candidates + slow, files, args.latency_rounds)}
 
 
-def candidate_row(c: Candidate, runs: dict, args, masks: dict[str, list[str]]) -> dict:
-    """A trained candidate's figures: its runs by shape (those done), and with both shapes done its
-    shape accuracy from the curve's middle on."""
+def candidate_row(c: Candidate, runs: dict, args, val: dict[str, dict], masks: dict[str, list[str]]) -> dict:
+    """A trained candidate's figures: its runs by shape (those done) with the last model's error
+    budget, and with both shapes done its shape accuracy from the curve's middle on."""
     row = {"candidate": c.name, "arch": c.arch, "size": c.size, "sigma": c.sigma,
-           "shapes": {shape: runs[shape] for shape in args.shapes if shape in runs}, "gpu": projection(c)}
+           "shapes": {shape: runs[shape] | {"budget": budget(runs[shape], val[shape], args.masks)}
+                      for shape in args.shapes if shape in runs}, "gpu": projection(c)}
     if set(row["shapes"]) == set(SHAPES):
         points = [int(step) for step in row["shapes"][SHAPES[0]]["checkpoints"]]
         row["shape_accuracy"] = {step * args.batch: shape_accuracy(
             {s: runs[s]["checkpoints"][str(step)] for s in SHAPES}, masks) for step in points[(len(points) - 1) // 2:]}
     return row
+
+
+def budget(run: dict, val: dict[str, Path], masks: int) -> dict:
+    """Where the last model's error is, on the noisy `paper` set (else the first): R's IoU, S's peaks
+    read sub-pixel (DARK) and T alone on true heat maps, 256 px units (bench_accuracy's error budget)."""
+    last = run["checkpoints"][max(run["checkpoints"], key=int)]
+    return eval_figures(load_model(last)[0], val.get("paper", next(iter(val.values()))), masks)
 
 
 CACHE = "trained.json"  # in --runs: each candidate's finished runs, so a later call goes on where one stopped
@@ -357,6 +365,9 @@ def show(result: dict) -> None:
             last = r["curve"][-1]["sets"]
             detail = "; ".join(f"{s} {f['mean_256']:.2f}/{f['median_256']:.2f} outline {f['outline_mean_256']:.2f} "
                                f"interior {f['interior_mean_256']:.2f} ratio {f['ratio_error']:.3f}" for s, f in last.items())
+            b = r["budget"]
+            detail += (f"; budget: R IoU {b['refiner_iou']:.3f}, S peaks (DARK) {b['s_peaks_dark_256']:.2f}, "
+                       f"T alone {b['t_alone_256']:.2f}")
             print(f"{name} {shape}: {curve}; gain {r['gain_per_1k']:.2f} px/1k (last half {r['late_gain_per_1k']:.2f}); "
                   f"CPU {r['cpu_samples_per_s']:.1f} samples/s; {detail}; samples {r['samples']} [{r['samples_digest']}]")
         if "shape_accuracy" in row:
