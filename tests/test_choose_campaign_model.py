@@ -70,6 +70,8 @@ def test_latency_is_against_the_shipped_models_in_the_same_process(result):
         assert set(timed) == {"shipped", *CANDIDATES, "tiny:96"}
         assert timed["shipped"]["ratio"] == 1.0
         assert all(t["ms"] > 0 and t["ratio"] == pytest.approx(t["ms"] / timed["shipped"]["ms"]) for t in timed.values())
+        assert timed[CANDIDATES[0]]["over_first"] == 1.0
+        assert all(t["over_first"] == pytest.approx(t["ms"] / timed[CANDIDATES[0]]["ms"]) for t in timed.values())
     slow = [row for row in out["rows"] if row.get("rate_only")]
     assert [row["candidate"] for row in slow] == ["tiny:96"] and slow[0]["cpu_samples_per_s"] > 0
     assert written["rows"][0]["candidate"] == CANDIDATES[0]  # the JSON holds what was returned
