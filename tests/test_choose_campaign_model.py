@@ -24,6 +24,9 @@ def options(folder: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     folder = tmp_path_factory.mktemp("choose")
+    stale = folder / "runs" / "tiny-32" / "box" / "run"  # a run cut short before: its ledger must not count
+    stale.mkdir(parents=True)
+    (stale / "ledger.jsonl").write_text(json.dumps({"step": 1, "rank": 0, "samples": [["stale", 0]]}) + "\n")
     out = choose.main(["--candidates", *CANDIDATES, "--rate-only", "tiny:96", "--rate-steps", "2",
                        "--rate-batch", "2", *options(folder), "--json", str(folder / "choose.json")])
     return out, json.loads((folder / "choose.json").read_text()), folder

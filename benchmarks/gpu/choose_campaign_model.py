@@ -158,6 +158,9 @@ def ledger_digest(folder: Path) -> tuple[int, str]:
 
 def train_candidate(c: Candidate, shape: str, spool: Path, args, val: dict[str, Path], out: Path) -> dict:
     """Phase 1 from scratch to the run's last point, scored at each; its curve, rate and digest."""
+    # A run cut short before leaves its folder: the trainer's --overwrite replaces its checkpoint and
+    # metrics but appends to its ledger, whose stale steps would then count as samples of this run.
+    shutil.rmtree(out / "run", ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
     steps = curve_points(args.samples, args.batch, args.shares)
     random_model = build_model(shape, c.size, seed=args.seed, sigma=c.sigma, arch=c.arch).eval()
