@@ -33,7 +33,7 @@ class PhasePlan:
 
 @dataclass(frozen=True)
 class CampaignPlan:
-    arch: str = "slim"
+    arch: str = "compact"  # at 128 px: chosen on the CPU (benchmarks/gpu/choose_campaign_model.py, BENCHMARKS.md)
     size: int = 128  # px
     shapes: tuple[str, ...] = ("box", "twobox")  # one standing run each, side by side on the one GPU
     batch_size: int = 256
@@ -48,7 +48,8 @@ class CampaignPlan:
     eval_samples: int = 20  # masks a set and shape for each lease's evaluation (bench_accuracy's sets)
     # Kept at the end of a lease for stopping, packing and evaluating the campaign's models (the shipped
     # ones' figures are kept in campaign/eval-shipped.json): 30 masks a set took 69 s on the 2-core VM
-    # for the 64 px models once the spools were drawn, and slim 128 px fits 1.57x slower: 20 masks fit.
+    # for the 64 px models once the spools were drawn; compact 128 px fits 2.2x slower (slim 1.6x), so 20
+    # masks fit on a core as fast as the VM's only if the lent machine's is faster: the first lease's log says.
     eval_minutes: float = 1.25
     notes: str = ""
 

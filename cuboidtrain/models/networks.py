@@ -179,8 +179,8 @@ def compact_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
 @register_arch("slim")
 def slim_parts(num_keypoints: int, num_ratios: int, size: int) -> Parts:
     """The compact design narrower (16, 32, 64, 128 channels): a 128 px input, twice the side of
-    the shipped 64 px, at 1.6x their CPU time where compact would take 2.9x (BENCHMARKS.md, "On a GPU": not yet
-    trained long enough to ship)."""
+    the shipped 64 px, at 1.6x their networks' CPU time through infer where compact would take 2.2x
+    (BENCHMARKS.md, "The campaign's model": it learns more slowly per sample than compact at 128 px)."""
     return _compact(num_keypoints, num_ratios, size, compact.SLIM_WIDTHS)
 
 
