@@ -1,6 +1,6 @@
 """Does the roof line's notch count (`silhouette.roof_notches`) tell merged buildings and blobs from
 whole ones? Per kind of silhouette, the share with at least `trust.ROOF_NOTCHES` notches deeper than
-each depth, and (with --rows) the share flagged `not-a-box` / `border-cut` before and after the count.
+each depth, and (with --rows) the share warned (any warning) and the share flagged `not-a-box` / `border-cut` before and after the count.
 
 The masks are `bench_trust.py`'s: each seed set's generated noisy masks (every scene, 64, 128 and 256
 px, box and twobox mixed), and from its 256 px ones the made silhouettes (cut by the border, two or
@@ -51,15 +51,14 @@ def masks_of(group: str, spools: Path, samples: int, folder: Path) -> list[dict]
     return rows
 
 
-def flagged(stored: dict, notches: int | None) -> bool:
-    """Whether a stored record's signs earn a FLAGS warning, with the roof's notch count or without."""
-    values = signs_now(stored) | {"roof_notches": float(notches or 0)}
-    return bool({w.code for w in trust.judge(values).warnings} & set(trust.FLAGS))
+def codes(stored: dict, notches: int | None) -> set[str]:
+    """A stored record's warning codes under the code's rule, with the roof's notch count or without."""
+    return {w.code for w in trust.judge(signs_now(stored) | {"roof_notches": float(notches or 0)}).warnings}
 
 
 def table(rows: list[dict], stored: dict) -> None:
     keys = [("whole", scene) for scene in SETS] + [(kind, None) for kind in KINDS[1:]]
-    heads = [f">= {trust.ROOF_NOTCHES} deeper than {d:.0%}" for d in DEPTHS] + (["flagged before", "after"] if stored else [])
+    heads = [f">= {trust.ROOF_NOTCHES} deeper than {d:.0%}" for d in DEPTHS] + (["warned, after", "flagged before", "after"] if stored else [])
     print(f"{'set':8s} {'kind':18s} {'masks':>5s} " + " ".join(f"{h:>22s}" for h in heads))
     for group in sorted({r["set"] for r in rows}, reverse=True):
         for kind, scene in keys:
@@ -67,10 +66,12 @@ def table(rows: list[dict], stored: dict) -> None:
             cells = [np.mean([r["notches"][d] >= trust.ROOF_NOTCHES for r in mine]) for d in DEPTHS]
             joined = [(stored[key], r) for r in mine if (key := (group, kind, r["scene"], r["size"], r["index"])) in stored]
             if joined:
-                cells += [np.mean([flagged(s, None) for s, _ in joined]),
-                          np.mean([flagged(s, r["notches"][trust.ROOF_NOTCH_DEPTH]) for s, r in joined])]
+                after = [codes(s, r["notches"][trust.ROOF_NOTCH_DEPTH]) for s, r in joined]
+                cells += [np.mean([bool(c) for c in after]),
+                          np.mean([bool(codes(s, None) & set(trust.FLAGS)) for s, _ in joined]),
+                          np.mean([bool(c & set(trust.FLAGS)) for c in after])]
             elif stored:
-                cells += [np.nan, np.nan]
+                cells += [np.nan] * 3
             print(f"{group:8s} {kind + (f' {scene}' if scene else ''):18s} {len(mine):5d} "
                   + " ".join(f"{c:22.0%}" for c in cells))
 

@@ -166,8 +166,8 @@ SMALLEST_MEASURED_PX = 32.0
 # A roof line with ROOF_NOTCHES notches deeper than ROOF_NOTCH_DEPTH of the silhouette's size is no
 # box's (none) or twobox's (one at most): `benchmarks/calibration/bench_notches.py` on two seed sets
 # of generated noisy masks (every scene, 64-256 px): whole buildings 0-1% (an occluder notches from the
-# bottom or side), two merged 8-11%, three 12-18%, blobs 3-6%. Shallower (5%) or one notch flags up to
-# 5% or 40% of whole noisy buildings; a row of two houses mostly shows one notch, as a twobox does.
+# bottom or side), two merged 8-11%, three 12-17%, blobs 3-6%. Shallower ones (5%) flag 2-3% of whole
+# noisy buildings, one notch 26-32%; a row of two houses mostly shows one notch, as a twobox does.
 ROOF_NOTCH_DEPTH = 0.08
 ROOF_NOTCHES = 2
 FLAGS = ("not-a-box", "border-cut")  # the warnings that say a silhouette is no whole box or twobox
