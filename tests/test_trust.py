@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cuboidgen.config import PAPER_CLEAN
+from cuboidgen.config import PAPER, PAPER_CLEAN, STREET
 from cuboidtrain.fit import trust
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry.accuracy import Truth, against_truth
-from cuboidtrain.geometry.silhouette import extent_px
+from cuboidtrain.geometry.silhouette import extent_px, roof_notches
 from cuboidtrain.geometry.uncertainty import SIZE_INFLATION, SIZE_REFERENCE_PX, inflation
 from tests.conftest import build_sample
 from tests.test_contract import documented_keys, section
@@ -99,6 +99,41 @@ def test_merged_buildings_are_flagged_more_often_than_whole_ones(fitter):
     assert sum(flagged) >= 4 and sum(flagged) > sum(whole_flagged), (flagged, whole_flagged)
 
 
+def row_of_three_houses() -> np.ndarray:
+    """Three rectangles of different heights side by side on one ground line, the middle one tallest:
+    two notches open down from the roof line, 17% and 12% of the row's size deep."""
+    row = np.zeros((64, 64), bool)
+    for left, height in ((2, 40), (22, 52), (42, 44)):
+        row[60 - height: 60, left: left + 20] = True
+    return row
+
+
+def test_roof_notches_count_a_row_of_houses_but_no_projected_box_or_twobox_nor_an_occluders_notch():
+    assert roof_notches(row_of_three_houses(), trust.ROOF_NOTCH_DEPTH) == 2
+    boxes = [build_sample(seed, "box", size=64, scene=PAPER_CLEAN).clean for seed in range(6)]
+    twoboxes = [build_sample(seed, "twobox", size=64, scene=PAPER_CLEAN).clean for seed in range(6)]
+    assert [roof_notches(m, trust.ROOF_NOTCH_DEPTH) for m in boxes] == [0] * 6  # a box's silhouette is convex
+    assert max(roof_notches(m, trust.ROOF_NOTCH_DEPTH) for m in twoboxes) == 1  # where the lower box meets the taller
+    # a car, a tree, a pedestrian in front: each hides at least a fifth of the building from below or the side
+    for scene, seed in ((PAPER, 2), (PAPER, 10), (STREET, 0), (STREET, 2), (STREET, 4)):
+        sample = build_sample(seed, ("box", "twobox")[seed % 2], size=64, scene=scene)
+        assert (sample.clean & ~sample.noisy).sum() >= 0.2 * sample.clean.sum(), (scene.name, seed)
+        assert roof_notches(sample.noisy, trust.ROOF_NOTCH_DEPTH) < trust.ROOF_NOTCHES, (scene.name, seed)
+
+
+def test_a_roof_line_notched_more_than_a_twobox_is_flagged_not_a_box(fitter):
+    fit = fitter.fit(row_of_three_houses())
+    assert fit.trust.signs["roof_notches"] == 2 and fit.trust.level == "low"
+    assert "not-a-box" in [w.code for w in fit.trust.warnings]
+    # the rule alone, on a whole building's signs that earn no warning: one notch (a twobox's) is no flag, two are
+    whole = fitter.fit(clean(3))
+    values = trust.signs(whole.explanation.candidate, whole.cuboid, whole.explanation.mask, [0.0])
+    values |= {"outline_rms": trust.CLEAN_OUTLINE / 2}
+    assert not trust.warnings(values | {"roof_notches": 1.0}, 0.9)
+    [named] = trust.warnings(values | {"roof_notches": 2.0}, 0.9)
+    assert named.code == "not-a-box" and "2 notches" in named.message and "merged buildings" in named.message
+
+
 def test_the_size_leaves_large_silhouettes_alone_and_scales_small_ones_the_more_the_smaller():
     for key, exponent in SIZE_INFLATION.items():
         assert inflation(*key, SIZE_REFERENCE_PX) == inflation(*key, 4 * SIZE_REFERENCE_PX) == 1.0
@@ -147,9 +182,11 @@ def test_the_limits_warn_each_scenes_good_fits_at_most_as_often_as_allowed(monke
     rows = []
     for scene, count, shift in (("clean", 300, -0.5), ("noisy", 100, 1.5)):
         for _ in range(count):
-            values = dict(zip(trust.SIGNS, np.array(trust.MEANS) + np.array(trust.SCALES) * rng.normal(size=len(trust.SIGNS))))
+            drawn = [k for k, name in enumerate(trust.SIGNS) if name != "roof_notches"]  # a count: 0 below
+            values = dict(zip([trust.SIGNS[k] for k in drawn], np.array(trust.MEANS)[drawn]
+                              + np.array(trust.SCALES)[drawn] * rng.normal(size=len(drawn))))
             values |= {"hidden_corners": values["hidden_corners"] + shift * trust.SCALES[trust.SIGNS.index("hidden_corners")],
-                       "border_cut": 0.0}
+                       "border_cut": 0.0, "roof_notches": 0.0}
             error = float(rng.exponential(2.0) + 8.0 * (1.0 - trust.score(values)) * (scene == "clean" or rng.random() < 0.6))
             rows.append({"set": "fit", "kind": "whole", "failed": False, "path": "cuboid", "scene": scene,
                          "signs": values, "error": error})

@@ -239,7 +239,9 @@ def signs_now(row: dict) -> dict:
     """A row's signs under today's size inflation: its `ratio_sd` was read under the one it was fitted with."""
     given, px = row["path"] == "cuboid_camera_given", 2 ** row["signs"]["mask_px"]
     then = row.get("inflation", {}).get("ratio", 1.0)
-    return row["signs"] | {"ratio_sd": row["signs"]["ratio_sd"] + math.log(inflation(given, "ratio", px) / then)}
+    # Rows collected before the roof's notches were read carry none: counted as no notch (the made
+    # masks' counts are bench_notches.py's, which reads the masks again).
+    return {"roof_notches": 0.0} | row["signs"] | {"ratio_sd": row["signs"]["ratio_sd"] + math.log(inflation(given, "ratio", px) / then)}
 
 
 def sign_matrix(rows: list[dict]) -> np.ndarray:

@@ -1,6 +1,7 @@
 """A fitted cuboid's silhouette and how well it explains a mask (IoU), drawn by the generator's rasteriser."""
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from shared.raster import rasterize
@@ -43,3 +44,28 @@ def extent_px(mask: np.ndarray) -> float:
     if not len(rows):
         return 1.0
     return float(max(rows[-1] - rows[0] + 1, columns[-1] - columns[0] + 1))
+
+
+def roof_notches(mask: np.ndarray, depth: float) -> int:
+    """How many notches open down from the top of the silhouette's outline deeper than `depth` (a share
+    of its size, `extent_px`): convexity defects of its largest outline whose hull edge runs more across
+    than up and down, with the notch below it. A projected box's silhouette is convex; a twobox's
+    shows at most one, where the lower box meets the taller; a row of houses shows one between each
+    two roofs. An occluder standing in front (a tree, a person, a sign) cuts its notch from the bottom
+    or the side, which this does not count."""
+    outlines, _ = cv2.findContours(np.asarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not outlines:
+        return 0
+    outline = max(outlines, key=cv2.contourArea)
+    if len(outline) < 4:
+        return 0
+    hull = np.sort(cv2.convexHull(outline, returnPoints=False), axis=0)  # sorted: OpenCV asks monotone indices
+    defects = cv2.convexityDefects(outline, hull)
+    if defects is None:
+        return 0
+    points, limit = outline[:, 0], depth * extent_px(mask) * 256  # OpenCV's depths are fixed point, 8 bits
+    count = 0
+    for start, end, far, deep in defects.reshape(-1, 4):
+        (x0, y0), (x1, y1), (_, y) = points[start], points[end], points[far]
+        count += bool(deep > limit and abs(x1 - x0) > abs(y1 - y0) and y > (y0 + y1) / 2)
+    return count
