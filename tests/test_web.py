@@ -121,3 +121,42 @@ def test_ctrl_c_stops_the_server_cleanly(page_server):
 def test_the_server_refuses_an_address_that_is_not_one():
     result = CliRunner().invoke(app, ["serve", "--host", "example.com"])
     assert result.exit_code != 0 and "--host 'example.com': expected an IP address" in result.output
+
+
+def test_the_server_says_its_address_only_once_it_listens():
+    # uvicorn runs the app's lifespan (the workers' warm-up) before it binds the socket: an address
+    # said from the lifespan was refused to whoever used it at once (a page test met exactly that).
+    import asyncio
+    import socket
+    import threading
+
+    uvicorn = pytest.importorskip("uvicorn")
+    from cuboidtrain.web.server import ServeConfig, announcing_server
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    async def slow_to_start(scope, receive, send):  # an app whose start-up takes a while, as the pool's does
+        assert scope["type"] == "lifespan"
+        while True:
+            message = await receive()
+            if message["type"] == "lifespan.startup":
+                await asyncio.sleep(0.3)
+                await send({"type": "lifespan.startup.complete"})
+            else:
+                await send({"type": "lifespan.shutdown.complete"})
+                return
+
+    heard = []
+
+    def announce():
+        with socket.create_connection(("127.0.0.1", port), timeout=5):  # refused if said too early
+            heard.append("listening")
+        server.should_exit = True
+
+    server = announcing_server(uvicorn, slow_to_start, ServeConfig(port=port), announce)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    thread.join(60)
+    assert heard == ["listening"] and not thread.is_alive()

@@ -41,14 +41,13 @@ SCENES = ("paper", "paper-clean", "street")  # cuboidgen's scenes (cuboidgen.con
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
-def make_app(config, pool, on_ready=lambda: None) -> Starlette:
+def make_app(config, pool) -> Starlette:
     """The app for a `server.ServeConfig`; `pool` (a `server.FitPool`) warms up as it starts and stops with it."""
 
     @asynccontextmanager
     async def lifespan(app):
         app.state.pool = pool
         await app.state.pool.warm_up()
-        on_ready()
         try:
             yield
         finally:

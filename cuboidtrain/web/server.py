@@ -96,9 +96,8 @@ def serve(config: ServeConfig, announce=print) -> None:
     from cuboidtrain.web.app import make_app
 
     pool = FitPool(config.workers)
-    app = make_app(config, pool, on_ready=lambda: announce(f"cuboid-fit page at {config.address} (Ctrl-C stops it)"))
-    server = uvicorn.Server(uvicorn.Config(app, host=config.host, port=config.port, log_level="warning",
-                                           access_log=False, lifespan="on"))
+    server = announcing_server(uvicorn, make_app(config, pool), config,
+                               lambda: announce(f"cuboid-fit page at {config.address} (Ctrl-C stops it)"))
     try:
         server.run()
     except KeyboardInterrupt:  # uvicorn hands Ctrl-C back once it has shut down
@@ -106,6 +105,21 @@ def serve(config: ServeConfig, announce=print) -> None:
     if not server.started:
         raise UsageError(f"--host {config.host} --port {config.port}: could not serve there (in use, or not "
                          f"this machine's address)")
+
+
+def announcing_server(uvicorn, app, config: ServeConfig, announce):
+    """uvicorn's server for `app`, calling `announce` once it listens. Its lifespan (the workers'
+    warm-up) runs before the socket is bound, so an address said there could still be refused: a
+    test that posted at once met "Connection refused"."""
+
+    class Announcing(uvicorn.Server):
+        async def startup(self, sockets=None) -> None:
+            await super().startup(sockets=sockets)
+            if self.started:  # bound and listening (uvicorn sets it last)
+                announce()
+
+    return Announcing(uvicorn.Config(app, host=config.host, port=config.port, log_level="warning",
+                                     access_log=False, lifespan="on"))
 
 
 WEB_MODULES = ("starlette", "uvicorn", "plotly")  # the web extra (pyproject.toml)
