@@ -13,7 +13,9 @@ import pytest
 
 # Eleven batches' heat maps, each freed before the next (as the trainer frees a step's batch);
 # prints the page faults of the last five: kept, glibc settles within a few batches (measured: at
-# most one of the first six faults its pages in again, none of the last five).
+# most one of the first six faults its pages in again, none of the last five, but for the host's
+# reclaim: this VM runs DAMON's, which once paged a kept buffer out between two batches, 8,320
+# faults in one of them).
 BATCHES = """
 import ctypes, resource, sys
 ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: pages of 4 KB, whatever the host's huge-page policy
@@ -29,21 +31,21 @@ for _ in range(11):
     maps = render_heatmaps(keypoints, 64, 1.0)
     del maps
     faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
-print(sum(faults[-5:]), min(faults[-5:]))
+print(*faults[-5:])
 """
 
 
-def faults_of_later_batches(mode: str) -> tuple[int, int]:
-    """(the last five batches' page faults in all, the fewest of one of them)."""
+def faults_of_later_batches(mode: str) -> int:
+    """The median of the last five batches' page faults (one batch's reclaim by the host moves it not)."""
     # glibc as it comes: no preloaded allocator, no tunables from the environment
     env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD" and not k.startswith(("MALLOC_", "GLIBC_TUNABLES"))}
     done = subprocess.run([sys.executable, "-c", BATCHES, mode], capture_output=True, text=True, check=True, env=env)
-    total, least = done.stdout.split()[-2:]
-    return int(total), int(least)
+    faults = sorted(int(n) for n in done.stdout.split()[-5:])
+    return faults[2]
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt only")
 def test_the_next_batchs_heat_maps_reuse_the_freed_ones_without_faulting_pages_in():
     pages = 256 * 8 * 64 * 64 * 4 // 4096
-    assert faults_of_later_batches("default")[1] >= pages // 2  # mapped afresh for every batch
-    assert faults_of_later_batches("kept")[0] < pages // 10
+    assert faults_of_later_batches("default") >= pages // 2  # mapped afresh for every batch
+    assert faults_of_later_batches("kept") < pages // 10
