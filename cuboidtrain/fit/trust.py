@@ -100,7 +100,7 @@ def signs(candidate: Candidate, cuboid: FittedCuboid, mask: np.ndarray, other_io
     size = extent_px(mask)
     network = candidate.framing.to_input(candidate.keypoints)[fit.camera.naming()]  # in the fit's corner order
     moved = np.linalg.norm(network - fit.keypoints, axis=1) / size * 100
-    relative = np.asarray(cuboid.fit.spread.ratios) / np.abs(_ratios(cuboid)) if fit.spread is not None else np.array([1.0])
+    relative = np.asarray(fit.spread.ratios) / _ratios(cuboid) if fit.spread is not None else np.array([1.0])
     iou = fit.iou if fit.iou is not None else 0.0
     return {"corners_moved": float(moved.mean()), "corners_moved_max": float(moved.max()),
             "heatmap_peak": float(heatmap_peaks(candidate.heatmaps).mean()), "silhouette_miss": 1.0 - iou,
@@ -160,6 +160,8 @@ LOW_SCORE_CLEAN = 0.24
 def low_score(values: dict[str, float]) -> float:
     """The score under which these signs earn "low-trust": LOW_SCORE_CLEAN on a clean outline, else LOW_SCORE."""
     return LOW_SCORE_CLEAN if values["outline_rms"] < CLEAN_OUTLINE else LOW_SCORE
+
+
 # The error bars' size scaling (`uncertainty.inflation`) was fitted and measured on silhouettes of
 # 31-231 px (64, 128, 256 px images): below this one, the small-mask warning says they are untested.
 SMALLEST_MEASURED_PX = 32.0
@@ -171,6 +173,7 @@ SMALLEST_MEASURED_PX = 32.0
 ROOF_NOTCH_DEPTH = 0.08
 ROOF_NOTCHES = 2
 FLAGS = ("not-a-box", "border-cut")  # the warnings that say a silhouette is no whole box or twobox
+NOT_A_BOX_ACTION = "give each building its own mask (split a row of houses), or do not use the 3D answer"
 
 
 def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
@@ -184,12 +187,11 @@ def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
         found.append(NamedWarning("not-a-box", f"the fitted cuboid leaves {100 * values['unexplained']:.0f}% of the silhouette "
                                   f"out, with an outline residual of {values['outline_rms']:.1f}% of its size: it is no whole "
                                   f"box or twobox (merged buildings, a fragment, no building)",
-                                  "give one building a mask (split a row of houses), or do not use the 3D answer"))
+                                  NOT_A_BOX_ACTION))
     elif values["roof_notches"] >= ROOF_NOTCHES:
         found.append(NamedWarning("not-a-box", f"the silhouette's roof line has {values['roof_notches']:.0f} notches deeper "
                                   f"than {100 * ROOF_NOTCH_DEPTH:.0f}% of its size, which no box (none) or twobox (one) "
-                                  f"shows: merged buildings, or no building", "give each building its own mask (split a "
-                                  "row of houses), or do not use the 3D answer"))
+                                  f"shows: merged buildings, or no building", NOT_A_BOX_ACTION))
     if values["corners_moved"] > LIMITS["corners_moved"]:
         found.append(NamedWarning("corners-moved", f"the networks' corners moved {values['corners_moved']:.0f}% of the "
                                   f"silhouette's size on average ({values['corners_moved_max']:.0f}% at most) to reach the "
