@@ -9,7 +9,7 @@ from cuboidgen.synth import make_sample
 from cuboidtrain.fit.fitter import Fitter, Oracle
 from cuboidtrain.fit.masks import warp
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.geometry import mask_fit
+from cuboidtrain.geometry import edge_lines, mask_fit
 from cuboidtrain.geometry.camera_params import CameraParams, from_sample_params
 from shared.shapes import get_shape
 from tests.conftest import small_library
@@ -93,7 +93,7 @@ def test_the_hull_vertices_of_a_clean_mask_are_its_corners(seed):
     vertices = mask_fit.hull_vertices(sample.clean)
     nearest = np.linalg.norm(vertices[:, None] - sample.keypoints[None], axis=2).min(1)
     assert len(vertices) >= 4 and nearest.max() < 3.0, nearest  # a sharp corner's tip is lost to the pixels
-    assert mask_fit.signed_area(vertices) > 0
+    assert edge_lines.signed_area(vertices) > 0
 
 
 def test_the_true_heat_maps_put_the_networks_corners_on_the_truth(networks):

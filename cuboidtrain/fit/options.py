@@ -31,7 +31,8 @@ def with_exif(given: KnownCamera, exif: KnownCamera) -> KnownCamera:
     return KnownCamera(exif.focal_px if focal else given.focal_px,
                        exif.principal_px if principal else given.principal_px,
                        stiffness=exif.stiffness if focal else given.stiffness,
-                       principal_stiffness=exif.principal_stiffness if principal else given.stiffness,
+                       principal_stiffness=exif.principal_stiffness if principal else given.principal_stiffness
+                       if given.principal_stiffness is not None else given.stiffness,
                        exif=tuple(n for n in exif.exif if {"focal_px": focal, "principal_px": principal}[n]))
 
 

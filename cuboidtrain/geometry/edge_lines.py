@@ -109,9 +109,13 @@ def outline_polygon(keypoints: np.ndarray) -> np.ndarray:
     """(V,) the keypoint indices of the convex hull's vertices of (N, 2) corners, counter-clockwise
     in the image (y down: clockwise on screen)."""
     hull = cv2.convexHull(keypoints.astype(np.float32), returnPoints=False).ravel()
-    polygon = keypoints[hull]
-    area = np.sum(polygon[:, 0] * np.roll(polygon[:, 1], -1) - np.roll(polygon[:, 0], -1) * polygon[:, 1])
-    return hull if area > 0 else hull[::-1]
+    return hull if signed_area(keypoints[hull]) > 0 else hull[::-1]
+
+
+def signed_area(polygon: np.ndarray) -> float:
+    """The shoelace area of a polygon (V, 2): its sign is its orientation."""
+    x, y = polygon[:, 0], polygon[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
 def edge_lines(mask: np.ndarray, keypoints: np.ndarray, labels: np.ndarray) -> OutlineEdges:

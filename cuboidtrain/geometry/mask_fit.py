@@ -28,6 +28,7 @@ import numpy as np
 from cuboidtrain.geometry.camera_params import (CameraParams, CuboidFit, Evidence, describe, log_ratio_jacobian,
                                       project, project_with_jacobian, ratios, rotation_matrices,
                                       rotation_vector)
+from cuboidtrain.geometry.edge_lines import outline_polygon, signed_area
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, Solved, hypotheses, levenberg_marquardt
 from cuboidtrain.geometry.silhouette import confidence, extent_px
@@ -169,9 +170,7 @@ def snapped_corners(camera: CameraParams, mask: np.ndarray) -> list[tuple[np.nda
     pairs first, each vertex taken once, a vertex left over taking the nearest corner inside (a
     face the fit shows edge-on)."""
     corners = camera.keypoints()
-    on_hull = cv2.convexHull(corners.astype(np.float32), returnPoints=False).ravel()
-    if signed_area(corners[on_hull]) < 0:
-        on_hull = on_hull[::-1]
+    on_hull = outline_polygon(corners)
     vertices = hull_vertices(mask)
     ways = []
     if len(vertices) == len(on_hull):
@@ -212,12 +211,6 @@ def hull_vertices(mask: np.ndarray) -> np.ndarray:
             kept.append(vertex)
     hull = np.array(kept)
     return hull if signed_area(hull) >= 0 else hull[::-1]
-
-
-def signed_area(polygon: np.ndarray) -> float:
-    """The shoelace area of a polygon (V, 2): its sign is its orientation."""
-    x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
 def restarted(targets: Sequence[MaskTarget], stacked: StackedTargets, shape: Shape, corners: np.ndarray,
