@@ -8,7 +8,7 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from cuboidtrain.cli import app
-from cuboidtrain.infer.reporting import WARNING_CHARS, Answer, Tally
+from cuboidtrain.infer.reporting import WARNING_CHARS, Answer, Tally, camera_of
 from cuboidtrain.infer.run import json_destination
 from tests.test_infer import checkpoints, random_models, rectangles, write_png  # noqa: F401 (fixtures)
 
@@ -104,3 +104,13 @@ def test_infer_prints_a_line_per_input_and_the_total_and_json_only_on_stdout(tmp
         lines = [line for line in result.stderr.splitlines() if not line.startswith("20")]  # log lines aside
         assert [" ".join(line.split()) for line in lines[:2]] == [" ".join(Answer.of(r).line().split()) for r in records]
         assert lines[2].startswith("2 masks; fitted 2 in ") and "records by shape: box 2; 0 failed" in lines[2]
+
+
+def test_the_line_says_where_each_intrinsic_came_from_exif_included():
+    # a --photo's EXIF focal length is neither given nor fitted: the line says so (it read "camera fitted")
+    assert camera_of({"focal_px": "exif", "principal_px": "exif"}) == "camera from EXIF"
+    assert camera_of({"focal_px": "exif", "principal_px": "fitted"}) == "focal from EXIF, centre fitted"
+    assert camera_of({"focal_px": "given", "principal_px": "exif"}) == "focal given, centre from EXIF"
+    assert camera_of({"focal_px": "fitted", "principal_px": "given"}) == "centre given, focal fitted"
+    assert camera_of({"focal_px": "given", "principal_px": "given"}) == "camera given"
+    assert camera_of({"focal_px": "fitted", "principal_px": "fitted"}) == "camera fitted"

@@ -21,7 +21,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Polygon
 
 from cuboidtrain.infer.mesh import CameraBox, camera_box
-from cuboidtrain.infer.reporting import ratios_of
+from cuboidtrain.infer.reporting import SOURCE_WORDS, ratios_of
 from shared.shapes import Shape
 
 if TYPE_CHECKING:
@@ -260,8 +260,7 @@ def camera_plan_tile(ax, fit: Fit) -> list:
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_xticks([])
     ax.set_yticks([])
-    given = fit.cuboid.given
-    said = ", ".join(f"{word} {'given' if name in given else 'fitted'}"
+    said = ", ".join(f"{word} {SOURCE_WORDS[fit.cuboid.source(name)]}"
                      for name, word in (("focal_px", "focal length"), ("principal_px", "centre")))
     if box.nominal:
         where = "weak perspective: no finite focal length, drawn near"

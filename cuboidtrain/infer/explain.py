@@ -42,7 +42,6 @@ import numpy as np  # noqa: E402
 
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from cuboidtrain.fit.candidates import RICHER_SHAPE_MARGIN  # noqa: E402
 from cuboidtrain.fit.cuboid import CUBOID_MARGIN  # noqa: E402

@@ -108,12 +108,18 @@ def ratios_of(ratios: dict, sds: dict | None) -> tuple[Ratio, ...]:
                  for label, key in (("d/h", "depth_height"), ("w/h", "width_height")))
 
 
+SOURCE_WORDS = {"given": "given", "exif": "from EXIF", "fitted": "fitted"}  # the record's `intrinsics` values
+
+
 def camera_of(intrinsics: dict) -> str:
-    """Which of the camera's focal length and principal point the user gave, in words."""
-    focal, principal = (intrinsics[name] == "given" for name in ("focal_px", "principal_px"))
+    """Where the camera's focal length and principal point came from (the record's `intrinsics`:
+    given, a photo's EXIF, or fitted), in words; the one known named first."""
+    focal, principal = (SOURCE_WORDS[intrinsics[name]] for name in ("focal_px", "principal_px"))
     if focal == principal:
-        return "camera given" if focal else "camera fitted"
-    return "focal given, centre fitted" if focal else "centre given, focal fitted"
+        return f"camera {focal}"
+    if principal != "fitted" and focal == "fitted":
+        return f"centre {principal}, focal {focal}"
+    return f"focal {focal}, centre {principal}"
 
 
 def warnings_text(warnings: Sequence[str]) -> str:
