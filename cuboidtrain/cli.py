@@ -45,6 +45,7 @@ def run(
     size: int = typer.Option(TRAIN.size, envvar="CUBOIDTRAIN_SIZE", help="Model input size in px (a multiple of 32)."),
     arch: str = typer.Option(TRAIN.arch, envvar="CUBOIDTRAIN_ARCH", help="Architecture of R, S and T: compact (the shipped models'), slim (narrower, for 128 px inputs), paper (three ResNet-18s, Table 3), tiny (tests)."),
     reframe: bool = typer.Option(TRAIN.reframe, "--reframe/--no-reframe", envvar="CUBOIDTRAIN_REFRAME", help="Frame each sample as infer frames a mask (its visible pieces), from a spool of any size; --no-reframe: train on the spool's own framing, whose size must be --size."),
+    grey_input: bool = typer.Option(TRAIN.grey_input, "--grey-input/--binary-input", envvar="CUBOIDTRAIN_GREY_INPUT", help="Show R each model pixel's covered share of the mask (grey: where an edge lies inside a pixel) instead of a binary mask; needs --reframe. The model file keeps which, and infer frames masks alike."),
     steps: Optional[int] = typer.Option(TRAIN.steps, envvar="CUBOIDTRAIN_STEPS", help="Train until this step (neither --steps nor --epochs: until stopped)."),
     stop_at: Optional[int] = typer.Option(TRAIN.stop_at, envvar="CUBOIDTRAIN_STOP_AT", help="Stop, with a checkpoint, after this step, the schedule still running to --steps (one share of a longer run: a campaign's lease)."),
     epochs: Optional[int] = typer.Option(TRAIN.epochs, envvar="CUBOIDTRAIN_EPOCHS", help="Or this many epochs over the spool."),
@@ -79,7 +80,7 @@ def run(
     """Train from the spool until --steps/--epochs are done, or Ctrl-C/SIGTERM (which checkpoint first)."""
     setup_logging()
     config = TrainConfig(
-        phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe, steps=steps,
+        phase=phase.value, spool=str(spool), shape=shape.value, size=size, arch=arch, reframe=reframe, grey_input=grey_input, steps=steps,
         stop_at=stop_at, epochs=epochs, batch_size=batch_size, lr=lr, lr_schedule=lr_schedule.value, max_minutes=max_minutes, max_wait=max_wait, weight_decay=weight_decay, sigma=sigma, alpha_r=alpha_r, alpha_s=alpha_s,
         alpha_t=alpha_t, ratio_weight=ratio_weight, init=str(init) if init else None,
         out=str(out or Path("runs") / (f"p{phase.value}" if phase.value in ("1", "2") else phase.value)),

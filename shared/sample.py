@@ -86,8 +86,11 @@ class Sample:
 
 
 def signed(mask: np.ndarray) -> np.ndarray:
-    """A boolean mask as the paper's float32 +1 (object) / -1 (background)."""
-    return np.where(mask, np.float32(1), np.float32(-1))
+    """A boolean mask as the paper's float32 +1 (object) / -1 (background); a grey one (each
+    pixel's covered share, in [0, 1]: `cuboidtrain.fit.masks.levels`) onto [-1, 1] alike."""
+    if mask.dtype == bool:
+        return np.where(mask, np.float32(1), np.float32(-1))
+    return np.asarray(mask, np.float32) * 2 - 1
 
 
 def pack_mask(mask: np.ndarray) -> bytes:

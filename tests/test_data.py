@@ -166,6 +166,30 @@ def test_a_reframed_batch_prepares_to_what_infer_frames_from_its_noisy_mask(tmp_
     assert torch.equal(x.x3, render_heatmaps(x.x4, size, 1.0))
 
 
+@pytest.mark.parametrize(("source", "size"), [(128, 64), (96, 48)])
+def test_a_grey_batch_prepares_to_what_infer_frames_for_a_grey_model(tmp_path, source, size):
+    from cuboidtrain.fit.masks import frame, silhouette, warp
+
+    samples = [build_sample(seed, size=source, scene=STREET if seed % 2 else PAPER) for seed in range(10)]
+    sample_of = dict(zip(publish(tmp_path, samples), samples))
+    batch = SpoolBatches(tmp_path, "box", size, reframe="always")[enumerate_spool(tmp_path)]
+    grey, binary = prepare_batch(batch, CPU, 1.0, size, grey=True), prepare_batch(batch, CPU, 1.0, size)
+    assert torch.equal(grey.x1 >= 0, binary.x1 > 0) and torch.equal(grey.x2 >= 0, binary.x2 > 0)
+    assert ((grey.x1 > -1) & (grey.x1 < 1)).any()  # edge pixels between object and background
+    for row, name in enumerate(batch.names):
+        noisy, framing = frame(silhouette(sample_of[name].noisy), size, grey=True)
+        np.testing.assert_allclose(grey.x1[row, 0].numpy(), noisy * 2 - 1, atol=2e-4)
+        np.testing.assert_allclose(grey.x2[row, 0].numpy(), warp(sample_of[name].clean, framing, grey=True) * 2 - 1,
+                                   atol=2e-4)
+
+
+def test_a_grey_input_without_framings_is_refused(tmp_path):
+    publish(tmp_path, [build_sample(seed, size=32) for seed in range(2)])
+    batch = SpoolBatches(tmp_path, "box", 32, reframe="never")[enumerate_spool(tmp_path)]
+    with pytest.raises(ValueError, match="a grey input needs the batch's framings"):
+        prepare_batch(batch, CPU, 1.0, 32, grey=True)
+
+
 def test_building_and_box_is_the_silhouette_of_fit_masks_with_its_bounding_box():
     import cv2
 

@@ -195,6 +195,17 @@ def test_an_eroding_refiner_runs_to_the_limit_on_binary_inputs(tmp_path):
     assert infer_paths([path], [model], refine_steps=3)[0]["refine_steps"] == 3
 
 
+def test_the_first_pass_reads_a_grey_input_as_given_and_later_passes_its_sign():
+    erode = Erode()
+    grey = torch.full((1, 1, SIZE, SIZE), -1.0)
+    grey[..., 4:20, 4:20], grey[..., 4:20, 20] = 1.0, 0.2  # a column 60% covered
+    for steps in (3, None):
+        erode.inputs.clear()
+        refine(erode, grey, steps)
+        assert torch.equal(erode.inputs[0], grey)  # not binarised: the grey edge reaches R
+        assert all(set(x.unique().tolist()) <= {-1.0, 1.0} for x in erode.inputs[1:])
+
+
 def test_auto_refinement_that_never_settles_keeps_the_first_pass_and_says_so(tmp_path):
     # A drifting Refiner (here one that peels a pixel every pass) must not eat the mask under
     # auto: the record says it did not converge, and the mask is R's first pass.
@@ -384,6 +395,26 @@ def test_a_building_cut_in_pieces_by_an_occluder_is_fitted_whole(tmp_path):
     model_px = 76 / (SIZE * (1 - 2 * 0.1))  # one model pixel in input pixels: the framing's resolution
     assert np.allclose([xs.min(), ys.min(), xs.max(), ys.max()], [5, 5, 80, 30], atol=model_px)  # not 5 .. 40
     assert len(infer_paths([path], [model], all_components=True)) == 2
+
+
+def test_a_grey_input_model_is_shown_the_mask_as_each_pixel_s_covered_share(tmp_path):
+    path = write_png(tmp_path / "rect.png", rectangles((60, 90), (10, 10, 70, 50)))
+    class Shown(Recording):  # and the mask itself, as R read it
+        def forward(self, mask):
+            self.raw = mask[0, 0].clone().numpy()
+            return super().forward(mask)
+
+    shown = {}
+    for grey in (False, True):
+        refiner = Shown()
+        model = stub_model("box", refiner, lambda: rect_keypoints(refiner.last, 8))
+        model.grey_input = grey
+        infer_paths([path], [model])
+        shown[grey] = refiner.raw
+    framed, _ = frame(load_mask(Path(path)), SIZE, grey=True)
+    np.testing.assert_allclose(shown[True], framed * 2 - 1, atol=1e-6)
+    assert set(np.unique(shown[False])) == {-1.0, 1.0} and np.array_equal(shown[False] > 0, shown[True] >= 0)
+    assert ((shown[True] > -1) & (shown[True] < 1)).sum() > 20  # the rectangle's edges, between the levels
 
 
 # --- the command line ----------------------------------------------------------

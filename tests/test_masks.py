@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shared.raster import fill_convex
-from cuboidtrain.fit.masks import Framing, components, frame, load_mask
+from cuboidtrain.fit.masks import Framing, components, frame, load_mask, warp
 
 # A projected box's silhouette (six hull vertices), in units of its bounding square.
 HEXAGON = np.array([[0.12, 0.30], [0.55, 0.08], [0.93, 0.22], [0.95, 0.70], [0.60, 0.97], [0.10, 0.75]])
@@ -59,6 +59,38 @@ def test_a_half_pixel_slip_would_be_caught():
     right = draw(framing.to_model(polygon), (64, 64))
     slipped = draw(framing.to_model(polygon) + 0.5, (64, 64))
     assert (framed ^ right).sum() * 5 < (framed ^ slipped).sum()
+
+
+# --- grey input: each model pixel's covered share -------------------------------
+
+@pytest.mark.parametrize("shape, side, corner", INPUTS)
+def test_a_grey_framing_thresholded_at_half_is_the_binary_one(shape, side, corner):
+    mask = draw(HEXAGON * side + corner, shape[::-1])
+    binary, framing = frame(mask, 64)
+    grey, same = frame(mask, 64, grey=True)
+    assert same == framing and grey.dtype == np.float32 and grey.shape == (64, 64)
+    assert grey.min() >= 0.0 and grey.max() <= 1.0 and np.array_equal(grey >= 0.5, binary)
+    np.testing.assert_allclose(warp(mask, framing, grey=True), grey, atol=1e-5)  # the whole image, not a crop
+    # Shrinking, the object's covered area is kept in the grey input to a pixel's share per edge
+    # pixel; a binary one rounds each edge pixel to 0 or 1.
+    assert abs(grey.sum() - mask.sum() * framing.scale ** 2) < 0.02 * grey.sum()
+
+
+def test_the_grey_input_keeps_where_an_edge_lies_inside_a_model_pixel():
+    # A 256 px half-plane shrunk to 64 px: moving its edge one input pixel (a quarter model pixel)
+    # changes the grey input by a quarter pixel's share along the edge; the binary one often not at all.
+    framing = Framing(0.25, (-0.375, -0.375), 64, (256, 256))
+    sums, changed = [], []
+    for edge in range(120, 128):
+        mask = np.zeros((256, 256), bool)
+        mask[:, :edge] = True
+        sums.append(warp(mask, framing, grey=True).sum())
+        changed.append(warp(mask, framing).sum())
+    steps = np.diff(sums) / 64  # per model row: a quarter of a pixel each input pixel
+    # The shrink is a Gaussian then bilinear sampling (`_warp`), not an exact box: each step is
+    # 0.20 or 0.30 of a pixel (measured), a quarter on average.
+    assert steps.min() > 0.15 and steps.max() < 0.35 and abs(steps.mean() - 0.25) < 0.01
+    assert np.count_nonzero(np.diff(changed)) <= 2  # binary: the edge moves a whole pixel every 4 steps
 
 
 # A model-resolution box silhouette whose extremes are flat edges on pixel boundaries

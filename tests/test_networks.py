@@ -247,6 +247,7 @@ def test_fcns_keep_full_resolution_and_tabulator_takes_the_size(size):
     ({"loader_workers": -1}, "--loader-workers -1"),
     ({"max_minutes": 0}, "--max-minutes 0"),
     ({"device": "tpu"}, "--device 'tpu'"),
+    ({"grey_input": True, "reframe": False}, "--grey-input needs --reframe"),
 ])
 def test_validate_rejects_bad_values_naming_them(changes, message):
     with pytest.raises(ValueError, match=re.escape(message)):
@@ -312,6 +313,19 @@ def test_checkpoint_round_trip_gives_the_same_weights_and_outputs(saved, shape):
     assert TrainConfig.from_dict(ckpt["config"]) == TrainConfig(shape=shape, size=SIZE, phase="2", steps=50, sigma=1.0)
     assert loader_state(ckpt) == LoaderState(2, ["a.cub", "b.cub", "c.cub"], 1)
     assert ckpt["metrics"] == {"D_T": 0.25} and ckpt["optimizer"] is None
+
+
+def test_a_checkpoint_keeps_whether_its_model_reads_grey_inputs(saved, tmp_path):
+    model, binary_path = saved["box"]
+    assert load_model(binary_path)[0].grey_input is False
+    config = TrainConfig(shape="box", size=SIZE, phase="2", steps=50, grey_input=True)
+    grey_path = save_checkpoint(tmp_path / "grey.pt", model, config, step=7)
+    loaded, ckpt = load_model(grey_path)
+    assert loaded.grey_input is True and ckpt["config"]["grey_input"] is True
+    old = {**torch.load(binary_path, weights_only=False)}
+    old["config"] = {k: v for k, v in old["config"].items() if k != "grey_input"}  # written before the option
+    torch.save(old, tmp_path / "old.pt")
+    assert load_model(tmp_path / "old.pt")[0].grey_input is False
 
 
 @pytest.mark.parametrize("shape", SHAPES)

@@ -50,17 +50,18 @@ DEVICE_DENSE_MOST = 64
 
 
 def frame_masks(noisy: torch.Tensor, clean: torch.Tensor, framing: torch.Tensor, source: int,
-                size: int) -> tuple[torch.Tensor, torch.Tensor]:
+                size: int, grey: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """A batch's packed (B, ceil(source^2 / 8)) masks carried onto the model's `size` px input by
     their framings (B, 3: scale, x offset, y offset; `collate_framed`), both as `warp` carries a
-    mask: (B, 1, size, size) float32 +1 / -1 each. On the masks' device, in float32 whatever the autocast."""
+    mask: (B, 1, size, size) float32 +1 / -1 each, or with `grey` each pixel's covered share
+    mapped onto [-1, 1]. On the masks' device, in float32 whatever the autocast."""
     framing, batch = framing.to(noisy.device, torch.float64), noisy.shape[0]
     group = GROUP.get(noisy.device.type, DEVICE_GROUP)
     with torch.autocast(noisy.device.type, enabled=False):
         scale = framing[:, 0].repeat(2)  # both axes at once: y (rows), then x (columns)
         pixels, weights, reach = _axis_weights(torch.cat([framing[:, 2], framing[:, 1]]), scale, source, size)
         framed = torch.cat([_frame_group(noisy[at : at + group], clean[at : at + group], source,
-                                         *_windows(pixels, weights, reach, at, min(group, batch - at), batch))
+                                         *_windows(pixels, weights, reach, at, min(group, batch - at), batch), grey)
                             for at in range(0, batch, group)])
     signed = torch.empty(2, batch, 1, size, size, device=noisy.device)  # x1 and x2, each contiguous
     signed.copy_(framed[:, :, None, :size, :size].transpose(0, 1)).mul_(2).sub_(1)
@@ -76,9 +77,9 @@ def _windows(pixels: torch.Tensor, weights: torch.Tensor, reach: torch.Tensor, a
 
 
 def _frame_group(noisy: torch.Tensor, clean: torch.Tensor, source: int, rows: list[torch.Tensor],
-                 cols: list[torch.Tensor]) -> torch.Tensor:
+                 cols: list[torch.Tensor], grey: bool) -> torch.Tensor:
     """`frame_masks` of a few samples, given `_axis_weights` along y (`rows`) and x (`cols`):
-    (B, 2, C * CHUNK, C * CHUNK) bool, noisy then clean."""
+    (B, 2, C * CHUNK, C * CHUNK) bool, noisy then clean, or with `grey` their covered shares."""
     if source % 8 == 0:  # both masks' bytes row by row, unpacked at once: (B, source, 2 source)
         pair = unpack_bits(torch.cat([noisy.view(-1, source, source // 8), clean.view(-1, source, source // 8)], 2),
                            2 * source)
@@ -90,10 +91,15 @@ def _frame_group(noisy: torch.Tensor, clean: torch.Tensor, source: int, rows: li
         low, high = (int(bound) for bound in torch.aminmax(cols[0]))
         framed = torch.bmm(across.view(batch, 2 * spread, source)[:, :, low : high + 1],
                            _dense(cols[0] - low, cols[1], high + 1 - low))
-        return framed.view(batch, spread, 2, spread).transpose(1, 2) >= 0.5
+        return _levels(framed.view(batch, spread, 2, spread).transpose(1, 2), grey)
     # source x by (mask, model y): the image the columns' pass reads, both masks' chunks in one product
     framed = _pass(_by_columns(across, source), *cols).view(batch, spread, 2, spread)  # model x by (mask, model y)
-    return framed.permute(0, 2, 3, 1) >= 0.5
+    return _levels(framed.permute(0, 2, 3, 1), grey)
+
+
+def _levels(coverage: torch.Tensor, grey: bool) -> torch.Tensor:
+    """`cuboidtrain.fit.masks.levels` on the device: half covered or more, or the share itself."""
+    return coverage.clamp(0.0, 1.0) if grey else coverage >= 0.5
 
 
 def _by_columns(across: torch.Tensor, source: int) -> torch.Tensor:

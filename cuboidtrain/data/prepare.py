@@ -23,15 +23,18 @@ class ChainBatch:
     ratios: torch.Tensor  # (B, R): the shape's ratios, T's other target
 
 
-def prepare_batch(batch: LoaderBatch, device: torch.device, sigma: float, size: int) -> ChainBatch:
+def prepare_batch(batch: LoaderBatch, device: torch.device, sigma: float, size: int, grey: bool = False) -> ChainBatch:
     """A loader batch -> the paper's x1, x2, x3, x4 and ratios on `device`; a batch with framings
-    framed at `size` on the device (`frame_masks`), one without unpacked there."""
+    framed at `size` on the device (`frame_masks`; with `grey` both masks as each pixel's covered
+    share, as a grey-input model is shown them), one without unpacked there (binary: its own pixels)."""
     non_blocking = device.type == "cuda"
     keypoints = batch.keypoints.to(device, non_blocking=non_blocking)
     noisy = batch.noisy.to(device, non_blocking=non_blocking)
     clean = batch.clean.to(device, non_blocking=non_blocking)
     if batch.framing is not None:
-        x1, x2 = frame_masks(noisy, clean, batch.framing, batch.source, size)
+        x1, x2 = frame_masks(noisy, clean, batch.framing, batch.source, size, grey)
+    elif grey:
+        raise ValueError("a grey input needs the batch's framings (a reframing loader): a spool's own masks are binary")
     else:
         x1, x2 = unpack_masks(noisy, size), unpack_masks(clean, size)
     return ChainBatch(

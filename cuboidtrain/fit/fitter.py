@@ -41,6 +41,7 @@ from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.fit.trust import Trust, judge, signs
 from shared.errors import UsageError
 from shared.files import non_finite
+from shared.sample import signed
 from shared.shapes import get_shape
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ class Oracle:
         if self.refined is None:
             refined, steps, converged = refine(model.refiner, x1, steps)
         else:
-            framed = np.where(warp(self.refined, framing), 1.0, -1.0).astype(np.float32)
+            framed = signed(warp(self.refined, framing, model.grey_input))
             refined, steps, converged = torch.from_numpy(framed)[None, None].to(x1.device), 0, True
         if self.keypoints is None:
             heatmaps = model.estimator(refined)
@@ -224,7 +225,7 @@ class Fitter:
         fitted to the component, judged by its own silhouette, and its projection kept."""
         candidates = []
         for model in self.models:
-            framed, framing = frame(mask, model.size, self.options.margin)  # each model at its own size
+            framed, framing = frame(mask, model.size, self.options.margin, model.grey_input)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing, oracle))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
         # First without restarts (reach 0), then only the classes that stopped short where it matters
@@ -251,15 +252,16 @@ class Fitter:
 
     def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None,
                    oracle: Oracle | None = None) -> Candidate:
-        """One framed bool (S, S) mask at model resolution -> its Candidate: keypoints (N, 2) model
-        px, ratios, confidence, refine passes, and what an explanation draws (refined, heatmaps).
-        `framing`, the map back to the input's pixels, is carried along (`oracle`: `predict`'s)."""
+        """One framed (S, S) mask at model resolution, bool or grey (`masks.levels`) -> its Candidate:
+        keypoints (N, 2) model px, ratios, confidence, refine passes, and what an explanation draws
+        (refined, heatmaps). `framing`, the map back to the input's pixels, is carried along
+        (`oracle`: `predict`'s)."""
         if framed_mask.shape != (model.size, model.size):
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
-        x1 = torch.from_numpy(np.where(framed_mask, 1.0, -1.0).astype(np.float32))[None, None]
+        x1 = torch.from_numpy(signed(framed_mask))[None, None]
         with one_thread(self.device):  # the same numbers however many threads this machine gives torch
             out = self.predict(model, x1, oracle, framing)
-        return self.candidate(model, out, 0, framed_mask, framing)
+        return self.candidate(model, out, 0, framed_mask >= 0.5, framing)
 
     def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
                     known: Sequence[KnownCamera | None] | None = None,

@@ -289,16 +289,18 @@ class Framing:
         return np.array([[s, 0.0, tx], [0.0, s, ty]])
 
 
-def frame(mask: np.ndarray, size: int, margin: float = DEFAULT_MARGIN) -> tuple[np.ndarray, Framing]:
+def frame(mask: np.ndarray, size: int, margin: float = DEFAULT_MARGIN,
+          grey: bool = False) -> tuple[np.ndarray, Framing]:
     """Scale and centre the object of `mask` so its longer side spans the model input
     less two margins (fraction of `size`, each side, in [0, 0.5) as FitOptions checks,
-    as the generator frames its scenes); returns the bool (size, size) model input and
-    its Framing."""
+    as the generator frames its scenes); returns the (size, size) model input and its
+    Framing. The input is bool, or with `grey` the float32 share of each model pixel the
+    object covers (`coverage`)."""
     if not mask.any():
         raise ValueError("cannot frame an empty mask")
     box = cv2.boundingRect(mask.astype(np.uint8))
     framing = framing_of(box, size, margin, mask.shape[:2])
-    return _warp(mask, box, framing) >= 0.5, framing
+    return levels(_warp(mask, box, framing), grey), framing
 
 
 def framing_of(box: tuple[int, int, int, int], size: int, margin: float, shape: tuple[int, int]) -> Framing:
@@ -313,11 +315,19 @@ def framing_of(box: tuple[int, int, int, int], size: int, margin: float, shape: 
     return Framing(float(scale), (float(offset[0]), float(offset[1])), size, shape)
 
 
-def warp(mask: np.ndarray, framing: Framing) -> np.ndarray:
+def warp(mask: np.ndarray, framing: Framing, grey: bool = False) -> np.ndarray:
     """All of `mask` carried onto the model's input by `framing`, as `frame` carries its
     object (training frames the clean silhouette by its noisy one's framing)."""
     height, width = mask.shape
-    return _warp(mask, (0, 0, width, height), framing) >= 0.5
+    return levels(_warp(mask, (0, 0, width, height), framing), grey)
+
+
+def levels(coverage: np.ndarray, grey: bool) -> np.ndarray:
+    """A model input from the share of each model pixel the object covers: bool (half covered
+    or more), or with `grey` the share itself, in [0, 1]. A grey input keeps where an edge lies
+    inside a model pixel, which a binary one rounds to the pixel (a 64 px input read at 256 px:
+    to within 4 px)."""
+    return coverage.clip(0.0, 1.0) if grey else coverage >= 0.5
 
 
 SHRINK_BLUR = 0.29  # the Gaussian's std when shrinking, in source px per model px (`cuboidtrain.data.device_framing` frames by it too)

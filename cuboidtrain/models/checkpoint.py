@@ -221,7 +221,7 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
 def load_model(path: str | Path, shape: str | None = None, size: int | None = None) -> tuple[CuboidNet, dict]:
     """A model rebuilt from its checkpoint (on the CPU, in eval mode) and the checkpoint dict."""
     ckpt = load_checkpoint(path, shape, size)
-    model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"], checkpoint_arch(ckpt))
+    model = CuboidNet(ckpt["shape"], ckpt["size"], ckpt["sigma"], checkpoint_arch(ckpt), checkpoint_grey(ckpt))
     model.load_state_dict(ckpt["model"])
     if ckpt.get("pdm") is not None:
         model.pdm = PointDistributionModel.from_dict(ckpt["pdm"])
@@ -238,6 +238,12 @@ def _torch_file(path: Path) -> bool:
 def checkpoint_arch(ckpt: dict) -> str:
     """The checkpoint's architecture; files written before the registry hold the paper's."""
     return ckpt.get("arch", "paper")
+
+
+def checkpoint_grey(ckpt: dict) -> bool:
+    """Whether the checkpoint's R was trained on grey inputs (its run's --grey-input); files
+    written before the option read binary masks."""
+    return bool((ckpt.get("config") or {}).get("grey_input", False))
 
 
 def load_models(paths: list[Path]) -> list[CuboidNet]:

@@ -212,10 +212,14 @@ class CuboidNet(nn.Module):
     """R, S and T for one shape class at one size; `forward` chains them (training phase 2 on,
     eval, infer, export)."""
 
-    def __init__(self, shape: str, size: int, sigma: float | None = None, arch: str = DEFAULT_ARCH):
+    def __init__(self, shape: str, size: int, sigma: float | None = None, arch: str = DEFAULT_ARCH,
+                 grey_input: bool = False):
         super().__init__()
         geometry = get_shape(shape)
         self.shape, self.size, self.arch = shape, size, check_arch(arch)
+        # Whether R reads a grey input (each pixel's covered share, `cuboidtrain.fit.masks.levels`) or a
+        # binary one: trained on one, a model is shown that one (its checkpoint keeps which).
+        self.grey_input = grey_input
         # The heat maps' Gaussian std in px that S was trained to draw: sub-pixel decoders need it.
         self.sigma = sigma if sigma is not None else default_sigma(size)
         # The shape model of --extractor pdm (cuboidtrain.models.pdm), saved in a model file; None until one is set.
@@ -224,8 +228,9 @@ class CuboidNet(nn.Module):
             geometry.num_keypoints, len(geometry.ratio_names), size)
 
     def forward(self, mask: torch.Tensor, refine_steps: int | None = 1) -> ChainOutput:
-        """T(S(R^K(mask))) (paper 3.4) on a (B, 1, S, S) +-1 batch, K = `refine_steps` passes of
-        R, each on the sign of the last (None: until settled, `cuboidtrain.models.refine`).
+        """T(S(R^K(mask))) (paper 3.4) on a (B, 1, S, S) batch in [-1, 1] (+-1, or grey for a
+        `grey_input` model), K = `refine_steps` passes of R, the first on the mask as given, each
+        later one on the sign of the last (None: until settled, `cuboidtrain.models.refine`).
         One pass is what training chains: the sign of a +-1 mask is that mask, value for value."""
         refined, steps_run, converged = refine(self.refiner, mask, refine_steps)
         heatmaps = self.estimator(refined)  # S sees R's tanh output, not its sign, as in training's chained phases
@@ -235,8 +240,8 @@ class CuboidNet(nn.Module):
 
 
 def build_model(shape: str, size: int, seed: int = 0, sigma: float | None = None,
-                arch: str = DEFAULT_ARCH) -> CuboidNet:
+                arch: str = DEFAULT_ARCH, grey_input: bool = False) -> CuboidNet:
     """A freshly initialised model; the same seed gives the same weights."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return CuboidNet(shape, size, sigma, arch)
+        return CuboidNet(shape, size, sigma, arch, grey_input)

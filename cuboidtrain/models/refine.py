@@ -21,10 +21,11 @@ def binarise(refined: torch.Tensor) -> torch.Tensor:
 
 def refine(refiner: nn.Module, mask_pm1: torch.Tensor, steps: int | None,
            max_steps: int = MAX_REFINE_STEPS) -> tuple[torch.Tensor, int, bool]:
-    """R^K: (B, 1, S, S) +-1 masks -> (refined tanh output, passes run, whether every mask converged).
+    """R^K: (B, 1, S, S) masks in [-1, 1] -> (refined tanh output, passes run, whether every mask converged).
 
-    `steps=K` runs R K times, each pass on the sign of the previous output (R was
-    trained on binary inputs, not tanh values); K=0 hands the raw mask on. `None`
+    `steps=K` runs R K times: the first pass on the mask as given (+-1, or grey for a model
+    trained on grey inputs), each later one on the sign of the previous output (R was
+    trained on masks, not tanh values); K=0 hands the raw mask on. `None`
     ("auto") repeats, per mask, until a pass flips none of its pixels. A mask whose
     Refiner never settles within `max_steps` passes, or settles far from its first
     pass (IoU below DRIFT_IOU: grown into a square, eaten away), is not trusted:
@@ -33,14 +34,14 @@ def refine(refiner: nn.Module, mask_pm1: torch.Tensor, steps: int | None,
     """
     if steps is not None:  # a count FitOptions has checked; a Python loop, so a traced graph unrolls it
         refined = mask_pm1
-        for _ in range(steps):
-            refined = refiner(binarise(refined))
+        for step in range(steps):
+            refined = refiner(refined if step == 0 else binarise(refined))
         return refined, steps, True
     batch = mask_pm1.shape[0]
     settled_at = torch.zeros(batch, dtype=torch.long)  # 0: not settled yet
     refined, first, result, previous = mask_pm1, None, None, None
     for step in range(1, max_steps + 1):
-        refined = refiner(binarise(refined))
+        refined = refiner(refined if step == 1 else binarise(refined))
         current = refined > 0
         if first is None:
             first, result = refined, refined.clone()

@@ -98,6 +98,7 @@ def make_card(checkpoint_path: Path, checkpoint: dict, scenes: list[str], valida
     return {
         "shape": checkpoint["shape"], "size": checkpoint["size"], "arch": checkpoint_arch(checkpoint),
         "sigma": checkpoint["sigma"], "scenes": scenes, "reframe": config.get("reframe", False),
+        "grey_input": config.get("grey_input", False),
         "steps": sum(p["steps"] for p in phases), "samples_seen": sum(p["samples"] for p in phases),
         "wall_time_s": sum(p["wall_time_s"] or 0.0 for p in phases), "phases": phases,
         "commit": git_commit(), "packed_from": str(checkpoint_path), "recipe": recipe,

@@ -35,6 +35,7 @@ class TrainConfig:
     size: int = number(256, lo=32, hi=MAX_SIZE, integer=True, unit="px")  # the model's square input
     arch: str = "compact"  # a name in cuboidtrain.models.networks.ARCHS: paper (three ResNet-18s), compact, tiny
     reframe: bool = True  # frame each sample as `infer` frames a mask (its visible pieces); any spool size
+    grey_input: bool = False  # R reads each model pixel's covered share, not a binary mask (needs reframe: a spool's own framing is binary)
     steps: int | None = number(None, lo=1, integer=True, optional=True)  # train until this step (a run's steps count from 0; --resume continues the count)
     stop_at: int | None = number(None, lo=1, integer=True, optional=True)  # stop (with a checkpoint) after this step, the schedule still running to --steps: one share of a longer run (a campaign's lease)
     epochs: int | None = number(None, lo=1, integer=True, optional=True)  # or this many passes over the spool as listed at each epoch's start; neither: until stopped
@@ -80,6 +81,9 @@ class TrainConfig:
         check_choice("--lr-schedule", self.lr_schedule, LR_SCHEDULES)
         if self.lr_schedule == "cosine" and self.steps is None and self.max_minutes is None:
             raise UsageError("--lr-schedule cosine needs --steps N or --max-minutes M: where it decays to lr/100")
+        if self.grey_input and not self.reframe:
+            raise UsageError("--grey-input needs --reframe: a grey input is the mask framed onto the model's pixels, "
+                             "and --no-reframe reads the spool's binary masks as they are")
         if self.sigma is not None and self.sigma > self.size / 4:
             raise UsageError(f"--sigma {self.sigma}: expected at most a quarter of --size ({self.size / 4:g} px)")
         if self.phase in ("1", "2") and not any(self.loss_weights):

@@ -164,7 +164,7 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: LoaderBatch, sigma: 
                    paths: bool = False) -> tuple[dict[str, torch.Tensor], dict[str, list]]:
     """Per-sample errors of one batch, on the CPU, the keypoints read as the Fitter reads them
     (T's, or its extractor's off S's heat maps); with `paths`, each path's scores too."""
-    x = prepare_batch(batch, fitter.device, sigma, model.size)
+    x = prepare_batch(batch, fitter.device, sigma, model.size, model.grey_input)
     out = fitter.predict(model, x.x1)  # the chain as infer runs it
     t_alone, _ = model.tabulator(x.x3)  # T fed perfect heat maps: its own share of the error
     decoded_alone = fitter.codecs[model.shape].decode(x.x3, t_alone).keypoints  # the extractor on perfect maps

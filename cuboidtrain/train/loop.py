@@ -268,7 +268,7 @@ def train_one_step(s: Session, position: Position, batch: LoaderBatch, waited: f
     stops the run (Diverged) before any record, status or checkpoint could hold it."""
     config, setup = s.config, s.setup
     # 2. targets rendered on the device; forward, backward, step
-    x = prepare_batch(batch, s.device, config.heatmap_sigma, config.size)
+    x = prepare_batch(batch, s.device, config.heatmap_sigma, config.size, config.grey_input)
     for group in setup.optimizer.param_groups:
         group["lr"] = learning_rate(config, position.step, schedule_seconds(config, s.ranks, s.started))
     losses = train_step(setup.model, setup.optimizer, x, config, s.device, setup.losses_of)

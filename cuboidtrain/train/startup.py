@@ -76,7 +76,7 @@ def resumable(config: TrainConfig) -> dict:
 def build_state(config: TrainConfig, device: torch.device) -> Start:
     """Model, optimizer, first step and a checkpoint to resume from (None for a fresh run)."""
     torch.manual_seed(config.seed)
-    model = build_model(config.shape, config.size, config.seed, config.heatmap_sigma, config.arch)
+    model = build_model(config.shape, config.size, config.seed, config.heatmap_sigma, config.arch, config.grey_input)
     resume = None
     if config.resume:
         resume = resumable(config)
