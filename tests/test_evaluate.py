@@ -121,7 +121,7 @@ class Oracle(nn.Module):
 
     def __init__(self, samples, shape: str, size: int):
         super().__init__()
-        self.shape, self.size, self.sigma = shape, size, 1.0
+        self.shape, self.size, self.sigma, self.grey_input = shape, size, 1.0, False
         self.truth = {s.noisy.tobytes(): s for s in samples}
         self.tabulator = CentroidTabulator()
 

@@ -95,7 +95,7 @@ def test_export_is_a_valid_onnx_model_with_its_metadata(exported, shape, steps):
     assert float(meta["sigma"]) == train_config(shape=shape, size=SIZE).heatmap_sigma
     assert json.loads(meta["keypoint_names"]) == list(geometry.keypoint_names)
     assert json.loads(meta["ratio_names"]) == list(geometry.ratio_names)
-    assert int(meta["checkpoint_step"]) == STEP
+    assert int(meta["checkpoint_step"]) == STEP and meta["input"] == "binary"
     session = OnnxPipeline(path, threads=1, shape=shape, size=SIZE)
     assert session.metadata == meta and (session.shape, session.size, session.refine_steps) == (shape, SIZE, steps)
 

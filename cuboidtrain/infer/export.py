@@ -60,6 +60,8 @@ def metadata(model: CuboidNet, sigma: float, refine_steps: int, step: int | None
         "sigma": repr(float(sigma)), "keypoint_names": json_text(list(geometry.keypoint_names)),
         "ratio_names": json_text(list(geometry.ratio_names)), "refine_steps": str(refine_steps),
         "checkpoint_step": "" if step is None else str(step),
+        # how to frame a mask for it: binary +-1, or each pixel's covered share onto [-1, 1]
+        "input": "grey" if model.grey_input else "binary",
     }
 
 
