@@ -29,6 +29,10 @@ and the median ms per mask of the selection run (both models, both cuboid fits).
 
     .venv/bin/python benchmarks/accuracy/bench_accuracy.py --samples 300 --json bench-accuracy.json
 
+`--sets` picks the sets (`irregular`, irregular buildings, beside the default three), `--paths` the
+paths, and `--tuning-seeds` draws masks of other seeds, on which a rule may be tuned before it is
+measured on the usual ones.
+
 Spools are drawn on first use under --spools (seeded, so every run scores the same masks).
 
 The JSON (--json; also printed on one line after the tables):
@@ -49,6 +53,7 @@ The JSON (--json; also printed on one line after the tables):
   `refiner_iou`, `s_peaks_dark_256`, `t_alone_256` and `skipped` (eval's);
 * `selection` (networks; set -> share of masks given their true shape), `cuboid_selection`
   (--cuboid: path -> set, for `cuboid` and `cuboid_camera_given`, each mask's true camera held);
+  `selection_by_shape` (path -> set -> true shape -> the share of its masks given it);
   `mask_ms` (path -> set -> median ms a mask of the selection run); the rows' `within_1sd` /
   `within_2sd`: how often the truth lies within the cuboid fit's error bars; `camera_inside`
   (fits with a corner at or behind the camera: it stands inside or behind the box) and
@@ -227,7 +232,7 @@ def main() -> None:
         variants = {name: variants[name] for name in args.paths}
         args.cuboid = args.cuboid or any(name.startswith("cuboid") for name in args.paths)
     # `rows` and `selection` keep their old form (cuboidtrain models pack --validation reads them): networks only.
-    rows, selection, cuboid_selection, mask_ms = [], {}, {}, {}
+    rows, selection, cuboid_selection, mask_ms, by_shape = [], {}, {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.sets:
             for variant, options in variants.items():
@@ -247,11 +252,14 @@ def main() -> None:
                     rows.append(row)
                     if (scene in NOISY_SETS or args.cuboid) and len(models) > 1 and not args.no_selection:
                         fitter = Fitter(list(models.values()), given)
+                        right = 0
                         for file in files:  # one call a mask: its time is the whole infer path's
                             start = time.perf_counter()
-                            chosen += to_record(fitter.outcomes([file])[0])["shape"] == shape
+                            right += to_record(fitter.outcomes([file])[0])["shape"] == shape
                             times.append(1000 * (time.perf_counter() - start))
+                        chosen += right
                         total += len(files)
+                        by_shape.setdefault(variant, {}).setdefault(scene, {})[shape] = right / len(files)
                 if total:
                     (selection if variant == "networks" else cuboid_selection.setdefault(variant, {}))[scene] = chosen / total
                     mask_ms.setdefault(variant, {})[scene] = statistics.median(times)
@@ -265,7 +273,7 @@ def main() -> None:
     latency["ratio"] = latency["shipped_ms"] / latency["paper_arch_ms"]
     result = {"command": " ".join(sys.argv), "models": {s: str(p) for s, p in zip(models, paths)},
               "threads": args.threads, "rows": [r for r in rows if r["path"] == "networks"], "selection": selection,
-              "mask_ms": mask_ms, "latency": latency, "targets": TARGETS}
+              "mask_ms": mask_ms, "selection_by_shape": by_shape, "latency": latency, "targets": TARGETS}
     if args.cuboid:
         result |= {"cuboid_rows": [r for r in rows if r["path"].startswith("cuboid")], "cuboid_selection": cuboid_selection}
     show(result)
@@ -291,7 +299,9 @@ def show(result: dict) -> None:
     selections = {"networks": result["selection"]} | result.get("cuboid_selection", {})
     for variant, by_scene in selections.items():
         for scene, accuracy in by_scene.items():
-            console.print(f"{variant}: shape selection on {scene}: {100 * accuracy:.1f}% (target >= 95%), "
+            shares = result["selection_by_shape"].get(variant, {}).get(scene, {})
+            each = ", ".join(f"{shape} {100 * share:.1f}%" for shape, share in shares.items())
+            console.print(f"{variant}: shape selection on {scene}: {100 * accuracy:.1f}% ({each}; target >= 95%), "
                           f"median {result['mask_ms'][variant][scene]:.1f} ms a mask")
     lat = result["latency"]
     console.print(f"infer per mask ({result['threads']} thread(s), both models): {lat['shipped_ms']:.1f} ms "
