@@ -52,7 +52,9 @@ SEAM_HEIGHT_RATIO = 0.9
 # a sliver. Chosen on 150 masks a set and shape of the tuning seeds (`bench_accuracy.py --tuning-seeds`):
 # 0.2 took irregular box masks called box from 80.7% to 88.7%, twoboxes unchanged (90.7%), street box
 # 91.3 -> 92.7%, twobox 94.0 -> 93.3% (one mask), paper box 94.7 -> 97.3%, paper-clean unchanged;
-# 0.25 gained 2 more irregular boxes and lost 2 twoboxes there and 2 on paper.
+# 0.25 gained 2 more irregular boxes and lost 2 twoboxes there and 2 on paper. Measured on bench_accuracy's
+# own 200 a set and shape (BENCHMARKS.md, "Shape selection"): box masks called box +4.0 points on
+# irregular, +2.5 street, +1.0 paper; twoboxes unchanged but on irregular (-1.5, 3 masks).
 SLIVER_WIDTH_SHARE = 0.2
 # An outline corner's score falls with its distance to the input's outline, at this scale:
 # a clean 256 px mask puts its fitted corners within about 1 px of it (rasterised corners).
