@@ -156,12 +156,15 @@ def unhealthy(message: str) -> None:
 def scenes(name: Optional[str] = typer.Argument(None, help="Show one preset's ranges.")) -> None:
     """List the scene presets, or print one as JSON (a starting point for your own file)."""
     from cuboidgen.config import SCENES
+    from cuboidgen.irregular import irregular
 
     if name is None:
         for preset in SCENES.values():
             kind = "ground-standing, tilted camera" if preset.eye_height else "paper Table 4"
             if preset.occluders == (0, 0) and preset.contour_noise == (0.0, 0.0):
                 kind += ", no occlusion or contour noise (Table 3's validation)"
+            if irregular(preset):
+                kind += ", irregular outlines (roof lines, chimneys, parapets, neighbours, blobby edges, low resolution)"
             typer.echo(f"{preset.name}: {kind}")
         return
     if name not in SCENES:

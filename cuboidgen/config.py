@@ -68,6 +68,26 @@ class SceneConfig:
     # (scaled with the image size), and the correlation length along the contour in px.
     contour_noise: Range = pair((0.0, 2.5), lo=0, hi=64)
     noise_wavelength: Range = pair((3.0, 12.0), lo=0, lo_open=True, hi=4096)
+    # Irregular buildings (the `irregular` scene; every probability 0 elsewhere): what real outlines show and a
+    # box does not (cuboidgen/irregular.py). Each is drawn with its probability; sizes are fractions of the part
+    # it stands on or beside (heights of its height, widths of its width), px are at 256 px.
+    roof_probability: float = number(0.0, lo=0, hi=1)  # a roof on top of a part: pitched (gable) or stepped
+    stepped_share: float = number(0.4, lo=0, hi=1)  # of those roofs, stepped (a set-back storey) rather than gable
+    roof_height: Range = pair((0.08, 0.4), lo=0, hi=2)
+    chimney_probability: float = number(0.0, lo=0, hi=1)  # a chimney standing on a part's top
+    chimney_height: Range = pair((0.05, 0.2), lo=0, hi=2)
+    chimney_width: Range = pair((0.03, 0.08), lo=0, lo_open=True, hi=0.5)
+    parapet_probability: float = number(0.0, lo=0, hi=1)  # a low wall along part of one top edge
+    parapet_height: Range = pair((0.02, 0.06), lo=0, hi=1)
+    neighbour_probability: float = number(0.0, lo=0, hi=1)  # a neighbour's corner merged into one side
+    neighbour_width: Range = pair((0.05, 0.25), lo=0, lo_open=True, hi=2)
+    neighbour_height: Range = pair((0.3, 1.2), lo=0, lo_open=True, hi=4)
+    blob_probability: float = number(0.0, lo=0, hi=1)  # blobby segmentation: rounded corners, a slow wobble
+    blob_radius: Range = pair((2.0, 8.0), lo=0, hi=64)  # px: corners rounded to about this radius
+    blob_wobble: Range = pair((0.5, 2.5), lo=0, hi=64)  # px: the wobble's std
+    blob_wavelength: Range = pair((24.0, 64.0), lo=0, lo_open=True, hi=4096)  # px along the outline
+    low_res_probability: float = number(0.0, lo=0, hi=1)  # drawn small and upsampled
+    low_res_factor: Range = pair((2.0, 6.0), lo=1, hi=64)  # the image drawn at size / factor px
 
     def validate(self) -> "SceneConfig":
         """Every field checked for type, finiteness and range; the error names the field."""
@@ -98,7 +118,21 @@ STREET = SceneConfig(
 # Table 3's validation: "no noise and occlusions were used".
 PAPER_CLEAN = replace(PAPER, name="paper-clean", occluders=(0, 0), contour_noise=(0.0, 0.0))
 
-SCENES: dict[str, SceneConfig] = {s.name: s for s in (PAPER, PAPER_CLEAN, STREET)}
+# Irregular buildings (issue 37, Must have 6): `street`'s buildings and cameras, with what real outlines
+# show beside the box: a roof line, a chimney or parapet, a neighbour's corner, blobby edges, low resolution.
+IRREGULAR = replace(
+    STREET,
+    name="irregular",
+    roof_probability=0.6,
+    chimney_probability=0.35,
+    parapet_probability=0.3,
+    neighbour_probability=0.35,
+    blob_probability=0.5,
+    low_res_probability=0.35,
+)
+
+SCENES: dict[str, SceneConfig] = {s.name: s for s in (PAPER, PAPER_CLEAN, STREET, IRREGULAR)}
+
 
 
 def load_scene(name_or_path: str) -> SceneConfig:

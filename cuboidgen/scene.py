@@ -8,12 +8,13 @@ and picks the pinhole camera (`frame`) that puts the silhouette in the picture.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from cuboidgen.config import SceneConfig
-from shared.camera import Cuboid, Intrinsics, name_corners
+from shared.camera import Cuboid, Intrinsics, name_corners, perspective
 from shared.errors import UsageError
 from shared.shapes import Shape
 
@@ -36,8 +37,11 @@ def uniform(rng: np.random.Generator, bounds) -> float:
     return lo + (hi - lo) * rng.random()
 
 
-def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Generator) -> View:
-    """Draw one view of `shape` from `scene`'s ranges, framed into a size x size image."""
+def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Generator,
+              beside: Callable[[np.ndarray], np.ndarray] | None = None) -> View:
+    """Draw one view of `shape` from `scene`'s ranges, framed into a size x size image. `beside` maps the
+    keypoints in the camera frame (viewer-named) to more camera-frame points the picture must hold as
+    well (an irregular building's roof or neighbour: cuboidgen.irregular), framed with the shape."""
     for _ in range(MAX_DRAWS):
         params = draw_params(shape, scene, rng)
         cuboid = Cuboid.from_params(params)
@@ -49,7 +53,9 @@ def draw_view(shape: Shape, scene: SceneConfig, size: int, rng: np.random.Genera
                          f"than {MIN_DEPTH:g} x distance: expected distance well beyond the extents")
     named = name_corners(shape, camera)
     params.update(named.naming.params())
-    intrinsics, margin = frame(named.image, size, scene, rng)
+    extra = beside(named.camera) if beside is not None else None
+    outline = named.image if extra is None or not len(extra) else np.concatenate([named.image, perspective(extra)])
+    intrinsics, margin = frame(outline, size, scene, rng)
     params["margin"] = margin
     params.update(intrinsics.params())
     return View(keypoints=named.keypoints(intrinsics), points3d=named.camera, ratios=shape.ratios(named.camera),

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from cuboidgen.config import SceneConfig
+from cuboidgen.irregular import degrade, draw_deviations, irregular, structure_points, with_structures
 from cuboidgen.noise import roughen
 from cuboidgen.occlusion import occlude
 from shared.raster import rasterize
@@ -67,21 +68,31 @@ def make_sample(shape: str, scene: SceneConfig, size: int, seed: int, library) -
     if shape == "mix":
         shape = "box" if rng.random() < 0.5 else "twobox"
     geometry = get_shape(shape)
-    view = draw_view(geometry, scene, size, rng)
+    # An irregular building's roof, chimney, parapet or neighbour join the silhouette, framed with it, that
+    # the occluders cut; the clean mask, the Refiner's target, stays the box's (cuboidgen.irregular).
+    deviations = draw_deviations(geometry, scene, rng) if irregular(scene) else None
+    view = draw_view(geometry, scene, size, rng,
+                     beside=(lambda camera: structure_points(deviations, geometry, camera)) if deviations else None)
     clean = rasterize(geometry, view.keypoints, size)
-    occluded, occluders = occlude(clean, library, scene, rng, box=silhouette_box(view.keypoints, size))
+    built = with_structures(clean, deviations, geometry, view) if deviations else clean
+    occluded, occluders = occlude(built, library, scene, rng,
+                                  box=silhouette_box(view.keypoints, size) if built is clean else None)
     amount = uniform(rng, scene.contour_noise) * size / 256
     wavelength = uniform(rng, scene.noise_wavelength) * size / 256
     noisy = roughen(occluded, amount, wavelength, rng)
+    if deviations:
+        noisy = degrade(noisy, deviations, rng)
     visible = cv2.countNonZero(occluded.view(np.uint8))  # occlusion only removes pixels
     params = {
         "scene": scene.name,
         **view.params,
         "occluders": occluders,
-        "occluded_fraction": 1.0 - visible / max(cv2.countNonZero(clean.view(np.uint8)), 1),
+        "occluded_fraction": 1.0 - visible / max(cv2.countNonZero(built.view(np.uint8)), 1),
         "contour_noise": amount,
         "noise_wavelength": wavelength,
     }
+    if deviations is not None:
+        params["deviations"] = deviations
     return Sample(
         shape=shape, size=size, seed=seed, keypoints=view.keypoints, ratios=view.ratios,
         noisy=noisy, clean=clean, params=params,

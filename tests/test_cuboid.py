@@ -145,12 +145,13 @@ def test_the_panel_of_a_cuboid_fit_draws_its_residual_and_the_networks_corners(t
     assert model_minus_input > 1000  # the building's occluded holes, inside the box
 
 
-def fitted_cuboid(shape: str, iou: float, left_height: float = 0.6) -> stage.FittedCuboid:
-    """A fitted cuboid of `shape` with the given IoU; a twobox's LEFT part `left_height` times the RIGHT's."""
+def fitted_cuboid(shape: str, iou: float, left_height: float = 0.6, split: float = 0.5) -> stage.FittedCuboid:
+    """A fitted cuboid of `shape` with the given IoU; a twobox's LEFT part `left_height` times the RIGHT's,
+    its RIGHT part `split` of its width."""
     from cuboidtrain.geometry.camera_params import CameraParams, describe
 
     vector = np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0, 0.0, np.log(100.0), 0.2, 64.0, 64.0]
-                      + ([0.5, np.log(left_height)] if shape == "twobox" else []))
+                      + ([split, np.log(left_height)] if shape == "twobox" else []))
     fit = describe(CameraParams(get_shape(shape), vector, False), 0.0, iou=iou)
     return stage.FittedCuboid(fit, np.ones(get_shape(shape).num_keypoints))
 
@@ -163,6 +164,22 @@ def test_a_twobox_of_nearly_equal_heights_is_a_box_with_a_seam(left_height, seam
     if seam:
         assert "a box with a seam" in reason
     assert stage.implausible(fitted_cuboid("box", 0.9).fit) is None
+
+
+@pytest.mark.parametrize("split, sliver", [(0.5, False), (0.3, False), (0.7, False), (0.22, False), (0.18, True),
+                                           (0.85, True), (0.05, True)])
+@pytest.mark.parametrize("left_height", [0.6, 1 / 0.6])
+def test_a_twobox_with_a_part_narrower_than_a_fifth_of_it_is_a_box_with_a_sliver(split, sliver, left_height):
+    """The generator draws each part at 30% of the width or more: a narrower one is a neighbour's corner or a
+    chimney beside a box, whichever part is the taller."""
+    fit = fitted_cuboid("twobox", 0.9, left_height, split).fit
+    share = min(split, 1 - split)
+    widths = [fit.ratios[part]["width_height"] * height for part, height in (("right", 1.0), ("left", left_height))]
+    assert min(widths) / sum(widths) == pytest.approx(share)  # the fit's own parts, as the rule reads them
+    reason = stage.implausible(fit)
+    assert (reason is not None) == sliver
+    if sliver:
+        assert f"its narrower part is {100 * share:.0f}% of its width" in reason and "a box with a sliver" in reason
 
 
 @pytest.mark.parametrize("box_iou, twobox_iou, left_height, chosen, warned", [

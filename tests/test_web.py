@@ -105,7 +105,7 @@ def test_a_generated_mask_comes_with_its_truth_and_the_errors(page_server):
     assert answer["record"]["shape"] == "box" and 0 <= answer["errors"]["mean_corner_px"] < 20
     assert set(answer["truth"]["camera"]) == {"focal_px", "principal_px"}
     status, answer = post(f"{address}api/generated?scene=moon")
-    assert status == 400 and answer["error"] == "scene 'moon': expected one of paper, paper-clean, street"
+    assert status == 400 and answer["error"] == "scene 'moon': expected one of paper, paper-clean, street, irregular"
 
 
 @pytest.mark.stops_page_server  # the session's server, after every other test that uses it

@@ -37,7 +37,7 @@ from shared.errors import UsageError
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"  # a checkout's (an editable install's) examples/
-SCENES = ("paper", "paper-clean", "street")  # cuboidgen's scenes (cuboidgen.config.SCENES)
+SCENES = ("paper", "paper-clean", "street", "irregular")  # cuboidgen's scenes (cuboidgen.config.SCENES)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
