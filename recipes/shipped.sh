@@ -4,6 +4,7 @@
 #   recipes/shipped.sh box             train from scratch: phase 1, then phase 2
 #   CONTINUE=1 recipes/shipped.sh box  continue from the shipped cuboidtrain/models/shipped/box.pt (phase 2 only;
 #                                      RUN=runs/NAME keeps each continuation's checkpoints apart)
+#   GREY=1 ...                         R reads a grey input (--grey-input: each model pixel's covered share)
 #   then: cuboidtrain models pack --checkpoint runs/shipped-box/p2/last.pt --out cuboidtrain/models/shipped/box.pt
 #
 # Data: a frozen 120,000-sample spool per shape class, half `paper`, half `street` scene,
@@ -34,11 +35,12 @@ spool() {  # spool DIR SEED SCENE COUNT SIZE: add COUNT samples of SCENE, drawn 
     fi
 }
 seed=$([ "$SHAPE" = box ] && echo 1 || echo 2)  # the shapes' spools differ in their seeds
-spool "$train" "${seed}1" paper 60000 128
-spool "$train" "${seed}2" street 60000 128
+SAMPLES=${SAMPLES:-60000}  # a scene's samples in the training spool
+spool "$train" "${seed}1" paper "$SAMPLES" 128
+spool "$train" "${seed}2" street "$SAMPLES" 128
 spool "$val" "${seed}5" paper 500 256  # the seed of benchmarks/accuracy/bench_accuracy.py's noisy paper set
 
-common=(--threads "$THREADS" --spool "$train" --shape "$SHAPE" --size 64 --arch compact --reframe --sigma 2
+common=(--threads "$THREADS" --spool "$train" --shape "$SHAPE" --size 64 --arch compact --reframe --sigma 2 ${GREY:+--grey-input}
         --batch-size 32 --loader-workers 1 --lr-schedule cosine --checkpoint-every 200
         --val-spool "$val" --val-every 500 --val-samples 128 --no-dashboard)
 if [ -z "${CONTINUE:-}" ]; then
