@@ -166,11 +166,11 @@ class FirstCuboid:
     first: FirstFits | None  # the LM's first fit; None: the soft optimiser's, never restarted
 
     def reached(self, reach: float) -> FittedCuboid | NoCuboid:
-        """The cuboid restarted where it stopped short of a clean mask's silhouette (IoU below `reach`,
-        `mask_fit.reach_silhouette`), from its first fit: nothing fitted twice."""
+        """The cuboid of a clean mask (`stopped_short` said so) restarted where it stopped short of its
+        silhouette (IoU below `reach`, `mask_fit.reach_silhouette`), from its first fit: nothing fitted twice."""
         if self.first is None:
             return self.cuboid
-        return settled(finished(self.first, reach)[0], self.start, self.sdf, self.known)
+        return settled(finished(self.first, reach, clean=[True])[0], self.start, self.sdf, self.known)
 
 
 def first_cuboid(candidate: Candidate, target: MaskTarget, optimizer: str = "lm", known: KnownCamera | None = None,

@@ -33,7 +33,7 @@ from cuboidtrain.geometry.camera_params import (CameraParams, CuboidFit, Evidenc
 from cuboidtrain.geometry.edge_lines import outline_polygon, signed_area
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, Solved, hypotheses, levenberg_marquardt
-from cuboidtrain.geometry.silhouette import confidence, extent_px
+from cuboidtrain.geometry.silhouette import confidence, coverage, extent_px
 from cuboidtrain.geometry.uncertainty import spread
 from cuboidtrain.geometry.outline import MaskFitWeights, MaskTarget, StackedTargets, boundary_points, silhouette_terms
 from shared.shapes import Shape
@@ -140,10 +140,10 @@ def first_fits(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray,
                      tuple(lifted.params[lifted.owner == k] for k in range(len(targets))), iterations, answers, fits)
 
 
-def finished(first: FirstFits, reach: float | None = None) -> list[CuboidFit]:
+def finished(first: FirstFits, reach: float | None = None, clean: Sequence[bool] | None = None) -> list[CuboidFit]:
     """The first fits, each that stopped short of a clean mask's silhouette restarted (`reach_silhouette`),
     with their error bars (`uncertainty.spread`)."""
-    answers, fits = reach_silhouette(first, reach)
+    answers, fits = reach_silhouette(first, reach, clean)
     known = first.known
     for k, (target, answer) in enumerate(zip(first.targets, answers)):
         camera = answer.camera(first.shape)
@@ -177,15 +177,18 @@ class Solution:
         return CameraParams(shape, self.solved.params[self.row], self.mirror)
 
 
-def reach_silhouette(first: FirstFits, reach: float | None = None) -> tuple[list[Solution], list[CuboidFit]]:
+def reach_silhouette(first: FirstFits, reach: float | None = None,
+                     clean: Sequence[bool] | None = None) -> tuple[list[Solution], list[CuboidFit]]:
     """The first fits' answers and fits with every fit that stopped short of a clean mask's silhouette (IoU below `reach`)
     restarted (`restarted`, on the mask's outline read densely: `densely`), a restart kept where its
     silhouette explains the mask better: its IoU, what the fit is to reach. Not the outline's rms: on
     a clean mask its pixels' staircase leaves it 0.3-0.5 px at the truth, and 5 short twoboxes of 11
     had a wrong fit of lower rms than their true cuboid's (a dev spool). One kept and still short is
-    restarted again, RESTART_ROUNDS in all."""
+    restarted again, RESTART_ROUNDS in all. `clean`: whether each mask is clean (`polygonal`), where the
+    caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
-    pending = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < reach and polygonal(first.targets[k].mask)]
+    pending = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < reach
+               and (clean[k] if clean is not None else polygonal(first.targets[k].mask))]
     if pending:
         first = replace(first, stacked=StackedTargets.of([densely(t) if k in pending else t
                                                           for k, t in enumerate(first.targets)]))
@@ -422,4 +425,5 @@ def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: M
     optimiser found it)."""
     image = project(camera.vector[None], shape, np.array([camera.mirror]))
     outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
-    return describe(camera, outline_rms, iou=confidence(shape, image[0], target.mask))  # image[0]: camera.keypoints()
+    iou, unexplained = coverage(shape, image[0], target.mask)  # image[0]: camera.keypoints()
+    return describe(camera, outline_rms, iou, unexplained)
