@@ -53,22 +53,26 @@ ITERATIONS = 12
 RESTART_IOU = 0.99
 RESTART_FLOOR = 0.85
 RESTART_SIDES = 16
-RESTART_ROUNDS = 3  # a restart kept and still short starts the next from itself (2: 2 of 11 short twoboxes less)
-RESTART_STARTS = 2  # lift hypotheses a restart fits (1: 3 more of 60 clean box masks stopped short)
+RESTART_ROUNDS = 2  # a restart kept and still short starts the next from itself
+RESTART_STARTS = 1  # lift hypotheses a restart fits (beside the turned fits, 2 reached no more of 18 short masks)
 # The fit turned about its own vertical axis and tilted about its width's, in degrees: a face seen
 # nearly edge-on (a side, the roof) taken to the other side of its edge, where the first fit, in the
 # silhouette's flat valley there, does not cross. 11 short clean twoboxes of a dev spool: 0 -> 5
 # reached turned +-8 alone; the two clean boxes whose twobox (a seam) explained them better
 # reached past it once tilted too (their roofs' slivers).
-RESTART_TURNS_DEG = (-15.0, -8.0, 8.0, 15.0)
+RESTART_TURNS_DEG = (-10.0, 10.0)  # +-8 and +-15 with 480 outline points, 3 rounds: one more of 18, 2.5x the cost
 RESTART_AXES = (1, 0)  # the box's own axes turned about: vertical, then across its width (`turned`)
 # Outline points a restart's objective reads (the first fit's: MaskFitWeights.max_boundary_points,
-# 120): one every 5-6 px of a twobox's outline misses the narrow face a short fit lacks.
-RESTART_OUTLINE_POINTS = 480
-# A restart is kept where its silhouette's IoU beats the fit's by more than this: a polygonal mask
-# with its edge pixels flipped at 3% (tests/test_edge_lines.py) restarted 0.9872 -> 0.9886, its
-# interior corners 1.0 -> 1.3 px off: the noise's pixels fitted, not the box's.
-RESTART_GAIN = 0.002
+# 120): one every 5-6 px of a twobox's outline misses the narrow face a short fit lacks (480 reached
+# no more of 18 short masks than 240, at twice the cost).
+RESTART_OUTLINE_POINTS = 240
+# A restart is kept where its silhouette explains more of the mask's pixels than the fit's by this many
+# (its IoU's gain times the mask's area): a polygonal mask with its edge pixels flipped at 3%
+# (tests/test_edge_lines.py) restarted 0.9872 -> 0.9886 (21 px), its interior corners 1.0 -> 1.3 px off,
+# the noise's pixels fitted, not the box's; on 64 px masks, whose fit from the true cuboid itself
+# stops at IoU 0.98 (the objective's pixel steps: BENCHMARKS.md), a gain of 0.002 is 2-4 px, and such
+# restarts moved the corners 1.61 / 1.16 -> 1.70 / 1.28 px.
+RESTART_GAIN_PX = 32.0
 SNAP_POLYGON_PX = 1.5  # the mask's hull simplified to a polygon this close (px) gives the restart's corners
 SNAP_MERGE_PX = 6.0  # hull vertices closer than this are one corner's staircase
 SNAP_INTERIOR_WEIGHT = 0.1  # an interior corner's weight in the restart's lift: it follows the outline's
@@ -185,9 +189,10 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
                      clean: Sequence[bool] | None = None) -> tuple[list[Solution], list[CuboidFit]]:
     """The first fits' answers and fits with every fit that stopped short of a clean mask's silhouette (IoU below `reach`)
     restarted (`restarted`, on the mask's outline read densely: `densely`), a restart kept where its
-    silhouette explains the mask better: its IoU, what the fit is to reach. Not the outline's rms: on
-    a clean mask its pixels' staircase leaves it 0.3-0.5 px at the truth, and 5 short twoboxes of 11
-    had a wrong fit of lower rms than their true cuboid's (a dev spool). One kept and still short is
+    silhouette explains more of the mask's pixels, by RESTART_GAIN_PX: its IoU, what the fit is to reach.
+    Not the outline's rms: on a clean mask its pixels' staircase leaves it 0.3-0.5 px at the truth, and
+    one short twobox of five looked at had a wrong fit of lower rms (0.34 px) than its true cuboid (0.52
+    px, IoU 1). One kept and still short is
     restarted again, RESTART_ROUNDS in all. `clean`: whether each mask is clean (`polygonal`), where the
     caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
@@ -196,12 +201,13 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
     if pending:
         first = replace(first, stacked=StackedTargets.of([densely(t) if k in pending else t
                                                           for k, t in enumerate(first.targets)]))
+    area = {k: int(first.targets[k].mask.sum()) for k in pending}
     for _ in range(RESTART_ROUNDS):
         if not pending:
             break
         moved = []
         for k, (again, other) in zip(pending, restarted(first, [answers[k] for k in pending], pending)):
-            if other.iou > fits[k].iou + RESTART_GAIN:
+            if (other.iou - fits[k].iou) * area[k] > RESTART_GAIN_PX:
                 answers[k], fits[k] = again, other
                 moved += [k] if other.iou < reach else []
         pending = moved
