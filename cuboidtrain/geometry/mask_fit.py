@@ -185,6 +185,17 @@ class Solution:
         return CameraParams(shape, self.solved.params[self.row], self.mirror)
 
 
+def fit_from(first: FirstFits, k: int, camera: CameraParams) -> CuboidFit:
+    """Mask `k`'s fit on its first fits' objective, started from `camera` instead (an oracle's: the true
+    cuboid, benchmarks/accuracy/bench_reach.py --oracle): how far the objective itself lets a fit reach."""
+    residual, jacobian = _objective(first.stacked, first.shape, first.corners, first.confidence, first.prior_ratios,
+                                    first.weights, np.array([k]), np.array([camera.mirror]), first.cameras)
+    solved = levenberg_marquardt(residual, camera.vector[None].copy(), first.iterations, tolerance=1e-7,
+                                 jacobian=jacobian)
+    return described(first.targets[k], first.shape, CameraParams(first.shape, solved.params[0], camera.mirror),
+                     first.weights)
+
+
 def reach_silhouette(first: FirstFits, reach: float | None = None,
                      clean: Sequence[bool] | None = None) -> tuple[list[Solution], list[CuboidFit]]:
     """The first fits' answers and fits with every fit that stopped short of a clean mask's silhouette (IoU below `reach`)
