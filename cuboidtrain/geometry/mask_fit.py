@@ -207,12 +207,15 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
     restarted again, RESTART_ROUNDS in all. `clean`: whether each mask is clean (`polygonal`), where the
     caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
+    area = [int(target.mask.sum()) for target in first.targets]
+    # A mask whose fit misses fewer than RESTART_GAIN_PX of its pixels keeps it whatever a restart finds:
+    # most 64 px masks (their fits miss 1.5% of some 1,200 px), none restarted in vain.
     pending = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < reach
+               and (1 - fit.iou) * area[k] > RESTART_GAIN_PX
                and (clean[k] if clean is not None else polygonal(first.targets[k].mask))]
     if pending:
         first = replace(first, stacked=StackedTargets.of([densely(t) if k in pending else t
                                                           for k, t in enumerate(first.targets)]))
-    area = {k: int(first.targets[k].mask.sum()) for k in pending}
     for _ in range(RESTART_ROUNDS):
         if not pending:
             break
