@@ -73,7 +73,8 @@ def test_a_restart_fits_no_class_from_its_first_start_twice(monkeypatch):
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
     calls = []
     first_fits = cuboid.first_fits
-    monkeypatch.setattr(cuboid, "first_fits", lambda *args, **kwargs: calls.append(args[1].name) or first_fits(*args, **kwargs))
+    monkeypatch.setattr(cuboid, "first_fits",
+                        lambda *args, **kwargs: calls.append(args[1].name) or first_fits(*args, **kwargs))
     restarts = []
     restarted = mask_fit.restarted
     monkeypatch.setattr(mask_fit, "restarted", lambda *args, **kwargs: restarts.append(1) or restarted(*args, **kwargs))

@@ -79,7 +79,8 @@ def oracle(fitter: Fitter, sample) -> dict:
     model = next(m for m in fitter.models if m.shape == sample.shape)
     candidate = fitter.fit_framed(model, *frame(mask, model.size, fitter.options.margin))
     first = fitter.first_cuboid(candidate, MaskTarget.of(mask))
-    return {"truth": confidence(shape, truth.keypoints(), mask), "from_truth": mask_fit.fit_from(first.first, 0, truth).iou,
+    return {"truth": confidence(shape, truth.keypoints(), mask),
+            "from_truth": mask_fit.fit_from(first.first, 0, truth).iou,
             "infer": fitter.fit(mask.astype(np.uint8) * 255).cuboid.fit.iou}
 
 

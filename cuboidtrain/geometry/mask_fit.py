@@ -198,14 +198,13 @@ def fit_from(first: FirstFits, k: int, camera: CameraParams) -> CuboidFit:
 
 def reach_silhouette(first: FirstFits, reach: float | None = None,
                      clean: Sequence[bool] | None = None) -> tuple[list[Solution], list[CuboidFit]]:
-    """The first fits' answers and fits with every fit that stopped short of a clean mask's silhouette (IoU below `reach`)
-    restarted (`restarted`, on the mask's outline read densely: `densely`), a restart kept where its
-    silhouette explains more of the mask's pixels, by RESTART_GAIN_PX: its IoU, what the fit is to reach.
-    Not the outline's rms: on a clean mask its pixels' staircase leaves it 0.3-0.5 px at the truth, and
-    one short twobox of five looked at had a wrong fit of lower rms (0.34 px) than its true cuboid (0.52
-    px, IoU 1). One kept and still short is
-    restarted again, RESTART_ROUNDS in all. `clean`: whether each mask is clean (`polygonal`), where the
-    caller knows."""
+    """The first fits' answers and fits with every fit that stopped short of a clean mask's silhouette
+    (IoU below `reach`) restarted (`restarted`, on the mask's outline read densely: `densely`), a restart
+    kept where its silhouette explains more of the mask's pixels, by RESTART_GAIN_PX: its IoU, what the
+    fit is to reach. Not the outline's rms: on a clean mask its pixels' staircase leaves it 0.3-0.5 px at
+    the truth, and one short twobox of five looked at had a wrong fit of lower rms (0.34 px) than its
+    true cuboid (0.52 px, IoU 1). One kept and still short is restarted again, RESTART_ROUNDS in all.
+    `clean`: whether each mask is clean (`polygonal`), where the caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
     area = [int(target.mask.sum()) for target in first.targets]
     # A mask whose fit misses fewer than RESTART_GAIN_PX of its pixels keeps it whatever a restart finds:
@@ -275,7 +274,8 @@ def snapped_corners(camera: CameraParams, mask: np.ndarray) -> list[tuple[np.nda
         ways.append((snapped, weights))
     ways.append(nearest_snapped(corners, on_hull, vertices))
     if len(camera.shape.parts) == 2:
-        ways.append(nearest_snapped(corners, np.flatnonzero(outline_corners(camera.shape, corners)), convex_vertices(mask)))
+        shown = np.flatnonzero(outline_corners(camera.shape, corners))
+        ways.append(nearest_snapped(corners, shown, convex_vertices(mask)))
     return ways
 
 
@@ -353,7 +353,8 @@ def restarted(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int
     owner = np.concatenate([owner_mask[np.concatenate(chosen)],
                             np.repeat(masks, len(RESTART_AXES) * len(RESTART_TURNS_DEG))])
     flags = np.concatenate([lifted.mirrors[np.concatenate(chosen)], [t.mirror for t in turns]]).astype(bool)
-    params = np.concatenate([lifted.params[np.concatenate(chosen)], np.reshape([t.vector for t in turns], (len(turns), -1))])
+    params = np.concatenate([lifted.params[np.concatenate(chosen)],
+                             np.reshape([t.vector for t in turns], (len(turns), -1))])
     residual, jacobian = _objective(first.stacked, shape, first.corners, first.confidence, first.prior_ratios,
                                     first.weights, owner, flags, cameras)
     solved = levenberg_marquardt(residual, params, first.iterations, tolerance=1e-7, jacobian=jacobian)
