@@ -3,16 +3,22 @@
 Each class's `paper-clean` masks (seeded spools of their own, not the ones the restart was tuned
 on: seeds 31 and 32) are fitted as `infer` fits them (both shipped models, the shape chosen), twice
 in the same process, mask by mask: **before**, the first start alone (`mask_fit.RESTART_IOU` below
-any IoU, `Fitter.reached` refitting nothing), and **after**, as shipped. Per class and size: the
+any IoU, `Fitter.reached` restarting nothing), and **after**, as shipped. Per class and size: the
 share of masks whose chosen cuboid's silhouette IoU is at least 0.99, the "box with a seam"
 warnings, the share given their own class and the corner error (px of the mask, mean and median
 of the per-mask mean, over the masks given their own class).
+
+`--oracle` measures instead how far the silhouette can be reached at all, per class and size: the
+IoU of the true cuboid's own silhouette (drawn by the generator's rasteriser: 1 on a clean mask), of
+the fit started from the true cuboid on the objective `infer` minimises (`mask_fit.fit_from`: the
+objective's own optimum there), and of `infer`'s fit.
 
 `--records N` times instead what the restart costs, as `bench_infer.py --records` does: the whole
 record of each of N generated masks (box and twobox, three scenes), networks only, `--cuboid`
 before and after, interleaved mask by mask, `--repeats` rounds; the medians' ratios.
 
     .venv/bin/python benchmarks/accuracy/bench_reach.py --samples 200 --size 256 --seeds 41 42
+    .venv/bin/python benchmarks/accuracy/bench_reach.py --samples 200 --size 64 --seeds 43 44 --oracle
     .venv/bin/python benchmarks/accuracy/bench_reach.py --records 40 --repeats 3
 """
 from __future__ import annotations
@@ -33,7 +39,12 @@ import torch
 from bench_accuracy import cuboidgen_command
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.fit.masks import frame
 from cuboidtrain.geometry import mask_fit
+from cuboidtrain.geometry.camera_params import from_sample_params
+from cuboidtrain.geometry.outline import MaskTarget
+from cuboidtrain.geometry.silhouette import confidence
+from shared.shapes import get_shape
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 
@@ -59,6 +70,26 @@ def fitted(fitter: Fitter, sample, restart: bool, monkeypatch_reached) -> dict:
     own = fit.shape == sample.shape
     return {"iou": fit.cuboid.fit.iou, "own": own, "seam": any("a box with a seam" in w for w in fit.warnings),
             "error": float(np.linalg.norm(fit.keypoints - sample.keypoints, axis=1).mean()) if own else None}
+
+
+def oracle(fitter: Fitter, sample) -> dict:
+    """One clean mask's IoU of its true cuboid, of the fit from it, and of `infer`'s fit (its own class's)."""
+    shape, mask = get_shape(sample.shape), sample.clean
+    truth = from_sample_params(shape, sample.params)
+    model = next(m for m in fitter.models if m.shape == sample.shape)
+    candidate = fitter.fit_framed(model, *frame(mask, model.size, fitter.options.margin))
+    first = fitter.first_cuboid(candidate, MaskTarget.of(mask))
+    return {"truth": confidence(shape, truth.keypoints(), mask),
+            "from_truth": mask_fit.fit_from(first.first, 0, truth).iou,
+            "infer": fitter.fit(mask.astype(np.uint8) * 255).cuboid.fit.iou}
+
+
+def oracle_line(size: int, shape: str, rows: list[dict]) -> str:
+    ious = {name: np.array([r[name] for r in rows]) for name in ("truth", "from_truth", "infer")}
+    return (f"{size} px {shape}: true cuboid IoU least {ious['truth'].min():.4f}; IoU >= {REACHED} from the truth "
+            f"{100 * np.mean(ious['from_truth'] >= REACHED):.1f}% (median {np.median(ious['from_truth']):.4f}), "
+            f"infer {100 * np.mean(ious['infer'] >= REACHED):.1f}% (median {np.median(ious['infer']):.4f}); infer within "
+            f"0.005 of the fit from the truth {100 * np.mean(ious['infer'] >= ious['from_truth'] - 0.005):.1f}%")
 
 
 def summary(rows: list[dict]) -> dict:
@@ -103,6 +134,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs=2, default=(41, 42), help="the box and twobox spools' seeds")
     parser.add_argument("--spools", type=Path, default=Path("spools"))
     parser.add_argument("--records", type=int, default=0, metavar="N", help="time the record instead, on N masks")
+    parser.add_argument("--oracle", action="store_true", help="the true cuboid's and the fit from it's IoU instead")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -115,6 +147,12 @@ def main() -> None:
             args.json.write_text(json.dumps(row, indent=2) + "\n")
         return
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+    if args.oracle:
+        for shape, seed in zip(("box", "twobox"), args.seeds):
+            spool = clean_spool(args.spools, shape, seed, args.samples, args.size)
+            samples = [decode(read_sample_bytes(spool, name)) for name in enumerate_spool(spool)[:args.samples]]
+            print(oracle_line(args.size, shape, [oracle(fitter, s) for s in samples]), flush=True)
+        return
     reached = Fitter.reached
     result = {}
     for shape, seed in zip(("box", "twobox"), args.seeds):

@@ -31,7 +31,7 @@ from cuboidtrain.geometry.camera_params import CuboidFit
 from cuboidtrain.geometry.edge_lines import corners_from_edges, edge_lines, outline_polygon
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry import mask_fit
-from cuboidtrain.geometry.mask_fit import fit_masks, polygonal
+from cuboidtrain.geometry.mask_fit import FirstFits, finished, first_fits, polygonal
 from cuboidtrain.geometry.outline import MaskTarget, bilinear
 from shared.shapes import Shape, get_shape
 
@@ -149,15 +149,53 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
                                 candidates[i].framing.scale) for i in batch]
         fits = _solve(starts, get_shape(name), optimizer, [known[i] for i in batch], plausible, reach)
         for i, fit, start in zip(batch, fits, starts):
-            try:
-                check_finite(fit)
-            except NonFiniteCuboid as exc:
-                fitted[i] = NoCuboid(str(exc))
-                continue
-            named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
-            fitted[i] = FittedCuboid(fit, corner_scores(fit, targets[i].sdf, named_peaks), known[i],
-                                     start.interior)
+            fitted[i] = settled(fit, start, targets[i].sdf, known[i])
     return fitted
+
+
+def settled(fit: CuboidFit, start: FitStart, sdf: np.ndarray, known: KnownCamera | None) -> FittedCuboid | NoCuboid:
+    """A fit from `start` as the record's FittedCuboid, its corners scored on the input's outline (`sdf`,
+    `corner_scores`); a NoCuboid saying why where a number of it is not finite."""
+    try:
+        check_finite(fit)
+    except NonFiniteCuboid as exc:
+        return NoCuboid(str(exc))
+    named_peaks = start.peaks[fit.camera.naming()]  # the fit's corner i is the network's corner naming()[i]
+    return FittedCuboid(fit, corner_scores(fit, sdf, named_peaks), known, start.interior)
+
+
+@dataclass(frozen=True)
+class FirstCuboid:
+    """One candidate's cuboid fitted from its first start alone (`first_cuboid`), and what a restart
+    goes on from (`reached`): the Fitter restarts a class only where the choice needs it."""
+
+    cuboid: FittedCuboid | NoCuboid
+    start: FitStart
+    sdf: np.ndarray  # the input's signed distance field (`corner_scores`)
+    known: KnownCamera | None
+    first: FirstFits | None  # the LM's first fit; None: the soft optimiser's, never restarted
+
+    def reached(self, reach: float) -> FittedCuboid | NoCuboid:
+        """The cuboid of a clean mask (`stopped_short` said so) restarted where it stopped short of its
+        silhouette (IoU below `reach`, `mask_fit.reach_silhouette`), from its first fit: nothing fitted twice."""
+        if self.first is None:
+            return self.cuboid
+        return settled(finished(self.first, reach, clean=[True])[0], self.start, self.sdf, self.known)
+
+
+def first_cuboid(candidate: Candidate, target: MaskTarget, optimizer: str = "lm", known: KnownCamera | None = None,
+                 plausible: bool = False) -> FirstCuboid:
+    """`fit_candidates` for one candidate (the input's `target`, its completion, its outline start), from
+    its first start alone (reach 0: no restart), kept for `FirstCuboid.reached`."""
+    if candidate.framing is None:
+        raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
+    shape = get_shape(candidate.shape)
+    start = outline_start(fit_start(candidate, target), target.mask, shape, candidate.framing.scale)
+    if optimizer == "soft":
+        [fit] = _solve([start], shape, optimizer, [known])
+        return FirstCuboid(settled(fit, start, target.sdf, known), start, target.sdf, known, None)
+    first = _first_fits([start], shape, [known], plausible)
+    return FirstCuboid(settled(finished(first, 0.0)[0], start, target.sdf, known), start, target.sdf, known, first)
 
 
 def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
@@ -168,10 +206,15 @@ def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
         from cuboidtrain.geometry.soft_mask_fit import fit_soft  # torch's autograd: only when asked for
 
         return [fit_soft(s.target, shape, s.corners, s.peaks, prior_ratios=s.prior_ratios).fit for s in starts]
-    return fit_masks([s.target for s in starts], shape, np.array([s.corners for s in starts]),
-                     np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts], known=known,
-                     plausible=plausible, networks=np.array([s.network_corners() for s in starts]),
-                     reach=reach)
+    return finished(_first_fits(starts, shape, known, plausible), reach)
+
+
+def _first_fits(starts: Sequence[FitStart], shape: Shape, known: Sequence[KnownCamera | None],
+                plausible: bool) -> FirstFits:
+    """One shape class's starts fitted by LM from their first starts (`mask_fit.first_fits`)."""
+    return first_fits([s.target for s in starts], shape, np.array([s.corners for s in starts]),
+                      np.array([s.peaks for s in starts]), [s.prior_ratios for s in starts], known=known,
+                      plausible=plausible, networks=np.array([s.network_corners() for s in starts]))
 
 
 @dataclass(frozen=True)

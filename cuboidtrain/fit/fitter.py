@@ -28,8 +28,9 @@ import torch
 from cuboidtrain.models.device import one_thread, resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, assess, choose
 from cuboidtrain.models.codec import make_codec, render_heatmaps
-from cuboidtrain.fit.cuboid import (FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid, fit_candidates,
-                                   stopped_short)
+from cuboidtrain.fit.cuboid import (FirstCuboid, FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid,
+                                   fit_candidates, first_cuboid, stopped_short)
+from cuboidtrain.geometry import mask_fit
 from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask, warp
 from cuboidtrain.geometry.intrinsics import KnownCamera
@@ -228,13 +229,15 @@ class Fitter:
             framed, framing = frame(mask, model.size, self.options.margin, model.grey_input)  # each model at its own size
             candidates.append(self.fit_framed(model, framed, framing, oracle))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
-        # First without restarts (reach 0), then only the classes that stopped short where it matters
-        cuboids = {c.shape: self.fit_cuboid(c, target, known, reach=0.0) for c in candidates} if self.options.cuboid else {}
-        if cuboids:
-            cuboids |= self.reached(candidates, target, known, cuboids)
+        # First without restarts, then only where the chosen class stopped short (`reached`)
+        firsts = {c.shape: self.first_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
+        cuboids = {shape: first.cuboid for shape, first in firsts.items()}
         set_aside: list[str] = []
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
             best, set_aside = choose_cuboid(candidates, cuboids)
+            if again := self.reached(best, firsts, cuboids, mask):
+                cuboids |= again
+                best, set_aside = choose_cuboid(candidates, cuboids)
             candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
         else:
             best = choose(candidates)
@@ -274,17 +277,31 @@ class Fitter:
         return fit_candidates(candidates, masks, optimizer=self.options.optimizer, known=known,
                               plausible=self.options.plausible_camera, reach=reach)
 
-    def reached(self, candidates: Sequence[Candidate], target: MaskTarget, known: KnownCamera | None,
-                cuboids: dict[str, FittedCuboid]) -> dict[str, FittedCuboid]:
-        """The chosen class's cuboid, where it stopped short of a clean mask's silhouette
-        (`cuboid.stopped_short`), refitted to reach it (`mask_fit.reach_silhouette`) if that explains
-        the mask better; else nothing."""
-        chosen, _ = choose_cuboid(list(candidates), cuboids)
-        reach = stopped_short(cuboids, chosen.shape, target.mask)
+    def first_cuboid(self, candidate: Candidate, target: MaskTarget, known: KnownCamera | None = None) -> FirstCuboid:
+        """A candidate's cuboid from its first start alone (`cuboid.first_cuboid`), by the options'
+        optimizer; NonFiniteCuboid where it is not finite."""
+        first = first_cuboid(candidate, target, self.options.optimizer, known, self.options.plausible_camera)
+        if isinstance(first.cuboid, NoCuboid):
+            raise NonFiniteCuboid(first.cuboid.reason)
+        return first
+
+    def reached(self, chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
+                mask: np.ndarray) -> dict[str, FittedCuboid]:
+        """Where the chosen class's cuboid stopped short of a clean mask's silhouette (`cuboid.stopped_short`):
+        it restarted to reach it, and every other class's short of RESTART_IOU (the chosen one may be the
+        wrong class, its own fit having stopped short), from their first fits (`FirstCuboid.reached`);
+        those whose silhouette then explains the mask better. Else nothing."""
+        reach = stopped_short(cuboids, chosen.shape, mask)
         if reach is None:
             return {}
-        again = self.fit_cuboid(chosen, target, known, reach=reach)
-        return {chosen.shape: again} if again.fit.residual_px < cuboids[chosen.shape].fit.residual_px else {}
+        again = {}
+        for shape, first in firsts.items():
+            if shape != chosen.shape and cuboids[shape].fit.iou >= mask_fit.RESTART_IOU:
+                continue
+            refit = first.reached(reach if shape == chosen.shape else mask_fit.RESTART_IOU)
+            if isinstance(refit, FittedCuboid) and refit.fit.iou > cuboids[shape].fit.iou:
+                again[shape] = refit
+        return again
 
     def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget,
                    known: KnownCamera | None = None, reach: float | None = None) -> FittedCuboid:

@@ -36,6 +36,7 @@ import numpy as np
 
 from cuboidtrain.fit.candidates import Candidate, border_cut
 from cuboidtrain.fit.cuboid import FittedCuboid, heatmap_peaks
+from cuboidtrain.geometry.camera_params import CuboidFit
 from cuboidtrain.geometry.silhouette import extent_px, model_silhouette, roof_notches
 from shared.shapes import get_shape
 
@@ -104,12 +105,20 @@ def signs(candidate: Candidate, cuboid: FittedCuboid, mask: np.ndarray, other_io
     iou = fit.iou if fit.iou is not None else 0.0
     return {"corners_moved": float(moved.mean()), "corners_moved_max": float(moved.max()),
             "heatmap_peak": float(heatmap_peaks(candidate.heatmaps).mean()), "silhouette_miss": 1.0 - iou,
-            "unexplained": float((mask & ~model_silhouette(fit.shape, fit.keypoints, mask.shape)).sum() / max(mask.sum(), 1)),
+            "unexplained": unexplained(fit, mask),
             "outline_rms": fit.residual_px / size * 100,
             "shape_margin": iou - max(other_ious, default=0.0), "mask_px": math.log2(size),
             "hidden_corners": float(1.0 - np.mean(fit.on_outline)),
             "ratio_sd": math.log(max(float(np.max(relative)), 1e-6)), "border_cut": border_cut(mask),
-            "roof_notches": float(roof_notches(mask, ROOF_NOTCH_DEPTH))}
+            "roof_notches": float(roof_notches(mask, ROOF_NOTCH_DEPTH, size))}
+
+
+def unexplained(fit: CuboidFit, mask: np.ndarray) -> float:
+    """The share of the silhouette's pixels the fit's silhouette leaves out: the one `described` counted
+    with its IoU (a mask fit's), else counted here."""
+    if fit.unexplained is not None:
+        return fit.unexplained
+    return float((mask & ~model_silhouette(fit.shape, fit.keypoints, mask.shape)).sum() / max(mask.sum(), 1))
 
 
 def _ratios(cuboid: FittedCuboid) -> np.ndarray:

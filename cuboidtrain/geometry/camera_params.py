@@ -388,9 +388,11 @@ class CuboidFit:
     residual_px: float  # rms distance the objective left (corners for a lift, the outline for a mask fit)
     camera: CameraParams  # the parameter vector, for a caller that fits on from here
     spread: Spread | None = None  # the error bars, where the solver gave them (a mask fit)
+    unexplained: float | None = None  # the share of the mask's pixels the silhouette leaves out; None: a lift
 
 
-def describe(camera: CameraParams, residual_px: float, iou: float | None = None) -> CuboidFit:
+def describe(camera: CameraParams, residual_px: float, iou: float | None = None,
+             unexplained: float | None = None) -> CuboidFit:
     """The record's view of fitted parameters: named keypoints, ratios, angles, intrinsics, flags."""
     shape = camera.shape
     camera = CameraParams(shape, *canonical(camera.vector, camera.mirror))
@@ -408,7 +410,8 @@ def describe(camera: CameraParams, residual_px: float, iou: float | None = None)
         shape=shape.name, keypoints=keypoints[order], ratios=shape.ratio_dict(camera.ratios()),
         yaw_deg=angles[1], pitch_deg=angles[0], roll_deg=angles[2], focal_px=focal,
         principal_px=(float(camera.vector[9]), float(camera.vector[10])), mirror=camera.mirror,
-        on_outline=outline_corners(shape, keypoints)[order], iou=iou, residual_px=residual_px, camera=camera)
+        on_outline=outline_corners(shape, keypoints)[order], iou=iou, residual_px=residual_px, camera=camera,
+        unexplained=unexplained)
 
 
 def outline_corners(shape: Shape | str, keypoints: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:

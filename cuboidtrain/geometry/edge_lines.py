@@ -92,7 +92,7 @@ class EdgeCorners:
 
 def cracks(mask: np.ndarray, window: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) the mask's outline points, the midpoints between 4-neighbouring pixel centres of which
-    one is in and one out (`outline.boundary_points`, all of them), and (M,) the axis each crack
+    one is in and one out (all of them: `outline.boundary_points` takes some), and (M,) the axis each crack
     crosses: 0 between a row's neighbours (its point is uncertain along x), 1 between a column's.
     `window` (left, top, right, bottom), pixel bounds: only the cracks between pixels inside it."""
     left, top, right, bottom = window if window is not None else (0, 0, mask.shape[1], mask.shape[0])

@@ -14,6 +14,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from cuboidtrain.geometry.edge_lines import cracks
 from shared.shapes import Shape
 from shared.threads import threads_held
 
@@ -40,15 +41,11 @@ class MaskFitWeights:
 
 
 def boundary_points(mask: np.ndarray, limit: int) -> np.ndarray:
-    """(M, 2) points on the mask's outline: the midpoints between 4-neighbouring pixel centres
-    of which one is in and one out. Under the pixel-centre rule the true outline crosses each
-    such crack within half a pixel, unbiased, unlike contour pixel centres (0.5 px inside)."""
-    m = mask.astype(bool)
-    ys, xs = np.nonzero(m[:, :-1] != m[:, 1:])
-    horizontal = np.stack([xs + 0.5, ys], axis=1)
-    ys, xs = np.nonzero(m[:-1] != m[1:])
-    vertical = np.stack([xs, ys + 0.5], axis=1)
-    points = np.concatenate([horizontal, vertical]).astype(np.float64)
+    """(M, 2) points on the mask's outline, at most `limit` of them, evenly taken: the midpoints
+    between 4-neighbouring pixel centres of which one is in and one out (`edge_lines.cracks`). Under
+    the pixel-centre rule the true outline crosses each such crack within half a pixel, unbiased,
+    unlike contour pixel centres (0.5 px inside)."""
+    points = cracks(mask)[0]
     if len(points) > limit:
         points = points[np.linspace(0, len(points) - 1, limit).astype(int)]
     return points

@@ -31,10 +31,15 @@ def confidence(shape: str | Shape, keypoints: np.ndarray, mask) -> float:
     samples, choosing by the refined masks was right 80% of the time, by the input 86%).
     """
     target = np.asarray(mask.detach().cpu() if hasattr(mask, "detach") else mask)  # a torch row, or an array
-    target = target.reshape(target.shape[-2:]) > 0  # a batch row (1, S, S) or an image (H, W)
-    fitted = model_silhouette(shape, keypoints, target.shape)
-    union = np.logical_or(fitted, target).sum()
-    return float(np.logical_and(fitted, target).sum() / union) if union else 0.0
+    return coverage(shape, keypoints, target.reshape(target.shape[-2:]) > 0)[0]  # a batch row (1, S, S) or (H, W)
+
+
+def coverage(shape: str | Shape, keypoints: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """The fitted silhouette's IoU with a bool (H, W) `mask` (`confidence`), and the share of the mask's
+    pixels it leaves out (`cuboidtrain.fit.trust`'s unexplained share): one rasterisation for both."""
+    fitted = model_silhouette(shape, keypoints, mask.shape)
+    both, union, total = np.logical_and(fitted, mask).sum(), np.logical_or(fitted, mask).sum(), mask.sum()
+    return (float(both / union) if union else 0.0), float((total - both) / max(total, 1))
 
 
 def extent_px(mask: np.ndarray) -> float:
@@ -46,13 +51,13 @@ def extent_px(mask: np.ndarray) -> float:
     return float(max(rows[-1] - rows[0] + 1, columns[-1] - columns[0] + 1))
 
 
-def roof_notches(mask: np.ndarray, depth: float) -> int:
+def roof_notches(mask: np.ndarray, depth: float, size: float | None = None) -> int:
     """How many notches open down from the top of the silhouette's outline deeper than `depth` (a share
     of its size, `extent_px`): convexity defects of its largest outline whose hull edge runs more across
     than up and down, with the notch below it. A projected box's silhouette is convex; a twobox's
     shows at most one, where the lower box meets the taller; a row of houses shows one between each
     two roofs. An occluder standing in front (a tree, a person, a sign) cuts its notch from the bottom
-    or the side, which this does not count."""
+    or the side, which this does not count. `size`: the silhouette's `extent_px`, where the caller has it."""
     outlines, _ = cv2.findContours(np.asarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not outlines:
         return 0
@@ -63,7 +68,8 @@ def roof_notches(mask: np.ndarray, depth: float) -> int:
     defects = cv2.convexityDefects(outline, hull)
     if defects is None:
         return 0
-    points, limit = outline[:, 0], depth * extent_px(mask) * 256  # OpenCV's depths are fixed point, 8 bits
+    size = extent_px(mask) if size is None else size
+    points, limit = outline[:, 0], depth * size * 256  # OpenCV's depths are fixed point, 8 bits
     count = 0
     for start, end, far, deep in defects.reshape(-1, 4):
         (x0, y0), (x1, y1), (_, y) = points[start], points[end], points[far]

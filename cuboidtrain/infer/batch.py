@@ -20,7 +20,7 @@ from cuboidtrain.fit.fitter import FitFailure, Outcome
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.pool import fit_groups
 from cuboidtrain.infer.reporting import Reporter, Tally
-from cuboidtrain.infer.records import RecordStore
+from cuboidtrain.infer.records import RecordStore, to_records
 
 log = logging.getLogger(__name__)
 
@@ -74,11 +74,12 @@ def run_batch(batch: Batch, fitter, console, explain: Callable | None = None,
             for index, outcomes in groups:
                 if elsewhere:
                     say_warnings(outcomes)
+                records = to_records(outcomes, batch.options)  # once: OUT's lines and the answers shown
                 if store:
-                    store.write(index, outcomes)
+                    store.write(index, records)
                 if batch.keep:
                     kept[index] = outcomes
-                reporter.add(outcomes)
+                reporter.add(records)
                 if stop and batch.cluster is not None:  # a pool finishes its inputs in hand; a cluster's are dropped
                     break
             if stop and tally.resumed + tally.done < tally.total:

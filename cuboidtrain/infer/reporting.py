@@ -13,8 +13,6 @@ from dataclasses import dataclass, field
 
 from rich.markup import escape
 
-from cuboidtrain.fit.fitter import Outcome
-from cuboidtrain.infer.records import to_record
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +201,7 @@ def typical_answer(shape: str) -> Answer:
 
 class Reporter:
     """Shows a Tally and each input's answers: `with Reporter(tally, console) as show: ...;
-    show.add(outcomes)` per input completed. The answers' columns are aligned: each is as wide as
+    show.add(records)` per input completed. The answers' columns are aligned: each is as wide as
     its widest cell so far (a name as long as the longest input's, up to INPUT_CHARS)."""
 
     def __init__(self, tally: Tally, console, inputs: Sequence[str] = (), shapes: Sequence[str] = ("box",)):
@@ -230,9 +228,9 @@ class Reporter:
                                           rate=0.0, failed=self.tally.failed)
         return self
 
-    def add(self, outcomes: Sequence[Outcome]) -> None:
-        """An input fitted this run: its records counted, a line each shown (above the bar)."""
-        records = [to_record(o) for o in outcomes]
+    def add(self, records: Sequence[dict]) -> None:
+        """An input fitted this run: its infer records (`records.to_records`, as OUT holds them) counted,
+        a line each shown (above the bar)."""
         self.tally.add(records)
         for record in records:
             self.show(Answer.of(record))
