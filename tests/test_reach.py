@@ -15,14 +15,19 @@ from cuboidtrain.geometry.camera_params import CameraParams, from_sample_params,
 from shared.shapes import get_shape
 from tests.conftest import small_library
 
-# Clean generated box masks (`paper-clean`, 256 px) whose fit stopped short of their silhouette before
-# the restart (IoU 0.986-0.988): masks 9, 39 and 57 of a spool drawn with seed 31.
-SHORT_BOXES = (13363269863109141259, 14377397759793473315, 4119973520403393625)
-# Clean twobox masks whose fit stopped short before the restart turned it and read the outline
-# densely (IoU 0.955-0.986 after the first restart): masks 35, 43 and 100 of a spool drawn with seed 61.
-SHORT_TWOBOXES = (7830848198647218049, 2157578057008441671, 11009211302426209105)
-# Mask 119 of that spool: its twobox fit stopped short at 0.949, and the box (0.978) was chosen.
-TWOBOX_CHOSEN_AS_BOX = 15107486748543761701
+# Clean generated box masks (`paper-clean`, 256 px) whose fit with the shipped grey-input box model
+# stopped short of their silhouette before the restart (IoU 0.990, 0.985, 0.983; after it 0.992,
+# 0.994, 0.995): the samples of seeds 5, 12 and 37.
+SHORT_BOXES = (5, 12, 37)
+# Clean twobox masks whose fit with the shipped grey-input twobox model stopped short before the
+# restart (IoU 0.988, 0.986, 0.972; after it 0.995, 0.991, 0.998): the samples of seeds 8, 37 and 63.
+SHORT_TWOBOXES = (8, 37, 63)
+# The clean twobox of seed 369: without the restart its twobox fit stops short, and the box is chosen.
+TWOBOX_CHOSEN_AS_BOX = 369
+# Clean masks of each class with a narrow face or a notch, whose outline vertices the starts read (the
+# samples the binary-input models first stopped short on; geometry alone: no network reads them).
+OUTLINE_BOXES = (13363269863109141259, 14377397759793473315, 4119973520403393625)
+OUTLINE_TWOBOXES = (7830848198647218049, 2157578057008441671, 11009211302426209105)
 
 
 def generated(seed: int, shape: str = "box", scene: str = "paper-clean"):
@@ -100,7 +105,7 @@ def test_a_turned_box_keeps_its_centre_extents_and_the_axis_it_turned_about(degr
     np.testing.assert_allclose(mask_fit.turned(turned, -degrees, axis).keypoints(), camera.keypoints(), atol=1e-9)
 
 
-@pytest.mark.parametrize("seed", SHORT_TWOBOXES)
+@pytest.mark.parametrize("seed", OUTLINE_TWOBOXES)
 def test_the_convex_outline_vertices_of_a_clean_twobox_are_its_corners(seed):
     mask = generated(seed, "twobox").clean
     vertices = mask_fit.convex_vertices(mask)
@@ -129,8 +134,8 @@ def test_the_restart_keeps_the_fit_whose_silhouette_explains_the_mask_better(sha
 
 
 def test_a_clean_box_is_no_box_with_a_seam(monkeypatch):
-    # mask 122 of a clean box spool drawn with seed 41: its box fit reached IoU 0.991, its twobox 0.996
-    mask = generated(3641783572217877967).clean
+    # the clean box of seed 12: without the restart its twobox outdoes its box as a box with a seam
+    mask = generated(12).clean
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
     fit = fitter.fit(mask)
     assert fit.shape == "box" and not any("a box with a seam" in w for w in fit.warnings)
@@ -158,7 +163,7 @@ def test_the_necker_twin_draws_the_same_picture_under_weak_perspective():
     assert twin.mirror != weak.mirror and not np.allclose(twin.vector[2:5], weak.vector[2:5])
 
 
-@pytest.mark.parametrize("seed", SHORT_BOXES)
+@pytest.mark.parametrize("seed", OUTLINE_BOXES)
 def test_the_hull_vertices_of_a_clean_mask_are_its_corners(seed):
     sample = generated(seed)
     vertices = mask_fit.hull_vertices(sample.clean)
