@@ -8,6 +8,7 @@ import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -15,6 +16,7 @@ import torch
 from cuboidtrain.campaign import lease as lease_module
 from cuboidtrain.campaign import plan as plan_module
 from cuboidtrain.campaign import state as state_module
+from cuboidtrain.campaign import training as training_module
 from cuboidtrain.campaign.apply import apply_lease
 from cuboidtrain.campaign.lease import LeaseOptions, run_lease
 from cuboidtrain.campaign.plan import CampaignPlan, PhasePlan, load_plan, save_plan
@@ -27,7 +29,7 @@ from cuboidtrain.train.loop import run
 from shared.errors import UsageError
 from shared.sample import encode
 from shared.spool import SpoolWriter
-from tests.conftest import ARCH, build_sample, train_config
+from tests.conftest import ARCH, build_sample, command_here, train_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
@@ -107,6 +109,21 @@ def test_apply_refuses_a_damaged_part_and_changes_nothing(first_lease, tmp_path)
     assert sorted(p.name for p in copy.iterdir()) == ["plan.json"]
 
 
+class TrainerHere:
+    """A lease's trainer command (`python -m cuboidtrain run ...`, cuboidtrain.campaign.training) run to its
+    end in this process, its output into the log the lease gave it, then read as a finished process."""
+
+    def __init__(self, command: list[str], stdout, stderr=None):
+        assert command[1:3] == ["-m", "cuboidtrain"], command
+        done = command_here(command[3:])
+        with stdout:
+            stdout.write(done.stdout + done.stderr)
+        self.returncode = done.returncode
+
+    def poll(self) -> int:
+        return self.returncode
+
+
 @pytest.fixture(scope="module")
 def frozen_spool(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("frozen")
@@ -124,6 +141,9 @@ def test_two_leases_train_as_the_trainer_uninterrupted(frozen_spool, tmp_path, m
     # The smoke check (a fresh interpreter importing torch, one step) ran in the end-to-end lease; here
     # it would only repeat itself twice: what these leases show is the run continuing across them.
     monkeypatch.setattr(lease_module, "smoke_check", lambda plan, device: "cpu (smoke check left out)")
+    # Each trainer in this process, too: the end-to-end lease ran them as processes, and a fresh one spends
+    # seconds importing torch before its three steps.
+    monkeypatch.setattr(training_module, "subprocess", SimpleNamespace(Popen=TrainerHere, STDOUT=subprocess.STDOUT))
     campaign = new_campaign(tmp_path / "campaign")
     first = lease(campaign, tmp_path / "a", lease_steps=3, spool=frozen_spool, evaluate=False)
     apply_lease(tmp_path / "a", campaign)
