@@ -14,7 +14,7 @@
 # script's output as OUT/lease.log. Carried wheels in .whl/ (watchdog, xxhash) are installed first.
 #
 # On the CPU with tiny settings (tests/test_campaign.py runs it so):
-#   OUT=/tmp/lease DEVICE=cpu CAMPAIGN=/tmp/tiny-campaign MINUTES=2 PY=.venv/bin/python recipes/campaign.sh --lease-steps 2
+#   OUT=/tmp/lease DEVICE=cpu CAMPAIGN=/tmp/tiny-campaign MINUTES=4 PY=.venv/bin/python recipes/campaign.sh --lease-steps 2
 set -uo pipefail
 OUT=${OUT:?OUT: the folder the lent machine sends back}
 PY=${PY:-python3}

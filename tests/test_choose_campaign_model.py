@@ -12,12 +12,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "gpu
 import choose_campaign_model as choose  # noqa: E402
 
 SAMPLES, BATCH, SHARES = 8, 4, 2
+MASKS = 1  # a set's masks: every figure is asserted present and where it comes from, none for its spread
 CANDIDATES = ["tiny:32", "tiny:64"]
 
 
 def options(folder: Path) -> list[str]:
     return ["--samples", str(SAMPLES), "--batch", str(BATCH), "--shares", str(SHARES), "--sets", "paper",
-            "--masks", "2", "--latency-masks", "1", "--latency-rounds", "1", "--spools", str(folder / "spools"),
+            "--masks", str(MASKS), "--latency-masks", "1", "--latency-rounds", "1", "--spools", str(folder / "spools"),
             "--runs", str(folder / "runs")]
 
 
@@ -55,7 +56,7 @@ def test_each_curve_is_scored_from_random_weights_at_equal_shares_with_its_gain(
             assert [p["samples"] for p in curve] == [0, SAMPLES // 2, SAMPLES]
             for point in curve:
                 figures = point["sets"]["paper"]
-                assert figures["masks"] == 2
+                assert figures["masks"] == MASKS
                 assert set(figures) >= {"mean_256", "median_256", "outline_mean_256", "interior_mean_256", "ratio_error"}
                 assert point["error"] == pytest.approx(figures["mean_256"])  # one set: its mean
             assert run["gain_per_1k"] == pytest.approx(1000 * (curve[0]["error"] - curve[-1]["error"]) / SAMPLES)

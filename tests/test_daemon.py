@@ -71,10 +71,12 @@ def test_metadata_records_the_config(tmp_path):
 
 
 def start_daemon(spool: Path) -> subprocess.Popen:
+    """The daemon in a session of its own: its workers share its process group, whose id is its pid."""
     return subprocess.Popen(
         [sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(spool), "--limit", "30", "--workers", "2",
          "--size", "32", "--no-dashboard"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        start_new_session=True,
     )
 
 
@@ -85,16 +87,29 @@ def wait_for_samples(spool: Path, count: int, timeout: float = 60.0) -> None:
         time.sleep(0.1)
 
 
-def spool_goes_quiet(spool: Path, quiet: float, within: float) -> bool:
-    """True once the spool's listing stays the same for `quiet` seconds (orphaned workers
-    finish the sample in hand, or their start-up, and exit)."""
+def live_in_groups(groups: set[int]) -> list[int]:
+    """The processes of these process groups still running (a zombie, exited but not reaped by
+    whoever adopted it, is not), from /proc."""
+    live = []
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_bytes().rsplit(b")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) in groups and fields[0] != b"Z":
+            live.append(int(entry))
+    return live
+
+
+def groups_end(groups: set[int], within: float) -> bool:
+    """True once no process of these groups runs (orphaned workers finish the sample in hand, or
+    their start-up, and exit): waited on, not slept for."""
     deadline = time.monotonic() + within
-    while time.monotonic() < deadline:
-        before = sorted(os.listdir(spool))
-        time.sleep(quiet)
-        if sorted(os.listdir(spool)) == before:
-            return True
-    return False
+    while live_in_groups(groups):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 def test_sigterm_and_sigint_stop_cleanly_without_torn_files(tmp_path):
@@ -116,15 +131,17 @@ def test_sigterm_and_sigint_stop_cleanly_without_torn_files(tmp_path):
 def test_kill_9_and_restart_cycles_leave_nothing_corrupt_and_no_orphans(tmp_path):
     # Kill early (workers still starting) and late (workers publishing): both must leave
     # no torn sample and no worker running on without its daemon.
+    killed = set()  # the killed daemons' process groups: their workers' too
     for delay in (0.3, 1.0, None, 0.6, None):
         daemon = start_daemon(tmp_path)
+        killed.add(daemon.pid)
         if delay is None:
             wait_for_samples(tmp_path, 10)
         else:
             time.sleep(delay)
         daemon.kill()  # SIGKILL to the main process: its workers must notice and exit on their own
         daemon.wait()
-    assert spool_goes_quiet(tmp_path, quiet=1.5, within=20.0), "workers outlived their killed daemon"
+    assert groups_end(killed, within=20.0), "workers outlived their killed daemon"
     daemon = start_daemon(tmp_path)  # sweeps orphaned temporary files at start
     wait_for_samples(tmp_path, 30)
     daemon.send_signal(signal.SIGTERM)
