@@ -469,13 +469,14 @@ def _cards_table(found: list[dict]):
     from rich.table import Table
 
     table = Table(title="Model files (cuboidtrain models --json: the whole cards)" if found else "No model files")
-    for column in ("shape", "arch", "px", "scenes", "steps", "samples", "hours", "clean/paper/street", "MiB"):
+    for column in ("shape", "arch", "px", "input", "scenes", "steps", "samples", "hours", "clean/paper/street", "MiB"):
         table.add_column(column, no_wrap=column != "scenes", overflow="fold")  # a number is never split
     for card in found:
         sets = card.get("validation", {}).get("sets", {})
         figures = "/".join(f"{sets[s]['infer_mean_256']:.2f}" if s in sets else "-"
                            for s in ("paper-clean", "paper", "street"))
-        table.add_row(card["shape"], card["arch"], str(card["size"]), "+".join(card.get("scenes", [])) or "-",
+        table.add_row(card["shape"], card["arch"], str(card["size"]), "grey" if card.get("grey_input") else "binary",
+                      "+".join(card.get("scenes", [])) or "-",
                       f"{card.get('steps', 0):,}", f"{card.get('samples_seen', 0):,}",
                       f"{(card.get('wall_time_s') or 0) / 3600:.2f}", figures, f"{card['bytes'] / 2**20:.1f}")
     if found:

@@ -79,6 +79,7 @@ def test_the_model_table_splits_no_number_in_80_columns_without_a_terminal():
     assert done.returncode == 0
     rows = [line for line in done.stderr.splitlines() if line.startswith("│ ")]
     assert [row.split("│")[1].strip() for row in rows] == ["box", "twobox"]  # one line a model: nothing wrapped
+    assert [row.split("│")[4].strip() for row in rows] == ["grey", "grey"]  # both shipped models read grey inputs
     for row in rows:
         assert re.search(r"│ [\d,]+ │ [\d,]+ │ \d+\.\d\d +│ \d+\.\d\d/\d+\.\d\d/\d+\.\d\d +│ \d+\.\d │$", row), row
 
