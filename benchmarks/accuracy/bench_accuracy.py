@@ -60,7 +60,8 @@ The JSON (--json; also printed on one line after the tables):
   `within_2sd`: how often the truth lies within the cuboid fit's error bars; `camera_inside`
   (fits with a corner at or behind the camera: it stands inside or behind the box) and
   `nearest_depth_min` (the least nearest-corner depth over the box centre's);
-* `latency`: `shipped_ms`, `paper_arch_ms`, `ratio`, and `cuboid_ms` with --cuboid.
+* `latency`: `shipped_ms`, `paper_arch_ms`, `ratio`, and `cuboid_ms` with --cuboid; empty with
+  `--latency-repeats 0` (the campaign's lease evaluation: no paper arch built).
 """
 from __future__ import annotations
 
@@ -212,6 +213,19 @@ def eval_figures(model, spool: Path, samples: int) -> dict:
             "t_alone_256": chain.tabulator_px_error_on_true_heatmaps * scale, "skipped": chain.skipped}
 
 
+def timed_latency(args, models: dict, variants: dict, folder: Path) -> dict:
+    """The whole `infer` path's ms per mask, the shipped models against the paper arch's at their size
+    (and with --cuboid); building the paper arch's ResNets is most of a short run's set-up."""
+    example = write_masks(spool_for(args.spools, "box", "paper", 1), 1, folder)[0][0]
+    size = next(iter(models.values())).size
+    baseline = [build_model(s, size, arch="paper").eval() for s in models]
+    latency = {"shipped_ms": latency_ms(list(models.values()), example, args.latency_repeats),
+               "paper_arch_ms": latency_ms(baseline, example, args.latency_repeats)}
+    if "cuboid" in variants:
+        latency["cuboid_ms"] = latency_ms(list(models.values()), example, args.latency_repeats, variants["cuboid"])
+    return latency | {"ratio": latency["shipped_ms"] / latency["paper_arch_ms"]}
+
+
 def latency_ms(models: list, path: str, repeats: int, options: FitOptions = FitOptions(device="cpu")) -> float:
     """Median wall time of one whole `Fitter.outcomes` call (`cuboidtrain infer`) on one mask file."""
     fitter = Fitter(models, options)
@@ -230,7 +244,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=300, help="masks per set and shape")
     parser.add_argument("--spools", type=Path, default=Path("spools"))
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--latency-repeats", type=int, default=30)
+    parser.add_argument("--latency-repeats", type=int, default=30, help="single-mask infer calls timed; 0: none")
     parser.add_argument("--no-eval", action="store_true", help="skip eval's figures and the error budget")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--cuboid", action="store_true", help="also score `infer --cuboid` on the same masks")
@@ -283,14 +297,7 @@ def main() -> None:
                 if total:
                     (selection if variant == "networks" else cuboid_selection.setdefault(variant, {}))[scene] = chosen / total
                     mask_ms.setdefault(variant, {})[scene] = statistics.median(times)
-        example = write_masks(spool_for(args.spools, "box", "paper", 1), 1, Path(tmp))[0][0]
-        size = next(iter(models.values())).size
-        baseline = [build_model(s, size, arch="paper").eval() for s in models]
-        latency = {"shipped_ms": latency_ms(list(models.values()), example, args.latency_repeats),
-                   "paper_arch_ms": latency_ms(baseline, example, args.latency_repeats)}
-        if "cuboid" in variants:
-            latency["cuboid_ms"] = latency_ms(list(models.values()), example, args.latency_repeats, variants["cuboid"])
-    latency["ratio"] = latency["shipped_ms"] / latency["paper_arch_ms"]
+        latency = timed_latency(args, models, variants, Path(tmp)) if args.latency_repeats else {}
     result = {"command": " ".join(sys.argv), "models": {s: str(p) for s, p in zip(models, paths)},
               "threads": args.threads, "rows": [r for r in rows if r["path"] == "networks"], "selection": selection,
               "mask_ms": mask_ms, "selection_by_shape": by_shape, "set_aside": set_aside, "latency": latency,
@@ -328,6 +335,10 @@ def show(result: dict) -> None:
             console.print(f"{variant}: shape selection on {scene}: {100 * accuracy:.1f}% ({each}; target >= 95%), "
                           f"median {result['mask_ms'][variant][scene]:.1f} ms a mask")
     lat = result["latency"]
+    if not lat:
+        console.print("latency not timed (--latency-repeats 0)")
+        print(json.dumps(result))
+        return
     console.print(f"infer per mask ({result['threads']} thread(s), both models): {lat['shipped_ms']:.1f} ms "
                   f"(target <= 30); paper arch at the same size {lat['paper_arch_ms']:.1f} ms, ratio {lat['ratio']:.2f}"
                   + (f"; --cuboid {lat['cuboid_ms']:.1f} ms" if "cuboid_ms" in lat else ""))

@@ -39,7 +39,7 @@ def bench(models: dict[str, Path], samples: int, spools: Path, threads: int, tim
     """bench_accuracy's JSON (also written to `out`) for `models` on `samples` masks a set, or None
     (a line in the log says why)."""
     command = [sys.executable, str(BENCH), "--checkpoint", *map(str, models.values()), "--samples", str(samples),
-               "--spools", str(spools), "--threads", str(threads), "--latency-repeats", "1", "--no-eval", "--json", str(out)]
+               "--spools", str(spools), "--threads", str(threads), "--latency-repeats", "0", "--no-eval", "--json", str(out)]
     try:
         done = subprocess.run(command, capture_output=True, text=True, timeout=max(timeout_s, 1), cwd=ROOT)
     except subprocess.TimeoutExpired:
