@@ -240,7 +240,6 @@ def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
     """eval fits a batch of masks at once (`Fitter.fit_cuboids`): each mask's rows read its own outline
     (padded to the longest), field, corners and anchor, so every fit equals the mask fitted alone;
     a small mask's shorter outline pads the batch."""
-    from cuboidtrain.fit.masks import frame
     from cuboidtrain.geometry.outline import MaskTarget
 
     paths, samples = masks
@@ -250,12 +249,12 @@ def test_a_batch_of_fits_gives_each_mask_s_own_fit(masks):
     candidates, targets = [], []
     for mask in inputs:
         for model in fitter.models:
-            candidates.append(fitter.fit_framed(model, *frame(mask, model.size)))
+            candidates.append(fitter.fit_framed(model, *fitter.framed(model, mask)))
             targets.append(MaskTarget.of(mask))
     assert len({len(t.outline) for t in targets}) > 1  # the outlines differ in length: padding is tested
     together = fitter.fit_cuboids(candidates, targets)
     for candidate, target, fitted in zip(candidates, targets, together):
-        alone = fitter.fit_cuboid(candidate, target)
+        [alone] = fitter.fit_cuboids([candidate], [target])
         assert fitted.fit.shape == candidate.shape
         np.testing.assert_allclose(fitted.fit.keypoints, alone.fit.keypoints, atol=1e-6)
         assert fitted.fit.iou == pytest.approx(alone.fit.iou, abs=1e-9)

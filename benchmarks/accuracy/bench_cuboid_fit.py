@@ -32,7 +32,7 @@ from bench_accuracy import spool_for
 from cuboidtrain.fit.candidates import RICHER_SHAPE_MARGIN, choose
 from cuboidtrain.fit.cuboid import CUBOID_MARGIN, choose_cuboid, fit_candidates
 from cuboidtrain.fit.fitter import Fitter
-from cuboidtrain.fit.masks import frame, silhouette
+from cuboidtrain.fit.masks import silhouette
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.geometry.accuracy import Truth, hull_corners
@@ -57,7 +57,7 @@ def masks_and_candidates(fitter: Fitter, spools: Path, scene: str, shape: str, o
     for name in enumerate_spool(spool)[offset : offset + samples]:
         sample = decode(read_sample_bytes(spool, name))
         mask = silhouette(sample.noisy.astype(bool))
-        candidates = [fitter.fit_framed(model, *frame(mask, model.size, fitter.options.margin)) for model in fitter.models]
+        candidates = [fitter.fit_framed(model, *fitter.framed(model, mask)) for model in fitter.models]
         items.append((mask, candidates, Truth.of_sample(sample)))
     return items
 

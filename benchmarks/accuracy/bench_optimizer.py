@@ -45,7 +45,7 @@ from benchmarks.accuracy.bench_accuracy import SETS, spool_for
 from cuboidtrain.fit.cuboid import FitStart, NonFiniteCuboid, check_finite, fit_start
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.geometry.camera_params import CuboidFit
-from cuboidtrain.fit.masks import frame, silhouette, to_mask
+from cuboidtrain.fit.masks import silhouette, to_mask
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry.mask_fit import ITERATIONS, fit_mask
 from cuboidtrain.geometry.outline import MaskTarget
@@ -116,7 +116,7 @@ def measure_set(fitter: Fitter, spool: Path, samples: int, variants: tuple[str, 
     shape = get_shape(model.shape)
     outcomes: dict[str, list[tuple[Outcome, Truth]]] = {v: [] for v in variants}
     for index, (building, truth) in enumerate(masks_of(spool, samples)):
-        candidate = fitter.fit_framed(model, *frame(building, model.size, fitter.options.margin))
+        candidate = fitter.fit_framed(model, *fitter.framed(model, building))
         start = fit_start(candidate, MaskTarget.of(building))
         for name in variants:
             outcomes[name].append((run_variant(name, shape, start), truth))

@@ -39,7 +39,6 @@ import torch
 from bench_accuracy import cuboidgen_command
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.masks import frame
 from cuboidtrain.geometry import mask_fit
 from cuboidtrain.geometry.camera_params import from_sample_params
 from cuboidtrain.geometry.outline import MaskTarget
@@ -77,7 +76,7 @@ def oracle(fitter: Fitter, sample) -> dict:
     shape, mask = get_shape(sample.shape), sample.clean
     truth = from_sample_params(shape, sample.params)
     model = next(m for m in fitter.models if m.shape == sample.shape)
-    candidate = fitter.fit_framed(model, *frame(mask, model.size, fitter.options.margin))
+    candidate = fitter.fit_framed(model, *fitter.framed(model, mask))
     first = fitter.first_cuboid(candidate, MaskTarget.of(mask))
     return {"truth": confidence(shape, truth.keypoints(), mask),
             "from_truth": mask_fit.fit_from(first.first, 0, truth).iou,

@@ -226,8 +226,7 @@ class Fitter:
         fitted to the component, judged by its own silhouette, and its projection kept."""
         candidates = []
         for model in self.models:
-            framed, framing = frame(mask, model.size, self.options.margin, model.grey_input)  # each model at its own size
-            candidates.append(self.fit_framed(model, framed, framing, oracle))
+            candidates.append(self.fit_framed(model, *self.framed(model, mask), oracle))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
         # First without restarts, then only where the chosen class stopped short (`reached`)
         firsts = {c.shape: self.first_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
@@ -252,6 +251,11 @@ class Fitter:
                    warnings=scores.warnings + tuple(set_aside) + (() if trust is None else trust.lines()),
                    candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid, trust=trust,
                    explanation=Explanation(candidate=best, mask=mask))
+
+    def framed(self, model: CuboidNet, mask: np.ndarray) -> tuple[np.ndarray, Framing]:
+        """`mask`'s object framed as `model` reads it (`masks.frame`): at its own size, with the options'
+        margin, bool or grey as it was trained (`grey_input`); `fit_framed` takes the pair."""
+        return frame(mask, model.size, self.options.margin, model.grey_input)
 
     def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None,
                    oracle: Oracle | None = None) -> Candidate:
@@ -302,14 +306,6 @@ class Fitter:
             if isinstance(refit, FittedCuboid) and refit.fit.iou > cuboids[shape].fit.iou:
                 again[shape] = refit
         return again
-
-    def fit_cuboid(self, candidate: Candidate, mask: np.ndarray | MaskTarget,
-                   known: KnownCamera | None = None, reach: float | None = None) -> FittedCuboid:
-        """`fit_cuboids` for one candidate; NonFiniteCuboid where its fit is not finite."""
-        [fitted] = self.fit_cuboids([candidate], [mask], [known], reach)
-        if isinstance(fitted, NoCuboid):
-            raise NonFiniteCuboid(fitted.reason)
-        return fitted
 
     def candidate(self, model: CuboidNet, out: ChainOutput, row: int, framed_mask: np.ndarray,
                   framing: Framing | None = None) -> Candidate:
