@@ -415,6 +415,8 @@ def test_a_grey_input_model_is_shown_the_mask_as_each_pixel_s_covered_share(tmp_
     np.testing.assert_allclose(shown[True], framed * 2 - 1, atol=1e-6)
     assert set(np.unique(shown[False])) == {-1.0, 1.0} and np.array_equal(shown[False] > 0, shown[True] >= 0)
     assert ((shown[True] > -1) & (shown[True] < 1)).sum() > 20  # the rectangle's edges, between the levels
+    candidate = Fitter([model], FitOptions(device="cpu")).fit_framed(model, framed)  # the explanation's x1 tile
+    np.testing.assert_array_equal(candidate.framed, framed)
 
 
 # --- the command line ----------------------------------------------------------

@@ -42,7 +42,7 @@ class Candidate:
     refine_converged: bool
     refined: np.ndarray  # (S, S) R's tanh output: what an explanation draws
     heatmaps: np.ndarray  # (N, S, S) S's maps
-    framed: np.ndarray  # (S, S) bool: the framed input x1 the chain saw
+    framed: np.ndarray  # (S, S) bool, or float in [0, 1] for a grey-input model: the framed input x1 the chain saw
     framing: Framing | None = None  # input px <-> model px; None for a mask framed by the caller
 
 

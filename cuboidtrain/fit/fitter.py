@@ -268,7 +268,7 @@ class Fitter:
         x1 = torch.from_numpy(signed(framed_mask))[None, None]
         with one_thread(self.device):  # the same numbers however many threads this machine gives torch
             out = self.predict(model, x1, oracle, framing)
-        return self.candidate(model, out, 0, framed_mask >= 0.5, framing)
+        return self.candidate(model, out, 0, framed_mask, framing)
 
     def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
                     known: Sequence[KnownCamera | None] | None = None,
@@ -321,7 +321,7 @@ class Fitter:
             shape=model.shape,
             keypoints=keypoints,
             ratios=geometry.ratio_dict(out.ratios[row].cpu().tolist()),
-            confidence=confidence(geometry, keypoints, framed_mask),
+            confidence=confidence(geometry, keypoints, framed_mask >= 0.5),  # the object: half covered or more
             refine_steps=out.refine_steps,
             refine_converged=out.refine_converged,
             refined=out.refined[row, 0].float().cpu().numpy(),
