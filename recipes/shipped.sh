@@ -5,6 +5,8 @@
 #   CONTINUE=1 recipes/shipped.sh box  continue from the shipped cuboidtrain/models/shipped/box.pt (phase 2 only;
 #                                      RUN=runs/NAME keeps each continuation's checkpoints apart)
 #   GREY=1 ...                         R reads a grey input (--grey-input: each model pixel's covered share)
+#   IRREGULAR=N ...                    add N samples of the `irregular` scene (roof lines, chimneys, a neighbour's
+#                                      corner, blobby edges; the truth stays the box's) to the training spool
 #   then: cuboidtrain models pack --checkpoint runs/shipped-box/p2/last.pt --out cuboidtrain/models/shipped/box.pt
 #
 # Data: a frozen 120,000-sample spool per shape class, half `paper`, half `street` scene,
@@ -38,6 +40,7 @@ seed=$([ "$SHAPE" = box ] && echo 1 || echo 2)  # the shapes' spools differ in t
 SAMPLES=${SAMPLES:-60000}  # a scene's samples in the training spool
 spool "$train" "${seed}1" paper "$SAMPLES" 128
 spool "$train" "${seed}2" street "$SAMPLES" 128
+if [ -n "${IRREGULAR:-}" ]; then spool "$train" "${seed}3" irregular "$IRREGULAR" 128; fi
 spool "$val" "${seed}5" paper 500 256  # the seed of benchmarks/accuracy/bench_accuracy.py's noisy paper set
 
 common=(--threads "$THREADS" --spool "$train" --shape "$SHAPE" --size 64 --arch compact --reframe --sigma 2 ${GREY:+--grey-input}
