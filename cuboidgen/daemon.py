@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import logging
 import multiprocessing as mp
+import multiprocessing.connection
 import os
 import secrets
 import signal
@@ -217,7 +218,11 @@ def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threadin
     last = (started, [0] * len(workers))
     with Dashboard(live=config.dashboard) as dashboard:
         while True:
-            time.sleep(0.5)
+            # Half a second between frames, but the run ends the moment its last worker does (a
+            # short `--max-samples` run would otherwise wait out the interval).
+            running = [] if stop_asked.is_set() else [w.sentinel for w in workers if w.is_alive()]
+            if running:
+                mp.connection.wait(running, timeout=0.5)
             finished = stop_asked.is_set() or not any(w.is_alive() for w in workers)
             if finished:
                 break
