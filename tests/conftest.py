@@ -83,6 +83,19 @@ def infer_paths(paths, models, explain=None, **options) -> list[dict]:
     return to_records(fitter.outcomes(paths, explain=explain), fitter.options)
 
 
+def _built_once():
+    """typer's runner builds the click command from the app at every invoke (~10 ms for
+    `cuboidtrain`'s, some 450 times a suite): built once an app here. A click command holds no state
+    between invocations (each has its own context), and typer registered the same callbacks either way."""
+    import typer.testing
+
+    if not hasattr(typer.testing._get_command, "cache_info"):
+        typer.testing._get_command = functools.cache(typer.testing._get_command)
+
+
+_built_once()
+
+
 def command_here(args: list[str], env: dict[str, str] | None = None):
     """`cuboidtrain ARGS` in this process (click's runner, no terminal; `env` set meanwhile), read as a
     finished process is: exit status, stdout and stderr. For the runs whose process boundary is not
