@@ -1,9 +1,11 @@
 """Shared builders for the tests: tiny configs, samples and spools."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.abc
 import importlib.util
+import resource
 import signal
 import sys
 from dataclasses import replace
@@ -104,6 +106,19 @@ def command_here(args: list[str], env: dict[str, str] | None = None):
         root.setLevel(level)
     assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
     return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
+
+
+@contextlib.contextmanager
+def file_size_limit(size: int):
+    """The kernel refuses (EFBIG) any write past `size` bytes into a file: a disk that fills,
+    for every writer of this process (torch's C++ one too), with no privileges needed.
+    Python ignores SIGXFSZ, so the write fails instead of the process."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 def with_generated_pdm(model):

@@ -2,14 +2,12 @@
 and what a killed trainer leaves behind. The kill -9 soak is benchmarks/soak/soak_faults.py."""
 from __future__ import annotations
 
-import contextlib
 import errno
 import io
 import json
 import logging
 import multiprocessing as mp
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -37,7 +35,7 @@ from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
-from tests.conftest import ARCH, build_sample, tiny_config, train_config
+from tests.conftest import ARCH, build_sample, file_size_limit, tiny_config, train_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
@@ -446,19 +444,6 @@ def disk_fills_at(folder: Path, room: int):
         return real_write(fd, data)
 
     return write
-
-
-@contextlib.contextmanager
-def file_size_limit(size: int):
-    """The kernel refuses (EFBIG) any write past `size` bytes into a file: a disk that fills,
-    for every writer of this process (torch's C++ one too), with no privileges needed.
-    Python ignores SIGXFSZ, so the write fails instead of the process."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 def open_files_under(folder: Path) -> list[str]:
