@@ -127,7 +127,7 @@ def test_two_workers_killed_leave_no_process_behind_and_resume_to_one_process_s_
     kept = len(read_records(out))
     assert 8 <= kept < COUNT, "killed mid-way"
     assert len(under) >= 3
-    deadline = time.monotonic() + 10  # a worker looks for its parent every second
+    deadline = time.monotonic() + 10  # a worker looks for its parent every PARENT_LOOK_S
     while time.monotonic() < deadline and any(map(running, under)):
         time.sleep(0.1)
     assert not [pid for pid in under if running(pid)], "workers outlived a killed infer"
