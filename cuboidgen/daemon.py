@@ -11,13 +11,13 @@ from __future__ import annotations
 import errno
 import logging
 import multiprocessing as mp
-import multiprocessing.connection
 import os
 import secrets
 import signal
 import threading
 import time
 from dataclasses import dataclass
+from multiprocessing.connection import wait as wait_for_any
 from pathlib import Path
 
 from cuboidgen.config import GenConfig
@@ -34,6 +34,7 @@ RUNNING, BACKING_OFF, DONE, FAILED = 0, 1, 2, 3
 STATE_NAMES = {RUNNING: "running", BACKING_OFF: "disk full, backing off", DONE: "done", FAILED: "failed: cannot write"}
 BACKOFF = (0.5, 10.0)  # s: first and longest wait while the disk is full
 JOIN_TIMEOUT = 15.0  # s a worker gets to finish its sample before it is killed
+WATCH_SECONDS = 0.5  # s between the watch loop's looks at the workers, unless one ends sooner
 
 
 @dataclass
@@ -218,11 +219,7 @@ def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threadin
     last = (started, [0] * len(workers))
     with Dashboard(live=config.dashboard) as dashboard:
         while True:
-            # Half a second between frames, but the run ends the moment its last worker does (a
-            # short `--max-samples` run would otherwise wait out the interval).
-            running = [] if stop_asked.is_set() else [w.sentinel for w in workers if w.is_alive()]
-            if running:
-                mp.connection.wait(running, timeout=0.5)
+            _until_a_worker_ends(workers, stop_asked, WATCH_SECONDS)
             finished = stop_asked.is_set() or not any(w.is_alive() for w in workers)
             if finished:
                 break
@@ -241,6 +238,16 @@ def watch(config: GenConfig, shared: Shared, workers: list, stop_asked: threadin
         elapsed = time.monotonic() - started
         means = [shared.get(i, "published") / max(elapsed, 1e-9) for i in range(len(workers))]  # over the run
         dashboard.update(snapshot(config, shared, means, elapsed, alive=[w.is_alive() for w in workers]), final=True)
+
+
+def _until_a_worker_ends(workers: list, stop_asked: threading.Event, seconds: float) -> None:
+    """Wait `seconds`, or less once a running worker ends: a run of --max-samples returns as its
+    last worker exits, not up to half a second later (each test run of the daemon paid it)."""
+    if stop_asked.is_set():
+        return
+    running = [w.sentinel for w in workers if w.is_alive()]
+    if running:
+        wait_for_any(running, timeout=seconds)
 
 
 def snapshot(config: GenConfig, shared: Shared, rates: list[float], elapsed: float, stopping: bool = False,

@@ -1,11 +1,15 @@
 """Shared builders for the tests: tiny configs, samples and spools."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.abc
 import importlib.util
+import os
+import resource
 import signal
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -117,6 +121,44 @@ def command_here(args: list[str], env: dict[str, str] | None = None):
         root.setLevel(level)
     assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
     return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
+
+
+@contextlib.contextmanager
+def file_size_limit(size: int):
+    """The kernel refuses (EFBIG) any write past `size` bytes into a file: a disk that fills,
+    for every writer of this process (torch's C++ one too), with no privileges needed.
+    Python ignores SIGXFSZ, so the write fails instead of the process."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+
+def live_in_groups(groups: set[int]) -> list[int]:
+    """The processes of these process groups still running (a zombie, exited but not reaped by
+    whoever adopted it, is not), from /proc."""
+    live = []
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_bytes().rsplit(b")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) in groups and fields[0] != b"Z":
+            live.append(int(entry))
+    return live
+
+
+def groups_end(groups: set[int], within: float) -> bool:
+    """True once no process of these groups runs (orphaned workers finish the sample in hand, or
+    their start-up, and exit): waited on, not slept for."""
+    deadline = time.monotonic() + within
+    while live_in_groups(groups):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 def with_generated_pdm(model):

@@ -17,11 +17,12 @@ import torch
 from rich.console import Console
 
 from cuboidtrain.infer.batch import Batch, run_batch
+from cuboidtrain.infer.pool import CHUNK, warm_up
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.records import read_records, to_records
 from cuboidtrain.models.zoo import default_checkpoints
-from tests.conftest import command_here, write_mask_pngs
+from tests.conftest import command_here, file_size_limit, write_mask_pngs
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW = FitOptions(refine_steps=6, device="cpu")  # the shipped models, six Refiner passes: ~0.1 s a mask
@@ -126,7 +127,7 @@ def test_two_workers_killed_leave_no_process_behind_and_resume_to_one_process_s_
     kept = len(read_records(out))
     assert 8 <= kept < COUNT, "killed mid-way"
     assert len(under) >= 3
-    deadline = time.monotonic() + 10  # a worker looks for its parent every second
+    deadline = time.monotonic() + 10  # a worker looks for its parent every PARENT_LOOK_S
     while time.monotonic() < deadline and any(map(running, under)):
         time.sleep(0.1)
     assert not [pid for pid in under if running(pid)], "workers outlived a killed infer"
@@ -159,22 +160,15 @@ def test_without_a_terminal_progress_is_log_lines_and_a_summary(tmp_path, masks,
     assert all(f"{shape} " in summary for shape in shapes)
 
 
-def limit_file_size(size: int):
-    """For a child process: the kernel refuses (EFBIG) any write that would take a file past `size` bytes,
-    a disk that fills under the writer (tests/test_faults.py's file_size_limit, across processes)."""
-    import resource
-
-    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (size, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
-
-
 @pytest.mark.parametrize("workers", ["1", "2"])
 def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun_resumes(tmp_path, masks, workers):
+    """In this process (the disk fills under the run's writer, not at a process boundary), its pool's
+    fork server started first: a server started under the limit would hand it to every later worker."""
     out, folder = tmp_path / "out.jsonl", str(Path(masks[0]).parent)
-    command = [sys.executable, "-m", "cuboidtrain", "infer", folder, "--jsonl", str(out), "--device", "cpu",
-               "--networks-only"]
-    env = os.environ | {"OMP_NUM_THREADS": "1"}
-    full = subprocess.run(command + ["--workers", workers], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=120, preexec_fn=limit_file_size(8 * 1024))  # room for about ten records
+    command = ["infer", folder, "--jsonl", str(out), "--device", "cpu", "--networks-only"]
+    warm_up(int(workers))
+    with file_size_limit(8 * 1024):  # room for about ten records
+        full = command_here(command + ["--workers", workers])
     lines = [line for line in full.stderr.splitlines() if line.startswith("error:")]
     assert full.returncode == 2 and "Traceback" not in full.stderr, full.stderr
     kept = read_records(out)
@@ -182,7 +176,7 @@ def test_a_full_disk_stops_the_run_in_one_line_keeping_whole_records_and_a_rerun
     assert lines == [f"error: --jsonl {out}: file size limit reached after {len(kept)} records (all kept); "
                      f"expected free space: make some and rerun to resume"]
     assert out.read_bytes().endswith(b"\n") and out.read_bytes().count(b"\n") == len(kept)  # whole records only
-    resumed = resume_here(command)
+    resumed = command_here(command)
     assert resumed.returncode == 1 and f"holds {len(kept)} of the {COUNT} inputs" in resumed.stderr  # one is no image
     records = read_records(out)
     assert [r["index"] for r in records] == list(range(COUNT))
@@ -195,8 +189,8 @@ def test_a_pipe_from_two_workers_ends_when_infer_does(masks):
     exited, its stdout is at end of file at once."""
     import select
 
-    folder = str(Path(masks[0]).parent)
-    command = [sys.executable, "-m", "cuboidtrain", "infer", folder, "--workers", "2", "--json", "-",
+    few = masks[:2 * CHUNK]  # a chunk for each worker: what it shows needs no more
+    command = [sys.executable, "-m", "cuboidtrain", "infer", *few, "--workers", "2", "--json", "-",
                "--networks-only", "--device", "cpu"]
     proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                             env=os.environ | {"OMP_NUM_THREADS": "1"})
@@ -210,4 +204,4 @@ def test_a_pipe_from_two_workers_ends_when_infer_does(masks):
             break
         text += chunk
     proc.stdout.close()
-    assert len(json.loads(text)) == len(masks)
+    assert len(json.loads(text)) == len(few)

@@ -16,7 +16,7 @@ from cuboidgen.daemon import run
 from shared.inspect import inspect_spool
 from shared.sample import VERSION
 from shared.spool import META_NAME, enumerate_spool
-from tests.conftest import tiny_config
+from tests.conftest import groups_end, tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -85,31 +85,6 @@ def wait_for_samples(spool: Path, count: int, timeout: float = 60.0) -> None:
     while not spool.is_dir() or len(enumerate_spool(spool)) < count:
         assert time.monotonic() < deadline, "the daemon published nothing"
         time.sleep(0.1)
-
-
-def live_in_groups(groups: set[int]) -> list[int]:
-    """The processes of these process groups still running (a zombie, exited but not reaped by
-    whoever adopted it, is not), from /proc."""
-    live = []
-    for entry in filter(str.isdigit, os.listdir("/proc")):
-        try:
-            fields = Path(f"/proc/{entry}/stat").read_bytes().rsplit(b")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) in groups and fields[0] != b"Z":
-            live.append(int(entry))
-    return live
-
-
-def groups_end(groups: set[int], within: float) -> bool:
-    """True once no process of these groups runs (orphaned workers finish the sample in hand, or
-    their start-up, and exit): waited on, not slept for."""
-    deadline = time.monotonic() + within
-    while live_in_groups(groups):
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
 
 
 def test_sigterm_and_sigint_stop_cleanly_without_torn_files(tmp_path):

@@ -2,14 +2,12 @@
 and what a killed trainer leaves behind. The kill -9 soak is benchmarks/soak/soak_faults.py."""
 from __future__ import annotations
 
-import contextlib
 import errno
 import io
 import json
 import logging
 import multiprocessing as mp
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -37,7 +35,7 @@ from shared.files import process_alive, temporary_name
 from shared.inspect import inspect_spool
 from shared.sample import encode
 from shared.spool import SpoolWriter, enumerate_spool
-from tests.conftest import ARCH, build_sample, tiny_config, train_config
+from tests.conftest import ARCH, build_sample, file_size_limit, tiny_config, train_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
@@ -130,31 +128,42 @@ def _mount_tmpfs(where: Path, size: str) -> bool:
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root")
 def test_a_really_full_tmpfs_backs_off_and_publishing_resumes_when_space_returns(tmp_path):
-    disk = tmp_path / "disk"
+    disk, log = tmp_path / "disk", tmp_path / "generator.log"
     if not _mount_tmpfs(disk, "96k"):
         pytest.skip("cannot mount a tmpfs here")
+    proc = None
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(disk), "--limit", "0",
-                                 "--max-samples", "100000", "--workers", "1", "--size", str(SIZE), "--no-dashboard"],
-                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})
-        full = _settled(lambda: len(enumerate_spool(disk)), within=60)
+        with open(log, "w") as out:
+            proc = subprocess.Popen([sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(disk), "--limit", "0",
+                                     "--max-samples", "100000", "--workers", "1", "--size", str(SIZE), "--no-dashboard"],
+                                    cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        _wait_for_line(log, "backing off", proc)  # the one worker found the disk full: nothing more is published
+        full = len(enumerate_spool(disk))
         assert 0 < full < 100, full  # a 96 KB disk holds a few dozen 4 KB pages
         for name in enumerate_spool(disk)[: full // 2]:  # space returns
             os.unlink(disk / name)
         deadline = time.monotonic() + 30
         while len(enumerate_spool(disk)) < full and time.monotonic() < deadline:
-            time.sleep(0.2)
+            time.sleep(0.1)
         assert len(enumerate_spool(disk)) >= full  # publishing resumed
         proc.send_signal(signal.SIGTERM)
-        output = proc.communicate(timeout=30)[0]
+        proc.wait(timeout=30)
+        output = log.read_text()
         assert "disk full" in output and "space again" in output, output
         report = inspect_spool(disk)
         assert report["corrupt"] == 0 and report["temporary"] == 0
     finally:
-        if proc.poll() is None:
+        if proc is not None and proc.poll() is None:
             proc.kill()
         subprocess.run(["umount", str(disk)])
+
+
+def _wait_for_line(log: Path, words: str, proc: subprocess.Popen, within: float = 60) -> None:
+    """Until the generator writing `log` says `words`, while it runs."""
+    deadline = time.monotonic() + within
+    while words not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert proc.poll() is None and words in log.read_text(), log.read_text()
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root")
@@ -173,10 +182,7 @@ def test_a_generator_started_on_a_full_disk_waits_for_space_and_then_publishes(t
             proc = subprocess.Popen([sys.executable, "-m", "cuboidgen.cli", "run", "--spool", str(disk), "--limit", "0",
                                      "--max-samples", "5", "--workers", "1", "--size", str(SIZE), "--no-dashboard"],
                                     cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-        deadline = time.monotonic() + 60
-        while "backing off" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert proc.poll() is None, log.read_text()  # waiting, not gone
+        _wait_for_line(log, "backing off", proc)  # waiting, not gone
         ballast.unlink()
         proc.wait(timeout=60)
         assert proc.returncode == 0 and len(enumerate_spool(disk)) == 5, log.read_text()
@@ -185,19 +191,6 @@ def test_a_generator_started_on_a_full_disk_waits_for_space_and_then_publishes(t
         if proc is not None and proc.poll() is None:
             proc.kill()
         subprocess.run(["umount", str(disk)])
-
-
-def _settled(read, within: float, quiet: float = 1.5) -> int:
-    """read()'s value once it has not changed for `quiet` seconds."""
-    deadline, value, since = time.monotonic() + within, None, time.monotonic()
-    while time.monotonic() < deadline:
-        now = read()
-        if now != value or not now:
-            value, since = now, time.monotonic()
-        elif time.monotonic() - since >= quiet:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"still changing after {within} s: {value}")
 
 
 # ---- bad spool paths: one line, for both daemons ---------------------------------------
@@ -446,19 +439,6 @@ def disk_fills_at(folder: Path, room: int):
         return real_write(fd, data)
 
     return write
-
-
-@contextlib.contextmanager
-def file_size_limit(size: int):
-    """The kernel refuses (EFBIG) any write past `size` bytes into a file: a disk that fills,
-    for every writer of this process (torch's C++ one too), with no privileges needed.
-    Python ignores SIGXFSZ, so the write fails instead of the process."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 def open_files_under(folder: Path) -> list[str]:

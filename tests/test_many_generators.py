@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import random
 import subprocess
 import sys
 import time
@@ -20,6 +21,7 @@ from shared.sample import decode
 from shared.spool import TMP_PREFIX, enumerate_spool, read_sample_bytes
 
 LIMIT, EVICT_EVERY, SAMPLES, SEED = 40, 8, 400, 5  # 400 a daemon: ten times the limit, each writer evicting many times over
+REREAD = 8  # names read again a listing
 # (workers, --seed): two daemons share a seed, as scaled replicas given one CUBOIDGEN_SEED would.
 DAEMONS = ((1, SEED), (1, SEED), (2, None))
 
@@ -44,7 +46,8 @@ def test_concurrent_generators_stay_within_the_bound_and_never_show_a_torn_sampl
     writers = sum(workers for workers, _ in DAEMONS)
     bound = LIMIT + writers * EVICT_EVERY
     daemons = [start(spool, workers, seed) for workers, seed in DAEMONS]
-    counts, decoded, vanished, corrupt, seen_writers = [], 0, 0, [], set()
+    counts, decoded, vanished, corrupt, seen_writers, read_before = [], 0, 0, [], set(), set()
+    rng = random.Random(0)
     seeds: dict[str, set[int]] = defaultdict(set)
     digests: dict[int, set[str]] = defaultdict(set)  # sample seed -> digests of what was published under it
     started = time.monotonic()
@@ -59,7 +62,13 @@ def test_concurrent_generators_stay_within_the_bound_and_never_show_a_torn_sampl
             # Every writer's samples in the monitored spool (not all at once: on a loaded machine one
             # daemon may start when another has nearly finished, and the newest evict its samples).
             seen_writers |= {writer_of(n) for n in names}
-            for name in names:
+            # The names not read yet, then a few read before (read again: a published name's bytes never
+            # change), then list again: reading the whole listing each time left a loaded machine's monitor
+            # a listing every ~50 reads, between two of which one writer's run came and was evicted.
+            fresh = [n for n in names if n not in read_before]
+            again = [n for n in names if n in read_before]
+            for name in fresh + rng.sample(again, min(len(again), REREAD)):
+                read_before.add(name)
                 data = read_sample_bytes(spool, name)
                 if data is None:  # evicted since the listing
                     vanished += 1

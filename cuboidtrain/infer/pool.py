@@ -38,6 +38,7 @@ from cuboidtrain.fit.options import FitOptions
 if TYPE_CHECKING:  # the fitter imports torch, which `warm_up` must come before
     from cuboidtrain.fit.fitter import Outcome
 
+PARENT_LOOK_S = 0.2  # how often a worker looks whether `infer` still runs: a /proc read, a killed run's workers gone within it
 CHUNK = 4  # inputs a task: at ~16 ms a mask, enough to hide the pickling, little lost to a kill
 Group = tuple[int, list["Outcome"]]  # (input index, its outcomes)
 
@@ -188,7 +189,7 @@ def _exit_with(parent: int) -> None:
     """A worker whose parent was killed (kill -9 leaves the pool no time to stop it) exits. Its
     own parent is the fork server, which lives as long as any worker does: watch `infer`'s process."""
     while _alive(parent):
-        time.sleep(1.0)
+        time.sleep(PARENT_LOOK_S)
     os._exit(0)
 
 
