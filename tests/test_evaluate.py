@@ -327,3 +327,23 @@ def test_the_paths_table_prints_no_figure_it_cannot_explain():
     assert cells["focal length rel %"][2] == "given"
     assert all(cell and cell != "-" for row in cells.values() for cell in row), cells  # every blank says why
     assert all(cell.startswith("n/a") for label, row in cells.items() if label != "answered" for cell in row[3:])
+
+
+def test_eval_hands_the_candidate_the_input_infer_hands_it_grey_or_binary():
+    """eval rebuilds the framed masks from the batch's +-1 input: a grey model's each pixel's covered
+    share (what `infer` frames and `Fitter.candidate` reads, half covered counting as the object), a
+    binary model's the object. Before, a grey pixel covered exactly half was background to eval."""
+    import torch
+
+    from cuboidtrain.fit.masks import levels
+    from cuboidtrain.train.evaluate import model_inputs
+    from shared.sample import signed
+
+    rng = np.random.default_rng(5)
+    coverage = rng.choice([0.0, 0.25, 0.5, 0.75, 1.0], size=(3, 8, 8))
+    x1 = torch.from_numpy(signed(levels(coverage, grey=True)))[:, None]
+    grey = model_inputs(x1, grey=True)
+    np.testing.assert_allclose(grey, coverage, atol=1e-7)
+    assert ((grey >= 0.5) == levels(coverage, grey=False)).all() and (coverage == 0.5).any()
+    binary = levels(coverage, grey=False)
+    assert (model_inputs(torch.from_numpy(signed(binary))[:, None], grey=False) == binary).all()

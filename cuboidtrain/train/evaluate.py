@@ -179,8 +179,15 @@ def _measure_batch(fitter: Fitter, model: CuboidNet, batch: LoaderBatch, sigma: 
         return errors, {}
     if batch.sources is None:
         raise ValueError("scoring the paths needs the samples as read: load_batches(..., keep_sources=True)")
-    framed = (x.x1[:, 0] > 0).cpu().numpy()
+    framed = model_inputs(x.x1, model.grey_input)
     return errors, score_paths(fitter, model, out, framed, batch.sources)
+
+
+def model_inputs(x1: torch.Tensor, grey: bool) -> np.ndarray:
+    """(B, S, S) the framed masks as `infer` hands them to `Fitter.candidate`, from the batch's +-1 input
+    (B, 1, S, S): each pixel's covered share for a grey-input model, else the object (x1 > 0)."""
+    values = x1[:, 0].float().cpu().numpy()
+    return (values + 1) / 2 if grey else values > 0
 
 
 def score_paths(fitter: Fitter, model: CuboidNet, out: ChainOutput, framed: np.ndarray,
