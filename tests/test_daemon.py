@@ -245,3 +245,21 @@ def test_max_rate_option_and_its_environment_variable_reach_the_config(tmp_path,
     result = CliRunner().invoke(app, ["run", *spool, "--max-rate", "0"])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and "--max-rate 0" in lines[0], result.output
+
+
+def test_the_watch_loop_wakes_as_a_worker_ends_not_after_its_interval():
+    """A run of --max-samples returns as its last worker exits: the loop's wait between frames ends
+    with the worker (here a minute's interval, over long before), and a stop asked for waits for nothing."""
+    ctx = mp.get_context("spawn")
+    worker = ctx.Process(target=time.sleep, args=(0.0,))
+    worker.start()
+    started = time.monotonic()
+    daemon._until_a_worker_ends([worker], threading.Event(), seconds=60.0)
+    waited = time.monotonic() - started
+    worker.join(30.0)  # its sentinel is ready as it exits, a moment before it is reaped
+    assert waited < 30.0 and worker.exitcode == 0
+    stop = threading.Event()
+    stop.set()
+    started = time.monotonic()
+    daemon._until_a_worker_ends([FinishingWorker(0, None)], stop, seconds=60.0)  # no sentinel read, no wait
+    assert time.monotonic() - started < 1.0
