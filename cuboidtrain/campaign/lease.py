@@ -17,6 +17,7 @@ import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -177,14 +178,18 @@ def write_lease(out: Path, row: dict, entries: dict) -> Path:
 
 def evaluate(plan: CampaignPlan, campaign: Path, checkpoints: dict[str, Path], work: Path, out: Path, lease: int,
              deadline: float, threads: int | None) -> dict:
-    """The campaign's models and the shipped ones on bench_accuracy's sets; eval.json in OUT."""
+    """The campaign's models and the shipped ones on bench_accuracy's sets; eval.json in OUT. The shipped
+    models are scored only where no earlier lease kept their figures (the first lease), beside the
+    campaign's, each bench in its own process on its own copy of the seeded masks (the same masks)."""
     threads = threads or min(4, os.cpu_count() or 1)
-    spools = work / "eval-spools"
     models = pack_models(checkpoints, plan, work / "models", recipe=f"cuboidtrain campaign lease {lease} ({plan.arch} {plan.size} px)")
-    ours = bench(models, plan.eval_samples, spools, threads, deadline - time.monotonic() - 5, work / "bench-campaign.json")
     kept = shipped_figures(campaign, plan)
-    theirs = kept or bench(shipped_models(plan), plan.eval_samples, spools, threads, deadline - time.monotonic() - 5,
-                           work / "bench-shipped.json")
+    runs = {"campaign": models} | ({} if kept else {"shipped": shipped_models(plan)})
+    with ThreadPoolExecutor(len(runs)) as pool:  # each thread waits on its own bench process
+        benched = {who: pool.submit(bench, files, plan.eval_samples, work / f"eval-spools-{who}", threads,
+                                    deadline - time.monotonic() - 5, work / f"bench-{who}.json")
+                   for who, files in runs.items()}
+    ours, theirs = benched["campaign"].result(), kept or benched["shipped"].result()
     write_json(out / EVAL, {"campaign": ours, "shipped": theirs, "shipped_from": SHIPPED_EVAL if kept else "this lease"},
                indent=1)
     return compare(ours, theirs)
