@@ -7,6 +7,7 @@
 #   GREY=1 ...                         R reads a grey input (--grey-input: each model pixel's covered share)
 #   IRREGULAR=N ...                    add N samples of the `irregular` scene (roof lines, chimneys, a neighbour's
 #                                      corner, blobby edges; the truth stays the box's) to the training spool
+#                                      (20,000 a shape at 1f9965d cost the networks 4-14%: not shipped, BENCHMARKS.md)
 #   then: cuboidtrain models pack --checkpoint runs/shipped-box/p2/last.pt --out cuboidtrain/models/shipped/box.pt
 #
 # Data: a frozen 120,000-sample spool per shape class, half `paper`, half `street` scene,
