@@ -134,7 +134,6 @@ IRREGULAR = replace(
 SCENES: dict[str, SceneConfig] = {s.name: s for s in (PAPER, PAPER_CLEAN, STREET, IRREGULAR)}
 
 
-
 def load_scene(name_or_path: str) -> SceneConfig:
     """A preset by name, or a JSON/TOML file of fields overriding the `paper` preset
     (or the preset named by its `base` key)."""

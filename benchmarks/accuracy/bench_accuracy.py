@@ -262,12 +262,9 @@ def main() -> None:
     paths = default_checkpoints(args.checkpoint)
     models = {m.shape: m for m in (load_model(p)[0] for p in paths)}
     cuboid = FitOptions(device="cpu", cuboid=True)
-    variants = {"networks": FitOptions(device="cpu")} | ({"cuboid": cuboid, "cuboid_camera_given": cuboid}
-                                                         if args.cuboid else {})
-    if args.paths:
-        variants = {"networks": FitOptions(device="cpu"), "cuboid": cuboid, "cuboid_camera_given": cuboid}
-        variants = {name: variants[name] for name in args.paths}
-        args.cuboid = args.cuboid or any(name.startswith("cuboid") for name in args.paths)
+    every = {"networks": FitOptions(device="cpu"), "cuboid": cuboid, "cuboid_camera_given": cuboid}
+    variants = {name: every[name] for name in args.paths or (PATHS if args.cuboid else ("networks",))}
+    args.cuboid = args.cuboid or any(name.startswith("cuboid") for name in variants)
     # `rows` and `selection` keep their old form (cuboidtrain models pack --validation reads them): networks only.
     rows, selection, cuboid_selection, mask_ms, by_shape, set_aside = [], {}, {}, {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:

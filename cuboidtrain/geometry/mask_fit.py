@@ -347,14 +347,13 @@ def restarted(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int
     subset = cameras and cameras.subset(mask_of)
     lifted = lift_starts(np.array([c for _, (c, _) in ways]), np.array([w for _, (_, w) in ways]), shape, subset)
     owner_mask = mask_of[lifted.owner]
-    chosen = [np.flatnonzero(owner_mask == k)[np.argsort(lifted.costs[owner_mask == k])[:starts]] for k in masks]
+    rows = np.concatenate([np.flatnonzero(owner_mask == k)[np.argsort(lifted.costs[owner_mask == k])[:starts]]
+                           for k in masks])
     turns = [turned(a.camera(shape), degrees, axis) for a in answers for axis in RESTART_AXES
              for degrees in RESTART_TURNS_DEG]
-    owner = np.concatenate([owner_mask[np.concatenate(chosen)],
-                            np.repeat(masks, len(RESTART_AXES) * len(RESTART_TURNS_DEG))])
-    flags = np.concatenate([lifted.mirrors[np.concatenate(chosen)], [t.mirror for t in turns]]).astype(bool)
-    params = np.concatenate([lifted.params[np.concatenate(chosen)],
-                             np.reshape([t.vector for t in turns], (len(turns), -1))])
+    owner = np.concatenate([owner_mask[rows], np.repeat(masks, len(RESTART_AXES) * len(RESTART_TURNS_DEG))])
+    flags = np.concatenate([lifted.mirrors[rows], [t.mirror for t in turns]]).astype(bool)
+    params = np.concatenate([lifted.params[rows], np.reshape([t.vector for t in turns], (len(turns), -1))])
     residual, jacobian = _objective(first.stacked, shape, first.corners, first.confidence, first.prior_ratios,
                                     first.weights, owner, flags, cameras)
     solved = levenberg_marquardt(residual, params, first.iterations, tolerance=1e-7, jacobian=jacobian)

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import torch
 
-from cuboidtrain.models.checkpoint import FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, load_checkpoint
+from cuboidtrain.models.checkpoint import (FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, checkpoint_grey,
+                                          load_checkpoint)
 from cuboidtrain.models.pdm import PointDistributionModel, spool_keypoints
 from shared.errors import UsageError
 from shared.files import atomic_path
@@ -98,7 +99,7 @@ def make_card(checkpoint_path: Path, checkpoint: dict, scenes: list[str], valida
     return {
         "shape": checkpoint["shape"], "size": checkpoint["size"], "arch": checkpoint_arch(checkpoint),
         "sigma": checkpoint["sigma"], "scenes": scenes, "reframe": config.get("reframe", False),
-        "grey_input": config.get("grey_input", False),
+        "grey_input": checkpoint_grey(checkpoint),
         "steps": sum(p["steps"] for p in phases), "samples_seen": sum(p["samples"] for p in phases),
         "wall_time_s": sum(p["wall_time_s"] or 0.0 for p in phases), "phases": phases,
         "commit": git_commit(), "packed_from": str(checkpoint_path), "recipe": recipe,
