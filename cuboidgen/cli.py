@@ -82,7 +82,7 @@ def preview(
 
     check_outputs(("--out", out))
     path = render_grid(newest_samples(spool, count), out, columns)
-    console.print(f"wrote {path}")
+    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 
 @app.command()
@@ -222,7 +222,7 @@ def occluders_preview(
 
     check_outputs(("--out", out))
     path = render_occluders(OccluderLibrary.load(occluders), out)
-    console.print(f"wrote {path}")
+    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 
 def main() -> None:

@@ -109,7 +109,7 @@ def _train(config: TrainConfig) -> None:
         ckpt = status.last_checkpoint
         console.print(f"{status.state} at step {status.step}; "
                       + (f"checkpoint {ckpt.path}" if ckpt else "no checkpoint written (no step was trained)"),
-                      highlight=False)
+                      highlight=False, soft_wrap=True)
 
 
 EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the paper's T), argmax, centre-of-mass, "
@@ -232,9 +232,9 @@ def infer(
                            photos=tuple(photo), mesh=mesh)
     result = run_infer(request, console)
     if result.pictures is not None:
-        console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False)
+        console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False, soft_wrap=True)
     if result.meshes is not None:
-        console.print(f"{result.meshes} mesh{'' if result.meshes == 1 else 'es'} in {mesh}", highlight=False)
+        console.print(f"{result.meshes} mesh{'' if result.meshes == 1 else 'es'} in {mesh}", highlight=False, soft_wrap=True)
     if result.stopped is not None:
         console.print(stopped_line(result.tally, result.records, request), highlight=False, soft_wrap=True)
         raise typer.Exit(result.stopped)
@@ -289,7 +289,7 @@ def export(
     checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
     meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
     console.print(f"{onnx}: {meta['shape']} model, {meta['size']} px, {meta['refine_steps']} Refiner pass(es), "
-                  f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False)
+                  f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False, soft_wrap=True)
 
 
 STREET_HELP = "A street's known buildings (docs/inference.md: Localization); locate the MASKs in it."
@@ -440,7 +440,7 @@ def report(
     localization = out / "localization.md"
     command = "cuboidtrain report " + shlex.join(sys.argv[2:])
     written = write_report(results, out, command, localization if localization.is_file() else None)
-    console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False)
+    console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
 
 
 models_app = CLI(add_completion=False, help="The shipped models: their cards, and packing a checkpoint into a model file.")
@@ -512,7 +512,7 @@ def models_pack(
     figures = validation_for(validation, checkpoint) if validation else None
     card = pack(checkpoint, out, scene, figures, recipe, half, pdm_spool)
     console.print(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "
-                  f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False)
+                  f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False, soft_wrap=True)
 
 
 campaign_app = CLI(add_completion=False, help="The GPU campaign (docs/training.md, \"A GPU lease\"): one standing run that each lease continues.")
@@ -552,7 +552,7 @@ def campaign_apply(
 
     row = apply_lease(returned, campaign)
     console.print(f"{campaign}: lease {row['lease']} applied ({row['steps']} steps, {row['minutes_trained']} min trained "
-                  f"on {row['device']}); commit campaign/ now", highlight=False)
+                  f"on {row['device']}); commit campaign/ now", highlight=False, soft_wrap=True)
 
 
 @app.command()

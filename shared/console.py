@@ -24,6 +24,8 @@ def choices(name: str, values) -> type[Enum]:
     return Enum(name, {value: value for value in values}, type=str)
 
 console = Console(stderr=True)
+# A line that names a path is printed with soft_wrap=True: off a terminal rich wraps at 80 columns,
+# and a path broken across two lines can no longer be copied or matched.
 # Columns a live dashboard leaves free on the right: a terminal echoes Ctrl-C as "^C" after
 # the panel's last line; were that line full width, the echo would wrap onto a new line and
 # the next redraw would start one line too low, leaving the top border printed twice.

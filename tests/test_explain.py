@@ -97,10 +97,11 @@ def test_the_area_outside_the_input_is_hatched_grey_not_the_foregrounds_white():
 
 def test_the_cli_counts_its_pictures_in_words(tmp_path, checkpoints):
     path = write_png(tmp_path / "building.png", rectangles((60, 90), (10, 10, 70, 50)))
+    out = tmp_path / ("pictures_of_a_building_in_a_folder_whose_name_is_long" * 2)  # past 80 columns
     result = CliRunner().invoke(app, ["infer", path, "--checkpoint", str(checkpoints["box"]),
-                                      "--explain", str(tmp_path / "out"), "--json", str(tmp_path / "out.json")])
+                                      "--explain", str(out), "--json", str(tmp_path / "out.json")])
     assert result.exit_code == 0, result.output
-    assert f"1 picture in {tmp_path / 'out'}" in result.output
+    assert f"1 picture in {out}\n" in result.output  # the path whole on its line, not wrapped at 80 columns
 
 
 def test_components_get_their_own_panels(tmp_path):

@@ -387,9 +387,10 @@ def test_run_returns_the_typed_status_whose_fields_the_command_line_prints(spool
     assert (status.state, status.step, status.rank, status.world_size) == ("done", 2, 0, 1)
     assert status.last_checkpoint.path == str(out / "last.pt") and status.last_checkpoint.step == 2
     assert status.to_json() == {**read_status(out).to_json(), "updated": status.updated}  # status.json's figures
-    result = cli_run(spool, tmp_path / "cli", "--steps", "2")
+    cli_out = tmp_path / ("a_run_folder_whose_name_takes_the_line_past_eighty_columns" * 2)
+    result = cli_run(spool, cli_out, "--steps", "2")
     assert result.exit_code == 0, result.output
-    assert f"done at step 2; checkpoint {tmp_path / 'cli' / 'last.pt'}" in " ".join(result.output.split())  # wrapped
+    assert f"done at step 2; checkpoint {cli_out / 'last.pt'}\n" in result.output  # one line, the path whole
 
 
 def test_the_least_batch_is_measured_and_a_smaller_one_refused_before_any_step(spool, tmp_path):
