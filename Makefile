@@ -31,8 +31,12 @@ demo: $(STAMP)
 	$(BIN)/cuboidtrain eval --spool runs/demo/val
 	@echo "records in runs/demo/infer.json; explanation panel runs/demo/explain/building.png"
 
+# Two workers (pytest-xdist), as the machine it is timed on has two cores: most tests wait on a
+# process they started (a daemon, torchrun, a lease), and the other core runs another test meanwhile.
+# loadfile: a worker takes whole files, so a module's costly fixture (a lease, torchrun's model)
+# is built once, not once a worker.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/speed/bench_generate.py

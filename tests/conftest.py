@@ -277,15 +277,25 @@ def pytest_collection_modifyitems(items):
 
 
 @pytest.fixture(scope="session")
-def page_server():
-    """The page's server for its tests (tests/test_web.py, tests/test_web_browser.py), uploads up to 2 MB;
-    stopped with Ctrl-C by tests/test_web.py's test of that, which runs last (`stops_page_server`), or
-    here at the end where that test did not run."""
+def page_servers():
+    """The page servers this pytest process started (`page_server`), stopped at its end where a test did not."""
     import signal
 
+    servers = []
+    yield servers
+    for _, server in servers:
+        if server.poll() is None:
+            server.send_signal(signal.SIGINT)
+            server.wait(30)
+
+
+@pytest.fixture
+def page_server(page_servers):
+    """The page's server for its tests (tests/test_web.py, tests/test_web_browser.py), uploads up to 2 MB:
+    one start serves every page test of this pytest process. tests/test_web.py's Ctrl-C test stops it
+    and runs last (`stops_page_server`); a page test that still comes after it on the same worker
+    (`make test` runs two, each given whole files) gets a new start rather than a closed port."""
     pytest.importorskip("starlette", reason="the web extra is not installed (pip install 'cuboid-fit[web]')")
-    address, server = start_page_server("--max-upload-mb", "2")
-    yield address, server
-    if server.poll() is None:
-        server.send_signal(signal.SIGINT)
-        server.wait(30)
+    if not page_servers or page_servers[-1][1].poll() is not None:
+        page_servers.append(start_page_server("--max-upload-mb", "2"))
+    return page_servers[-1]
