@@ -77,7 +77,7 @@ RESTART_GAIN_PX = 32.0
 # A restart and the polish after it (`polished`) read the silhouette alone (`silhouette_alone`): on a
 # clean mask the outline is all the evidence, and the networks' pull and the Tabulator's anchor, a few
 # px or percent off, held fits at IoU 0.98 where the silhouette alone reached 0.99 (clean twoboxes
-# of seeds not benchmarked, 7 short of 200 -> 2; BENCHMARKS.md, "A fit that reaches the silhouette").
+# of seeds not benchmarked, 7 short of 200 -> 3; BENCHMARKS.md, "A fit that reaches the silhouette").
 # The answer's error bars still read the first fits' objective at it (`on_first_objective`).
 RESTART_PULL = 0.0  # the networks' pull and the ratio anchor in a restart, times the first fit's
 POLISH_ITERATIONS = 30  # the LM's iterations polishing a fit still short after its restarts
