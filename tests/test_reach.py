@@ -11,6 +11,7 @@ from cuboidtrain.fit.masks import warp
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry import edge_lines, mask_fit
 from cuboidtrain.fit import cuboid
+from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.geometry.camera_params import CameraParams, from_sample_params, rotation_matrices
 from shared.shapes import get_shape
 from tests.conftest import small_library
@@ -22,6 +23,9 @@ SHORT_BOXES = (5, 12, 37)
 # Clean twobox masks whose fit with the shipped grey-input twobox model stopped short before the
 # restart (IoU 0.988, 0.986, 0.972; after it 0.995, 0.991, 0.998): the samples of seeds 8, 37 and 63.
 SHORT_TWOBOXES = (8, 37, 63)
+# A clean twobox whose restarts on the first fit's objective (the networks' pull and the Tabulator's
+# anchor in it) stay short, IoU 0.9889, and reach 0.9922 on the silhouette alone: the sample of seed 61.
+PULLED_SHORT_TWOBOX = 61
 # The clean twobox of seed 369: without the restart its twobox fit stops short, and the box is chosen.
 TWOBOX_CHOSEN_AS_BOX = 369
 # Clean masks of each class with a narrow face or a notch, whose outline vertices the starts read (the
@@ -150,6 +154,30 @@ def test_a_noisy_mask_is_never_restarted(box_fitter, monkeypatch):
     monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
     for mask, keypoints in zip(masks, restarted):
         np.testing.assert_array_equal(box_fitter.fit(mask).keypoints, keypoints)
+
+
+def test_a_restart_on_the_silhouette_alone_reaches_where_the_networks_pull_held_it_short(twobox_fitter, monkeypatch):
+    mask = generated(PULLED_SHORT_TWOBOX, "twobox").clean
+    assert twobox_fitter.fit(mask).cuboid.fit.iou >= 0.99
+    monkeypatch.setattr(mask_fit, "RESTART_PULL", 1.0)  # the restart on the first fit's objective, as before
+    monkeypatch.setattr(mask_fit, "POLISH_ITERATIONS", 0)
+    assert twobox_fitter.fit(mask).cuboid.fit.iou < 0.99
+
+
+@pytest.mark.parametrize("seed", [PULLED_SHORT_TWOBOX, SHORT_TWOBOXES[0]])
+def test_a_restarted_answers_error_bars_read_the_objective_of_a_fit_never_restarted(twobox_fitter, seed):
+    mask = generated(seed, "twobox").clean
+    model = twobox_fitter.models[0]
+    candidate = twobox_fitter.fit_framed(model, *twobox_fitter.framed(model, mask))
+    first = twobox_fitter.first_cuboid(candidate, MaskTarget.of(mask)).first
+    answers, fits = mask_fit.reach_silhouette(first, clean=[True])
+    moved, never = answers[0], first.answers[0]
+    assert fits[0].iou > first.fits[0].iou and moved.solved is not never.solved  # a restart or the polish was kept
+    assert moved.solved.residuals == never.solved.residuals  # the same rows: the first fits' outline and pulls
+    residual, _ = mask_fit._objective(first.stacked, first.shape, first.corners, first.confidence, first.prior_ratios,
+                                      first.weights, np.array([0]), np.array([moved.mirror]), first.cameras)
+    at = moved.solved.params[moved.row][None]
+    np.testing.assert_allclose(moved.cost, 0.5 * np.sum(residual(at, np.array([0])) ** 2), rtol=1e-12)
 
 
 def test_the_necker_twin_draws_the_same_picture_under_weak_perspective():
