@@ -61,7 +61,9 @@ RESTART_STARTS = 1  # lift hypotheses a restart fits (beside the turned fits, 2 
 # silhouette's flat valley there, does not cross. 11 short clean twoboxes of a dev spool: 0 -> 5
 # reached turned +-8 alone; the two clean boxes whose twobox (a seam) explained them better
 # reached past it once tilted too (their roofs' slivers).
-RESTART_TURNS_DEG = (-10.0, 10.0)  # +-8 and +-15 with 480 outline points, 3 rounds: one more of 18, 2.5x the cost
+# On the silhouette alone (`silhouette_alone`), +-5, 10 and 20 reached 3 more of 41 short clean
+# twoboxes of tuning seeds than +-10 (+-5 and 15, or 25: none; the third axis: none), 4 more of 6 on others.
+RESTART_TURNS_DEG = (-20.0, -10.0, -5.0, 5.0, 10.0, 20.0)
 RESTART_AXES = (1, 0)  # the box's own axes turned about: vertical, then across its width (`turned`)
 # Outline points a restart's objective reads (the first fit's: MaskFitWeights.max_boundary_points,
 # 120): one every 5-6 px of a twobox's outline misses the narrow face a short fit lacks (480 reached
@@ -383,8 +385,8 @@ def merged_polygon(polygon: np.ndarray) -> np.ndarray:
 def restarted(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int],
               starts: int = RESTART_STARTS) -> list[tuple[Solution, CuboidFit]]:
     """For each of `masks` (their answers so far), the fit whose silhouette explains its mask best (IoU,
-    `best_explained`) of those solved as one LM on the first fits' objective (its `stacked` targets:
-    the first fit's, or denser ones) from the `starts` best lift hypotheses of the answer's corners moved onto the
+    `best_explained`) of those solved as one LM on `first`'s objective (a restart's: `silhouette_alone`,
+    its `stacked` targets denser) from the `starts` best lift hypotheses of the answer's corners moved onto the
     mask's outline (`snapped_corners`, the answer's and its Necker twin's), and from the answer
     turned about its own axes (`turned`, RESTART_AXES by RESTART_TURNS_DEG)."""
     shape, cameras = first.shape, first.cameras
