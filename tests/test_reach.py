@@ -26,6 +26,9 @@ SHORT_TWOBOXES = (8, 37, 63)
 # A clean twobox whose restarts on the first fit's objective (the networks' pull and the Tabulator's
 # anchor in it) stay short, IoU 0.9889, and reach 0.9922 on the silhouette alone: the sample of seed 61.
 PULLED_SHORT_TWOBOX = 61
+# A clean twobox that the restart's turns of 10 degrees each way leave short (IoU 0.9725) and those of 5,
+# 10 and 20 take to 0.9946: the sample of seed 0.
+TURNED_FURTHER_TWOBOX = 0
 # The clean twobox of seed 369: without the restart its twobox fit stops short, and the box is chosen.
 TWOBOX_CHOSEN_AS_BOX = 369
 # Clean masks of each class with a narrow face or a notch, whose outline vertices the starts read (the
@@ -161,6 +164,14 @@ def test_a_restart_on_the_silhouette_alone_reaches_where_the_networks_pull_held_
     assert twobox_fitter.fit(mask).cuboid.fit.iou >= 0.99
     monkeypatch.setattr(mask_fit, "RESTART_PULL", 1.0)  # the restart on the first fit's objective, as before
     monkeypatch.setattr(mask_fit, "POLISH_ITERATIONS", 0)
+    assert twobox_fitter.fit(mask).cuboid.fit.iou < 0.99
+
+
+def test_a_clean_twobox_out_of_reach_of_ten_degree_turns_reaches_by_smaller_and_larger_ones(twobox_fitter,
+                                                                                           monkeypatch):
+    mask = generated(TURNED_FURTHER_TWOBOX, "twobox").clean
+    assert twobox_fitter.fit(mask).cuboid.fit.iou >= 0.99
+    monkeypatch.setattr(mask_fit, "RESTART_TURNS_DEG", (-10.0, 10.0))
     assert twobox_fitter.fit(mask).cuboid.fit.iou < 0.99
 
 
