@@ -99,14 +99,15 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
     stale = np.full(b, not trial_jacobian)  # x moved since its normal equations were formed
     eye = np.eye(p)
     for _ in range(iterations):
-        redo = np.flatnonzero(active & stale)
-        if len(redo):  # a rejected step leaves x, and so J, as they were: no new Jacobian
+        if not trial_jacobian and (redo := np.flatnonzero(active & stale)).size:
+            # a rejected step leaves x, and so J, as they were: no new Jacobian
             normal_equations(redo, *jacobian(x[redo], redo))  # (B', M), (B', M, P)
             stale[redo] = False
+        # Each live row's arrays read once a step: the solver's numpy calls, not its rows, are its cost.
         live = np.flatnonzero(active)
-        diag = np.diagonal(jtj[live], axis1=1, axis2=2) + 1e-9
-        system = jtj[live] + (damping[live, None] * diag)[:, :, None] * eye
-        delta = -np.linalg.solve(system, grad[live, :, None])[..., 0]
+        jtj_live, grad_live, damping_live, cost_live = jtj[live], grad[live], damping[live], cost[live]
+        scaled = damping_live[:, None] * (np.diagonal(jtj_live, axis1=1, axis2=2) + 1e-9)
+        delta = -np.linalg.solve(jtj_live + scaled[:, :, None] * eye, grad_live[:, :, None])[..., 0]
         trial = x[live] + delta
         if trial_jacobian:  # the trial's Jacobian with its residuals: kept if the step is taken
             trial_r, trial_jac = jacobian(trial, live)
@@ -114,22 +115,23 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
             trial_r = residual(trial, live)
         new_cost = 0.5 * (trial_r**2).sum(1)
         new_cost[np.isnan(new_cost)] = np.inf  # np.nan_to_num's, at a fifth of its cost a call
-        gain = cost[live] - new_cost
+        gain = cost_live - new_cost
         # Nielsen's damping update (Madsen, Nielsen & Tingleff 2004, sec. 3.2): by how well the
         # linear model predicted the gain; fewer rejected steps than a fixed /3, x4.
-        predicted = 0.5 * (delta * (damping[live, None] * diag * delta - grad[live])).sum(1)
+        predicted = 0.5 * (delta * (scaled * delta - grad_live)).sum(1)
         rho = gain / np.where(predicted > 0, predicted, np.inf)
         better = gain > 0
-        x[live[better]] = trial[better]
+        taken = live[better]
+        x[taken] = trial[better]
         if trial_jacobian:
-            normal_equations(live[better], trial_r[better], trial_jac[better])
+            normal_equations(taken, trial_r[better], trial_jac[better])
         else:
-            stale[live[better]] = True
-        cost[live] = np.where(better, new_cost, cost[live])
-        damping[live] = np.where(better, damping[live] * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
-                                 damping[live] * growth[live])
+            stale[taken] = True
+        cost[live] = cost_live = np.where(better, new_cost, cost_live)
+        damping[live] = damping_live = np.where(better, damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
+                                                damping_live * growth[live])
         growth[live] = np.where(better, 2.0, growth[live] * 2)
-        done = (better & (gain <= tolerance * (cost[live] + 1e-12))) | (damping[live] > 1e10) | (cost[live] < 1e-20)
+        done = (better & (gain <= tolerance * (cost_live + 1e-12))) | (damping_live > 1e10) | (cost_live < 1e-20)
         active[live[done]] = False
         if enough > 0:
             _stop_groups_that_reached(active, cost, enough, groups)

@@ -194,11 +194,11 @@ def polygon_distance(points: np.ndarray, hull: HullEdges) -> np.ndarray:
     return polygon_offsets(points, hull).max(-1)
 
 
-def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray,
-                     normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray, normal: np.ndarray,
+                     length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d/d start and d/d end (..., 2) of the offset (p - start).n of points p from the line
-    through an edge, n its outward unit normal (n = +-quarter turn of the direction / length)."""
-    length = np.linalg.norm(direction, axis=-1, keepdims=True) + 1e-12
+    through an edge, n its outward unit normal (n = +-quarter turn of the direction / length,
+    (..., 1), `edge_lengths`' + 1e-12)."""
     tangent = direction / length
     # With p - a = alpha t + beta n (t the unit direction), n's turn with the edge gives
     # d o / d end = -alpha n / L, and the start moves the line as well: -n - that.
@@ -207,26 +207,32 @@ def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarra
     return -normal - d_end, d_end
 
 
-def _tolerant(d: np.ndarray, scale: float) -> np.ndarray:
-    """A residual whose square is Cauchy's loss: linear near 0, log-growing past `scale`."""
-    return np.sign(d) * scale * np.sqrt(np.log1p((d / scale) ** 2))
+def edge_lengths(hull: HullEdges) -> np.ndarray:
+    """(..., E) each hull edge's length (np.linalg.norm's arithmetic, without its wrapper)."""
+    return np.sqrt((hull.direction * hull.direction).sum(-1))
 
 
-def _tolerant_slope(d: np.ndarray, scale: float) -> np.ndarray:
-    """d _tolerant / d d: 1 at 0, falling as the loss saturates."""
+def _tolerant(d: np.ndarray, scale: float, slope: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """A residual whose square is Cauchy's loss: linear near 0, log-growing past `scale`; and, with
+    `slope`, its derivative by d: 1 at 0, falling as the loss saturates (the root computed once for both)."""
     u = (d / scale) ** 2
     root = np.sqrt(np.log1p(u))
-    return np.where(u < 1e-12, 1.0, np.abs(d) / (scale * np.where(root > 0, root, 1.0) * (1 + u)))
+    value = np.sign(d) * scale * root
+    if not slope:
+        return value, None
+    return value, np.where(u < 1e-12, 1.0, np.abs(d) / (scale * np.where(root > 0, root, 1.0) * (1 + u)))
 
 
-def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitWeights, tolerant_when_positive: bool):
-    """A distance's residual and slope: one side linear at weight `outside`, the other robust."""
+def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitWeights, tolerant_when_positive: bool,
+              derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """A distance's residual and, with `derivatives`, slope: one side linear at weight `outside`, the other robust."""
+    tolerant, tolerant_slope = _tolerant(d, weights.robust_px, derivatives)
     if tolerant_when_positive:
-        value = np.where(d > 0, positive * _tolerant(d, weights.robust_px), negative * d)
-        slope = np.where(d > 0, positive * _tolerant_slope(d, weights.robust_px), negative)
+        value = np.where(d > 0, positive * tolerant, negative * d)
+        slope = np.where(d > 0, positive * tolerant_slope, negative) if derivatives else None
     else:
-        value = np.where(d > 0, positive * d, negative * _tolerant(d, weights.robust_px))
-        slope = np.where(d > 0, positive, negative * _tolerant_slope(d, weights.robust_px))
+        value = np.where(d > 0, positive * d, negative * tolerant)
+        slope = np.where(d > 0, positive, negative * tolerant_slope) if derivatives else None
     return value, slope
 
 
@@ -250,8 +256,9 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     parts = part_corners(shape)  # (P, 8) the shape's corner indices of each part
     hull = hull_edges(image[:, parts])  # fields (B, P, E, ...)
     ends = parts[np.arange(len(parts))[:, None, None], hull.pairs]  # (B, P, E, 2) shape corner indices
-    outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, n, weights, derivatives)
-    edge_value, edge_gradient = _edge_rows(hull, ends, Fields.of(sdf), n, weights, derivatives)
+    lengths = edge_lengths(hull)  # (B, P, E)
+    outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, lengths, n, weights, derivatives)
+    edge_value, edge_gradient = _edge_rows(hull, ends, lengths, Fields.of(sdf), n, weights, derivatives)
     residuals = np.concatenate([outline_value, edge_value], axis=1)
     return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
 
@@ -264,37 +271,51 @@ def part_corners(shape: Shape) -> np.ndarray:
     return parts
 
 
-def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray, n: int,
-                  weights: MaskFitWeights, derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray,
+                  lengths: np.ndarray, n: int, weights: MaskFitWeights,
+                  derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
     their derivatives (B, M, N, 2)."""
     offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
     per_part = offsets.max(-1)  # (B, P, M)
     dist = per_part.min(1)  # the nearest part
-    value, slope = _weighted(dist, weights.outside, weights.inside, weights, tolerant_when_positive=False)
+    value, slope = _weighted(dist, weights.outside, weights.inside, weights, False, derivatives)
     if valid is not None:  # padding of a batch's shorter outlines
-        value, slope = np.where(valid, value, 0.0), np.where(valid, slope, 0.0)
+        value = np.where(valid, value, 0.0)
     if not derivatives:
         return value, None
+    if valid is not None:
+        slope = np.where(valid, slope, 0.0)
     b, m = dist.shape
     rows, points = np.arange(b)[:, None], np.arange(m)[None]
     part = per_part.argmin(1)  # (B, M)
     edge = offsets[rows, part, points].argmax(-1)  # (B, M): the edge slot that gives the distance
-    at = (rows, part, edge)
-    d_start, d_end = _offset_gradient(outline, hull.start[at], hull.direction[at], hull.normal[at])
-    corner = ends[at]  # (B, M, 2)
+    # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
+    at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
+    start, direction, normal, corner = (v.reshape(-1, 2)[at] for v in (hull.start, hull.direction, hull.normal, ends))
+    d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
     d = np.zeros((b, m, n, 2))
     d[rows, points, corner[..., 0]] = slope[..., None] * d_start
     d[rows, points, corner[..., 1]] += slope[..., None] * d_end
     return value, d
 
 
-def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
-               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points along the model's outline edges sampled on the mask's distance field: (B, P E T)
-    residuals, and their derivatives (B, P E T, N, 2)."""
-    count = weights.samples_per_edge
+@lru_cache(maxsize=None)
+def _edge_samples(count: int, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where along an edge its `count` samples lie (count,), and that for every sample of `slots`
+    edges (slots count, 1): fixed, computed once."""
     t = (np.arange(count) + 0.5) / count
+    share = np.tile(t, slots)[:, None]
+    t.flags.writeable = share.flags.writeable = False  # shared by every caller
+    return t, share
+
+
+def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
+               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points along the model's outline edges (`full` (B, P, E) their lengths) sampled on the mask's
+    distance field: (B, P E T) residuals, and their derivatives (B, P E T, N, 2)."""
+    count = weights.samples_per_edge
+    t, share = _edge_samples(count, hull.valid.shape[-1])
     samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
     b, p = samples.shape[:2]
     flat = samples.reshape(b, p, -1, 2)
@@ -302,15 +323,13 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: Fields, n: int, weights: 
     if p == 2:  # a twobox outline inside the other part is no outline
         keep &= polygon_distance(flat, hull.swapped()) > 0
     over, gradient = bilinear_with_gradient(sdf, flat) if derivatives else (bilinear(sdf, flat), None)
-    value, slope = _weighted(over, weights.overhang, weights.outside, weights, tolerant_when_positive=True)
-    full = np.sqrt((hull.direction * hull.direction).sum(-1))  # (B, P, E)
+    value, slope = _weighted(over, weights.overhang, weights.outside, weights, True, derivatives)
     root = np.repeat(np.sqrt(full / count), count, axis=-1)  # sqrt of each sample's share of the edge
     residuals = np.where(keep, value * root, 0.0).reshape(b, -1)
     if not derivatives:
         return residuals, None
     # d root / d end = (direction / L) / (2 count root); the start's is its negative.
     d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=-2) / (2 * root[..., None] + 1e-12)
-    share = np.tile(t, hull.valid.shape[-1])[:, None]
     along = slope[..., None] * gradient * root[..., None]
     scale = keep[..., None].astype(np.float64)
     corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
