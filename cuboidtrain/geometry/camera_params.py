@@ -40,6 +40,8 @@ NUM_PARAMS = {1: 11, 2: 13}  # by number of parts
 WEAK_K = 1e-9  # k at or below this is weak perspective: no finite focal length
 CORNER_SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)  # left, bottom, front
 MIRROR_X = np.diag([-1.0, 1.0, 1.0])
+EYE3 = np.eye(3)
+EYE3.flags.writeable = False  # shared by every caller
 
 
 @lru_cache(maxsize=None)
@@ -84,10 +86,11 @@ def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     theta = np.sqrt((rotvec * rotvec).sum(1))
     small = theta < 1e-8
     safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6, np.sin(theta) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(theta)) / safe**2)
+    squared = theta**2
+    a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
+    b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
     k = _skew(rotvec)
-    return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
+    return EYE3 + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
 def rotation_vector(matrix: np.ndarray) -> np.ndarray:
@@ -99,11 +102,19 @@ def rotated_points(params: np.ndarray, shape: Shape, mirror: np.ndarray) -> np.n
     return object_points(params, shape, mirror) @ rotation_matrices(params[:, 2:5]).transpose(0, 2, 1)
 
 
+def _flags(mirror, rows: int) -> np.ndarray:
+    """(rows,) bool mirror flags from one flag or (rows,) of them (np.broadcast_to only where needed:
+    the solvers pass (rows,) at every step, and its wrapper costs more than the projection's products)."""
+    mirror = np.asarray(mirror, dtype=bool)
+    return mirror if mirror.shape == (rows,) else np.broadcast_to(mirror, (rows,))
+
+
 def project(params: np.ndarray, shape: Shape, mirror) -> np.ndarray:
     """(B, P) or (P,) params -> (B, N, 2) or (N, 2) image points, in the model's corner labels."""
+    params = np.asarray(params)
     single = params.ndim == 1
-    params = np.atleast_2d(params)
-    mirror = np.broadcast_to(np.asarray(mirror, dtype=bool), (len(params),))
+    params = params[None] if single else params
+    mirror = _flags(mirror, len(params))
     rotated = rotated_points(params, shape, mirror)
     depth = 1.0 + params[:, 8, None] * rotated[..., 2]
     xy = (rotated[..., :2] + params[:, None, 5:7]) * (np.exp(params[:, 7])[:, None, None] / depth[..., None])
@@ -115,32 +126,34 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     """(B, N, 2) image points and their analytic Jacobian (B, N, 2, P) with respect to (B, P)
     params: the solver's derivatives, exact where forward differences lose half the digits
     (flat valleys of near-frontal views need them) and one evaluation instead of P + 1."""
-    params = np.atleast_2d(params)
+    params = np.asarray(params)
+    params = params[None] if params.ndim == 1 else params
     b, p = params.shape
-    mirror = np.broadcast_to(np.asarray(mirror, dtype=bool), (b,))
+    mirror = _flags(mirror, b)
     objects = object_points(params, shape, mirror)  # (B, N, 3)
     rot = rotation_matrices(params[:, 2:5])
     rotated = objects @ rot.transpose(0, 2, 1)
     s, k = np.exp(params[:, 7])[:, None], params[:, 8, None]
     den = 1.0 + k * rotated[..., 2]  # (B, N)
-    offset = (rotated[..., :2] + params[:, None, 5:7]) * (s / den)[..., None]  # u - c
+    scale = s / den  # d u / d (R X)'s x, y
+    offset = (rotated[..., :2] + params[:, None, 5:7]) * scale[..., None]  # u - c
     image = offset + params[:, None, 9:11]
     jac = np.zeros((b, objects.shape[1], 2, p))
     # d u / d (R X): s / den on x, y; -(u - c) k / den on z.
     d_rotated = np.zeros((b, objects.shape[1], 2, 3))
-    d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = s / den
+    d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = scale
     d_rotated[..., 2] = -offset * (k / den)[..., None]
     d_object = d_rotated @ rot[:, None]  # (B, N, 2, 3): through R
-    sign = np.where(mirror, -1.0, 1.0)[:, None]
     # Object coordinates: every x scales with w (log w), every z with d (log d).
     jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
     jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
     jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot)
-    jac[..., 0, 5] = jac[..., 1, 6] = (s / den)
+    jac[..., 0, 5] = jac[..., 1, 6] = scale
     jac[..., 7] = offset
     jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
     jac[..., 0, 9] = jac[..., 1, 10] = 1.0
     if len(shape.parts) == 2:
+        sign = np.where(mirror, -1.0, 1.0)[:, None]
         w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
         middle, top_left = _split_corners(shape)
         jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
@@ -174,8 +187,9 @@ def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndar
     small = theta2 < 1e-16
     safe = np.where(small, 1.0, theta2)
     skew_w = _skew(rotvec)  # (B, 3, 3)
-    inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - np.eye(3)) @ skew_w) / safe[:, None, None]
-    inner[small] = np.eye(3)
+    inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - EYE3) @ skew_w) / safe[:, None, None]
+    if small.any():
+        inner[small] = EYE3
     return -(d_object @ _skew(objects)) @ inner[:, None]
 
 

@@ -201,8 +201,9 @@ class PlausibleRows:
         values = np.empty((len(x), 6 + front))
         short = free_focal * (kappa > 1 / MIN_FOCAL_SIDES)
         values[:, 0] = w * short * (MIN_FOCAL_SIDES * kappa - 1)
-        outside = free_principal[:, None] * (np.abs(offset) > PRINCIPAL_SIDES)
-        values[:, 1:3] = w * outside * (np.abs(offset) - PRINCIPAL_SIDES)
+        distance = np.abs(offset)
+        outside = free_principal[:, None] * (distance > PRINCIPAL_SIDES)
+        values[:, 1:3] = w * outside * (distance - PRINCIPAL_SIDES)
         if front:  # the nearest corner: 1 + k z is the same for both twins (each has z and k negated)
             share = 1.0 + (x[:, 8, None] * rotated_z).min(1)
             behind = share < MIN_DEPTH_SHARE
@@ -262,6 +263,8 @@ class CameraTerms:
         if self.plausible is not None:
             depths = self._depths(x, mirrors) if self.in_front else None
             parts.append(self.plausible.terms(x, owner, depths, derivatives))
+        if len(parts) == 1:  # the plausible bounds alone, most often: no copy
+            return parts[0]
         values = np.concatenate([v for v, _ in parts], axis=1)
         return values, (np.concatenate([j for _, j in parts], axis=1) if derivatives else None)
 
