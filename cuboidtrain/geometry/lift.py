@@ -103,12 +103,14 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
             # a rejected step leaves x, and so J, as they were: no new Jacobian
             normal_equations(redo, *jacobian(x[redo], redo))  # (B', M), (B', M, P)
             stale[redo] = False
-        # Each live row's arrays read once a step: the solver's numpy calls, not its rows, are its cost.
+        # Each live row's arrays read once a step, as views while every row is live (most steps): the
+        # solver's numpy calls, not its rows, are its cost.
         live = np.flatnonzero(active)
-        jtj_live, grad_live, damping_live, cost_live = jtj[live], grad[live], damping[live], cost[live]
+        at = slice(None) if len(live) == b else live
+        jtj_live, grad_live, damping_live, cost_live = jtj[at], grad[at], damping[at], cost[at]
         scaled = damping_live[:, None] * (np.diagonal(jtj_live, axis1=1, axis2=2) + 1e-9)
         delta = -np.linalg.solve(jtj_live + scaled[:, :, None] * eye, grad_live[:, :, None])[..., 0]
-        trial = x[live] + delta
+        trial = x[at] + delta
         if trial_jacobian:  # the trial's Jacobian with its residuals: kept if the step is taken
             trial_r, trial_jac = jacobian(trial, live)
         else:
@@ -121,16 +123,21 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         predicted = 0.5 * (delta * (scaled * delta - grad_live)).sum(1)
         rho = gain / np.where(predicted > 0, predicted, np.inf)
         better = gain > 0
-        taken = live[better]
-        x[taken] = trial[better]
+        if better.all():  # every step taken (most often): no row picked out
+            taken = at
+        else:
+            taken, trial = live[better], trial[better]
+            trial_r = trial_r[better]
+            trial_jac = trial_jac[better] if trial_jacobian else None
+        x[taken] = trial
         if trial_jacobian:
-            normal_equations(taken, trial_r[better], trial_jac[better])
+            normal_equations(taken, trial_r, trial_jac)
         else:
             stale[taken] = True
-        cost[live] = cost_live = np.where(better, new_cost, cost_live)
-        damping[live] = damping_live = np.where(better, damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
-                                                damping_live * growth[live])
-        growth[live] = np.where(better, 2.0, growth[live] * 2)
+        cost[at] = cost_live = np.where(better, new_cost, cost_live)
+        damping[at] = damping_live = np.where(better, damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
+                                              damping_live * growth[at])
+        growth[at] = np.where(better, 2.0, growth[at] * 2)
         done = (better & (gain <= tolerance * (cost_live + 1e-12))) | (damping_live > 1e10) | (cost_live < 1e-20)
         active[live[done]] = False
         if enough > 0:
@@ -207,13 +214,14 @@ def affine_starts(points: np.ndarray, shape: Shape, k_starts=(0.0,)) -> tuple[np
         extra, w = [w / width, np.log(h_left)], width
     centre = points.mean(0)
     starts, mirrors = [], []
+    rotation = _rotation_from_rows(rows)
     for mirror in (False, True):
-        r = _rotation_from_rows(rows)
+        r = rotation
         if mirror:  # same first two rows for the reflected object: R F with R's third row negated
             r = np.vstack([r[:2], -r[2]]) @ np.diag([-1.0, 1.0, 1.0])
+        vector = rotation_vector(r)
         for k in k_starts:
-            starts.append([np.log(w), np.log(d), *rotation_vector(r), 0.0, 0.0, np.log(s), k,
-                           centre[0], centre[1], *extra])
+            starts.append([np.log(w), np.log(d), *vector, 0.0, 0.0, np.log(s), k, centre[0], centre[1], *extra])
             mirrors.append(mirror)
     params, mirror = np.array(starts), np.array(mirrors)
     # The object centre is not the corners' centroid (twobox, perspective): shift c to match.
