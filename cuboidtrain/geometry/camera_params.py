@@ -27,6 +27,7 @@ scene and shape): projection equal to the samples' keypoints to 3e-12 px.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -70,13 +71,22 @@ def object_basis(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     return coef, const
 
 
+def stack_last(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """np.stack(arrays, axis=-1) of arrays of one shape, without its wrapper (several µs a call, paid
+    at every step of every solver): the same values."""
+    stacked = np.empty((*arrays[0].shape, len(arrays)), dtype=np.result_type(*arrays))
+    for k, array in enumerate(arrays):
+        stacked[..., k] = array
+    return stacked
+
+
 def object_points(params: np.ndarray, shape: Shape, mirror: np.ndarray) -> np.ndarray:
     """(B, N, 3) labelled object corners for (B, P) params; `mirror` (B,) bool reflects x."""
     coef, const = object_basis(shape)
     w, d = np.exp(params[:, 0]), np.exp(params[:, 1])
     theta = [w, d] if len(shape.parts) == 1 else [w, d, w / 2 - params[:, 11] * w, np.exp(params[:, 12])]
     n, q = len(const), coef.shape[2]
-    points = (np.stack(theta, axis=1) @ coef.reshape(n * 3, q).T).reshape(-1, n, 3) + const
+    points = (stack_last(theta) @ coef.reshape(n * 3, q).T).reshape(-1, n, 3) + const
     points[..., 0] *= np.where(mirror, -1.0, 1.0)[:, None]
     return points
 
@@ -209,9 +219,9 @@ def ratios(params: np.ndarray, shape: Shape) -> np.ndarray:
     params = np.atleast_2d(params)
     w, d = np.exp(params[:, 0]), np.exp(params[:, 1])
     if len(shape.parts) == 1:
-        return np.stack([d, w], axis=1)
+        return stack_last([d, w])
     split, h_left = params[:, 11], np.exp(params[:, 12])
-    return np.stack([d, split * w, d / h_left, (1 - split) * w / h_left], axis=1)
+    return stack_last([d, split * w, d / h_left, (1 - split) * w / h_left])
 
 
 def log_ratio_jacobian(params: np.ndarray, shape: Shape) -> np.ndarray:

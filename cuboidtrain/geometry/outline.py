@@ -14,6 +14,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from cuboidtrain.geometry.camera_params import stack_last
 from cuboidtrain.geometry.edge_lines import cracks
 from shared.shapes import Shape
 from shared.threads import threads_held
@@ -102,7 +103,8 @@ class Fields:
     def broadcast(self, points: np.ndarray) -> tuple:
         """offset, height, width shaped to broadcast against (B, ..., 2) points' (B, ...)."""
         shape = (-1,) + (1,) * (points.ndim - 2)
-        return tuple(np.reshape(v, shape) if np.ndim(v) else v for v in (self.offset, self.height, self.width))
+        return tuple(v.reshape(shape) if isinstance(v, np.ndarray) and v.ndim else v
+                     for v in (self.offset, self.height, self.width))
 
 
 def bilinear(field: np.ndarray | Fields, points: np.ndarray) -> np.ndarray:
@@ -119,7 +121,7 @@ def bilinear_with_gradient(field: np.ndarray | Fields, points: np.ndarray) -> tu
     top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
     gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
     gy = np.where(y == points[..., 1], bottom - top, 0.0)
-    return top * (1 - fy) + bottom * fy, np.stack([gx, gy], axis=-1)
+    return top * (1 - fy) + bottom * fy, stack_last([gx, gy])
 
 
 def _cell(fields: Fields, points: np.ndarray):
@@ -137,6 +139,7 @@ def _cell(fields: Fields, points: np.ndarray):
 
 
 _PAIRS = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])  # 28 candidate hull edges
+_PAIR_STARTS, _PAIR_ENDS = _PAIRS[:, 0].copy(), _PAIRS[:, 1].copy()
 QUARTER_TURN = np.array([[0.0, 1.0], [-1.0, 0.0]])  # (x, y) -> (y, -x)
 
 
@@ -165,7 +168,7 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     per-hypothesis convexHull call), then the edges packed into the first slots."""
     lead = corners.shape[:-2]
     corners = corners.reshape(-1, 8, 2)
-    a, b = corners[:, _PAIRS[:, 0]], corners[:, _PAIRS[:, 1]]
+    a, b = corners[:, _PAIR_STARTS], corners[:, _PAIR_ENDS]
     direction = b - a
     normal = direction @ QUARTER_TURN.T
     normal /= np.sqrt((normal * normal).sum(-1, keepdims=True)) + 1e-12
@@ -175,8 +178,9 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     side *= flip[..., None]
     is_edge = (side <= 1e-9 * (1 + np.abs(side).max(-1, keepdims=True))).all(-1)
     slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
-    take = (np.arange(len(corners))[:, None], slots)  # plain indexing: take_along_axis costs more per call
-    fields = (a[take], direction[take], normal[take], is_edge[take], _PAIRS[slots])
+    take = np.arange(0, len(corners) * len(_PAIRS), len(_PAIRS))[:, None] + slots  # one flat index: cheaper a call
+    fields = (a.reshape(-1, 2)[take], direction.reshape(-1, 2)[take], normal.reshape(-1, 2)[take],
+              is_edge.reshape(-1)[take], _PAIRS[slots])
     return HullEdges(*(v.reshape(*lead, *v.shape[1:]) for v in fields))
 
 
@@ -295,8 +299,10 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     start, direction, normal, corner = (v.reshape(-1, 2)[at] for v in (hull.start, hull.direction, hull.normal, ends))
     d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
     d = np.zeros((b, m, n, 2))
-    d[rows, points, corner[..., 0]] = slope[..., None] * d_start
-    d[rows, points, corner[..., 1]] += slope[..., None] * d_end
+    flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
+    row = (rows * m + points) * n
+    flat[row + corner[..., 0]] = slope[..., None] * d_start
+    flat[row + corner[..., 1]] += slope[..., None] * d_end
     return value, d
 
 
@@ -333,10 +339,10 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields,
     along = slope[..., None] * gradient * root[..., None]
     scale = keep[..., None].astype(np.float64)
     corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
-    index = (np.arange(b)[:, None, None], np.arange(p)[None, :, None], np.arange(flat.shape[2])[None, None])
     d = np.zeros((b, p, flat.shape[2], n, 2))
-    d[(*index, corner[..., 0])] = scale * (along * (1 - share) - value[..., None] * d_root)
-    d[(*index, corner[..., 1])] += scale * (along * share + value[..., None] * d_root)
+    row = np.arange(0, d.size // 2, n).reshape(corner.shape[:-1])  # each sample's first corner, one flat index
+    d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * (1 - share) - value[..., None] * d_root)
+    d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + value[..., None] * d_root)
     return residuals, d.reshape(b, -1, n, 2)
 
 
