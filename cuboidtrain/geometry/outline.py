@@ -176,7 +176,7 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     flip = np.where(side.sum(-1) > 0, -1.0, 1.0)  # outward: away from the rest
     normal *= flip[..., None]
     side *= flip[..., None]
-    is_edge = (side <= 1e-9 * (1 + np.abs(side).max(-1, keepdims=True))).all(-1)
+    is_edge = (side <= 1e-9 * (1 + largest_over_edges(np.abs(side))[..., None])).all(-1)
     slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
     take = np.arange(0, len(corners) * len(_PAIRS), len(_PAIRS))[:, None] + slots  # one flat index: cheaper a call
     fields = (a.reshape(-1, 2)[take], direction.reshape(-1, 2)[take], normal.reshape(-1, 2)[take],
@@ -195,7 +195,13 @@ def polygon_offsets(points: np.ndarray, hull: HullEdges) -> np.ndarray:
 def polygon_distance(points: np.ndarray, hull: HullEdges) -> np.ndarray:
     """Signed distance (positive outside) of (..., M, 2) points to convex hulls given by their
     edges: the largest outward offset over hull edges (exact inside, a lower bound outside)."""
-    return polygon_offsets(points, hull).max(-1)
+    return largest_over_edges(polygon_offsets(points, hull))
+
+
+def largest_over_edges(offsets: np.ndarray) -> np.ndarray:
+    """(...,) the largest of (..., E) offsets: read along contiguous rows of a transposed copy, several
+    times faster than a reduction over a last axis of 8 (a maximum is exact: the same values)."""
+    return np.ascontiguousarray(offsets.swapaxes(-1, -2)).max(-2)
 
 
 def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray, normal: np.ndarray,
@@ -281,7 +287,7 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
     their derivatives (B, M, N, 2)."""
     offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
-    per_part = offsets.max(-1)  # (B, P, M)
+    per_part = largest_over_edges(offsets)  # (B, P, M)
     dist = per_part.min(1)  # the nearest part
     value, slope = _weighted(dist, weights.outside, weights.inside, weights, False, derivatives)
     if valid is not None:  # padding of a batch's shorter outlines
