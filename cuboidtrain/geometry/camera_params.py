@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
@@ -252,7 +252,8 @@ def canonical(vector: np.ndarray, mirror: bool) -> tuple[np.ndarray, bool]:
 
 @dataclass(frozen=True)
 class CameraParams:
-    """One parameter vector (layout above) and its reflection flag: a fitted or generated cuboid."""
+    """One parameter vector (layout above) and its reflection flag: a fitted or generated cuboid. A value:
+    its vector is not changed once it is made (its projection and naming are computed once, on first use)."""
 
     shape: Shape
     vector: np.ndarray  # (P,)
@@ -260,6 +261,10 @@ class CameraParams:
 
     def keypoints(self) -> np.ndarray:
         """(N, 2) px in the model's corner labels (what the solver matched)."""
+        return self._keypoints.copy()
+
+    @cached_property
+    def _keypoints(self) -> np.ndarray:
         return project(self.vector, self.shape, self.mirror)
 
     def nearest_depth(self) -> float:
@@ -272,9 +277,13 @@ class CameraParams:
     def naming(self) -> np.ndarray:
         """The index order that renames the model's corners by shared.camera's viewer rules
         (a fit may have drifted past a side): `keypoints()[naming()]` are viewer-named."""
+        return self._naming.copy()
+
+    @cached_property
+    def _naming(self) -> np.ndarray:
         rotated = rotated_points(self.vector[None], self.shape, np.array([self.mirror]))[0]
         # Only z differences (FRONT/BACK) and image x (LEFT/RIGHT) matter: the translation can stay out.
-        return viewer_order(self.shape, rotated, self.keypoints()).order
+        return viewer_order(self.shape, rotated, self._keypoints).order
 
     def named_keypoints(self) -> np.ndarray:
         return self.keypoints()[self.naming()]
@@ -446,9 +455,10 @@ def outline_corners(shape: Shape | str, keypoints: np.ndarray, tolerance: float 
     hulls = [cv2.convexHull(keypoints[list(p)].astype(np.float32)) for p in shape.parts]
     for part, hull in zip(shape.parts, hulls):
         vertices = hull.reshape(-1, 2).astype(np.float64)
-        for index in part:
-            on_hull = np.linalg.norm(vertices - keypoints[index], axis=1).min() <= 1e-3
+        gaps = keypoints[list(part)][:, None] - vertices[None]  # (8, V): np.linalg.norm's arithmetic, every corner at once
+        on_hull = np.sqrt((gaps * gaps).sum(-1)).min(1) <= 1e-3
+        for index, seen in zip(part, on_hull.tolist()):
             inside_other = any(cv2.pointPolygonTest(other, tuple(map(float, keypoints[index])), True) > tolerance
                                for other in hulls if other is not hull)
-            flags[index] = on_hull and not inside_other
+            flags[index] = seen and not inside_other
     return flags

@@ -92,7 +92,7 @@ def intrinsics(vps: np.ndarray, finite: np.ndarray) -> list[tuple[float, np.ndar
             candidates.append((float(np.sqrt(-(a - principal) @ (b - principal))), principal))
         return candidates
     if len(points) == 1:
-        return [(float(f), points[0]) for f in np.geomspace(0.5, 50.0, FOCAL_STEPS)]
+        return [(f, points[0]) for f in _FOCALS]
     return []
 
 
@@ -129,16 +129,20 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     focals, principals, directions = [], [], []
     for finite in _finiteness_choices(np.abs(vps[:, 2])):
         directions_xy = np.where(finite[:, None], vps[:, :2] / np.where(finite, vps[:, 2], 1.0)[:, None], vps[:, :2])
-        for focal, principal in intrinsics(vps, finite):
-            rays = np.where(finite[:, None], (directions_xy - principal) / focal, directions_xy)
-            focals.append(focal)
-            principals.append(principal)
-            directions.append(np.hstack([rays, finite[:, None].astype(np.float64)]))
+        if not (candidates := intrinsics(vps, finite)):
+            continue
+        # Every candidate's rays at once (C, 3, 2), each the arithmetic one candidate's alone would do.
+        focal, principal = np.array([f for f, _ in candidates]), np.array([c for _, c in candidates])
+        rays = np.where(finite[:, None], (directions_xy - principal[:, None]) / focal[:, None, None], directions_xy)
+        focals += [f for f, _ in candidates]
+        principals += [c for _, c in candidates]
+        directions.append(np.concatenate([rays, np.broadcast_to(finite[:, None].astype(np.float64), (len(rays), 3, 1))],
+                                         axis=2))
     p = 11 if len(shape.parts) == 1 else 13
     if not focals:
         return np.zeros((0, p)), np.zeros(0, dtype=bool)
     # The nearest orthogonal matrices, all candidates in one SVD call: columns = the object axes in the camera.
-    directions = np.array(directions)
+    directions = np.concatenate(directions)
     u, _, vt = np.linalg.svd(directions / np.linalg.norm(directions, axis=2, keepdims=True))
     bases = (u @ vt).transpose(0, 2, 1)
     # Every candidate camera times every sign choice of the axes, solved at once.
@@ -159,6 +163,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     return np.array(starts).reshape(-1, p), np.array(mirrors, dtype=bool)
 
 
+_FOCALS = np.geomspace(0.5, 50.0, FOCAL_STEPS).tolist()  # the focal-length candidates with one finite
 _SIGNS = np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3).astype(np.float64)
 
 
