@@ -87,20 +87,28 @@ def object_points(params: np.ndarray, shape: Shape, mirror: np.ndarray) -> np.nd
     theta = [w, d] if len(shape.parts) == 1 else [w, d, w / 2 - params[:, 11] * w, np.exp(params[:, 12])]
     n, q = len(const), coef.shape[2]
     points = (stack_last(theta) @ coef.reshape(n * 3, q).T).reshape(-1, n, 3) + const
-    points[..., 0] *= np.where(mirror, -1.0, 1.0)[:, None]
+    if mirror.any():  # (x 1 is exact: rows not mirrored are as they were)
+        points[..., 0] *= np.where(mirror, -1.0, 1.0)[:, None]
     return points
 
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     """(B, 3) rotation vectors -> (B, 3, 3) matrices (Rodrigues, stable near 0)."""
-    theta = np.sqrt((rotvec * rotvec).sum(1))
+    return _rodrigues(rotvec)[0]
+
+
+def _rodrigues(rotvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`rotation_matrices`, with what the rotation's derivatives read too (`_rotation_columns`): each
+    vector's squared length (B,) and cross-product matrix (B, 3, 3), computed once for both."""
+    squared_length = (rotvec * rotvec).sum(1)
+    theta = np.sqrt(squared_length)
     small = theta < 1e-8
     safe = np.where(small, 1.0, theta)
     squared = theta**2
     a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
     b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
     k = _skew(rotvec)
-    return EYE3 + a[:, None, None] * k + b[:, None, None] * (k @ k)
+    return EYE3 + a[:, None, None] * k + b[:, None, None] * (k @ k), squared_length, k
 
 
 def rotation_vector(matrix: np.ndarray) -> np.ndarray:
@@ -141,7 +149,7 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     b, p = params.shape
     mirror = _flags(mirror, b)
     objects = object_points(params, shape, mirror)  # (B, N, 3)
-    rot = rotation_matrices(params[:, 2:5])
+    rot, squared_length, skew = _rodrigues(params[:, 2:5])
     rotated = objects @ rot.transpose(0, 2, 1)
     s, k = np.exp(params[:, 7])[:, None], params[:, 8, None]
     den = 1.0 + k * rotated[..., 2]  # (B, N)
@@ -157,7 +165,7 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     # Object coordinates: every x scales with w (log w), every z with d (log d).
     jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
     jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
-    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot)
+    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot, squared_length, skew)
     jac[..., 0, 5] = jac[..., 1, 6] = scale
     jac[..., 7] = offset
     jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
@@ -186,17 +194,17 @@ def _split_corners(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     return middle, top_left
 
 
-def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """(B, N, 2, 3): d u / d w, the image points' derivatives by the rotation vectors (B, 3), from
+def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray,
+                      theta2: np.ndarray, skew_w: np.ndarray) -> np.ndarray:
+    """(B, N, 2, 3): d u / d w, the image points' derivatives by the rotation vectors (B, 3) (their
+    squared lengths `theta2` (B,) and cross-product matrices `skew_w` (B, 3, 3): `_rodrigues`), from
     their derivatives by the object points (B, N, 2, 3) (d u / d (R X) @ R) at points X (B, N, 3).
 
     Gallego & Yezzi (2015): d(R v)/dw = -R [v]x (w w^T + (R^T - I)[w]x) / |w|^2, and -[v]x at w = 0
     (where R is I): d u / d w = -(d u / d X) [X]x M, M the bracket over |w|^2 (I at w = 0), two
     small products a point instead of three."""
-    theta2 = (rotvec**2).sum(1)
     small = theta2 < 1e-16
     safe = np.where(small, 1.0, theta2)
-    skew_w = _skew(rotvec)  # (B, 3, 3)
     inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - EYE3) @ skew_w) / safe[:, None, None]
     if small.any():
         inner[small] = EYE3

@@ -240,12 +240,15 @@ def corner_residuals(points: np.ndarray, sqrt_w: np.ndarray, shape: Shape, mirro
         return r if cameras is None else np.concatenate([r, cameras.terms(x, owner[rows], mirrors[rows], False)[0]], axis=1)
 
     def jacobian(x, rows):
-        image, jac = project_with_jacobian(x, shape, mirrors[rows])
-        r = ((image - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
-        jac = (jac * sqrt_w[rows][..., None]).reshape(len(x), r.shape[1], -1)
+        # A step of every row (most are) reads the rows' arrays as they are, not gathered.
+        every = len(rows) == len(mirrors)
+        flags, weight = (mirrors, sqrt_w) if every else (mirrors[rows], sqrt_w[rows])
+        image, jac = project_with_jacobian(x, shape, flags)
+        r = ((image - (points if every else points[rows])) * weight).reshape(len(x), -1)
+        jac = (jac * weight[..., None]).reshape(len(x), r.shape[1], -1)
         if cameras is None:
             return r, jac
-        held, d_held = cameras.terms(x, owner[rows], mirrors[rows])
+        held, d_held = cameras.terms(x, owner if every else owner[rows], flags)
         return np.concatenate([r, held], axis=1), np.concatenate([jac, d_held], axis=1)
 
     return residual, jacobian
