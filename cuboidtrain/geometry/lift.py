@@ -87,8 +87,9 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
     jtj, grad = np.zeros((b, p, p)), np.zeros((b, p))
 
     def normal_equations(at: np.ndarray, r: np.ndarray, jac: np.ndarray) -> None:
-        jtj[at] = jac.transpose(0, 2, 1) @ jac
-        grad[at] = (jac.transpose(0, 2, 1) @ r[..., None])[..., 0]
+        transposed = jac.transpose(0, 2, 1)
+        jtj[at] = transposed @ jac
+        grad[at] = (transposed @ r[..., None])[..., 0]
 
     if trial_jacobian:
         r, jac = jacobian(x, rows)

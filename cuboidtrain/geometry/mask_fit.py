@@ -413,7 +413,8 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
     prior = np.array([p if p is not None else np.ones(2 * len(shape.parts)) for p in prior_ratios])
     # What each row reads of its mask, gathered once: a step of every row (most are) reads them as they are.
     by_row = RowArrays(owner, stacked.outline[owner], stacked.valid[owner], corners[owner], pull[owner],
-                       norm[owner], anchor[owner], prior[owner], stacked.fields.rows(owner))
+                       norm[owner], anchor[owner], prior[owner], stacked.fields.rows(owner),
+                       pull[owner] * norm[owner][..., None])
 
     def terms(x, rows, image, derivatives):
         """The residuals, the silhouette rows' derivatives by image point and the camera rows' Jacobian
@@ -436,7 +437,7 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
         b, n, p = len(x), shape.num_keypoints, x.shape[1]
         # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
         rows_jac = [(d_fit.reshape(b, -1, 2 * n) @ d_image.reshape(b, 2 * n, p)) * mine.norm[..., None],
-                    (d_image * (mine.pull * mine.norm[..., None])[..., None]).reshape(b, -1, p)]
+                    (d_image * mine.pulled_norm[..., None]).reshape(b, -1, p)]
         if anchored.any():
             rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
         if d_held is not None:
@@ -449,7 +450,8 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
 @dataclass(frozen=True)
 class RowArrays:
     """What the objective's rows (`owner` (B,): each one's mask) read of their masks, one row each: the
-    outline and its padding, the corners and their pull, the norm, the extents' anchor and prior, the field."""
+    outline and its padding, the corners and their pull, the norm, the extents' anchor and prior, the field,
+    and the pull times the norm (the corner rows' Jacobian's factor)."""
 
     owner: np.ndarray
     outline: np.ndarray
@@ -460,13 +462,14 @@ class RowArrays:
     anchor: np.ndarray
     prior: np.ndarray
     fields: Fields
+    pulled_norm: np.ndarray
 
     def of(self, rows: np.ndarray) -> RowArrays:
         """Rows `rows` (sorted, distinct: the solver's live rows): all of them as they are."""
         if len(rows) == len(self.owner):
             return self
         return RowArrays(*(v[rows] for v in (self.owner, self.outline, self.valid, self.corners, self.pull, self.norm,
-                                             self.anchor, self.prior)), self.fields.rows(rows))
+                                             self.anchor, self.prior)), self.fields.rows(rows), self.pulled_norm[rows])
 
 
 def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:

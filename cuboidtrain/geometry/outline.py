@@ -118,10 +118,11 @@ def bilinear_with_gradient(field: np.ndarray | Fields, points: np.ndarray) -> tu
     (zero across a clamped coordinate)."""
     points = np.fmax(points, -1.0)
     x, y, fx, fy, (tl, tr, bl, br) = _cell(Fields.of(field), points)
-    top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
-    gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
+    left_share, top_share = 1 - fx, 1 - fy
+    top, bottom = tl * left_share + tr * fx, bl * left_share + br * fx
+    gx = np.where(x == points[..., 0], (tr - tl) * top_share + (br - bl) * fy, 0.0)
     gy = np.where(y == points[..., 1], bottom - top, 0.0)
-    return top * (1 - fy) + bottom * fy, stack_last([gx, gy])
+    return top * top_share + bottom * fy, stack_last([gx, gy])
 
 
 def _cell(fields: Fields, points: np.ndarray):
