@@ -169,7 +169,7 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     per-hypothesis convexHull call), then the edges packed into the first slots."""
     lead = corners.shape[:-2]
     corners = corners.reshape(-1, 8, 2)
-    a, b = corners[:, _PAIR_STARTS], corners[:, _PAIR_ENDS]
+    a, b = corners.take(_PAIR_STARTS, axis=1), corners.take(_PAIR_ENDS, axis=1)
     direction = b - a
     normal = direction @ QUARTER_TURN.T
     normal /= np.sqrt((normal * normal).sum(-1, keepdims=True)) + 1e-12
@@ -180,8 +180,8 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     is_edge = (side <= 1e-9 * (1 + largest_over_edges(np.abs(side))[..., None])).all(-1)
     slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
     take = np.arange(0, len(corners) * len(_PAIRS), len(_PAIRS))[:, None] + slots  # one flat index: cheaper a call
-    fields = (a.reshape(-1, 2)[take], direction.reshape(-1, 2)[take], normal.reshape(-1, 2)[take],
-              is_edge.reshape(-1)[take], _PAIRS[slots])
+    fields = (a.reshape(-1, 2).take(take, axis=0), direction.reshape(-1, 2).take(take, axis=0),
+              normal.reshape(-1, 2).take(take, axis=0), is_edge.reshape(-1)[take], _PAIRS.take(slots, axis=0))
     return HullEdges(*(v.reshape(*lead, *v.shape[1:]) for v in fields))
 
 
@@ -265,13 +265,21 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     A twobox's two parts are one batch axis (B, P, ...): numpy's per-call cost, paid once."""
     b, n = image.shape[:2]
     parts = part_corners(shape)  # (P, 8) the shape's corner indices of each part
-    hull = hull_edges(image[:, parts])  # fields (B, P, E, ...)
-    ends = parts[np.arange(len(parts))[:, None, None], hull.pairs]  # (B, P, E, 2) shape corner indices
+    hull = hull_edges(image.take(parts, axis=1))  # fields (B, P, E, ...)
+    ends = parts.reshape(-1)[_part_starts(len(parts)) + hull.pairs]  # (B, P, E, 2) shape corner indices
     lengths = edge_lengths(hull)  # (B, P, E)
     outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, lengths, n, weights, derivatives)
     edge_value, edge_gradient = _edge_rows(hull, ends, lengths, Fields.of(sdf), n, weights, derivatives)
     residuals = np.concatenate([outline_value, edge_value], axis=1)
     return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
+
+
+@lru_cache(maxsize=None)
+def _part_starts(parts: int) -> np.ndarray:
+    """(P, 1, 1): where each part's corner indices start in `part_corners(shape).reshape(-1)`."""
+    starts = np.arange(0, 8 * parts, 8)[:, None, None]
+    starts.flags.writeable = False  # shared by every caller
+    return starts
 
 
 @lru_cache(maxsize=None)
@@ -303,7 +311,8 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     edge = offsets[rows, part, points].argmax(-1)  # (B, M): the edge slot that gives the distance
     # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
     at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
-    start, direction, normal, corner = (v.reshape(-1, 2)[at] for v in (hull.start, hull.direction, hull.normal, ends))
+    start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
+                                        for v in (hull.start, hull.direction, hull.normal, ends))
     d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
     d = np.zeros((b, m, n, 2))
     flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
