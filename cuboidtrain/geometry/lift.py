@@ -162,9 +162,12 @@ def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: floa
     active &= ~hit[groups]
 
 
+_SIDES = tuple(CORNER_SIDES[:, k].astype(bool) for k in range(3))  # each corner's LEFT, BOTTOM, FRONT
+
+
 def _edge_means(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean 2D edge vectors of one labelled box (8, 2): toward RIGHT, BOTTOM and BACK."""
-    left, bottom, front = (CORNER_SIDES[:, k].astype(bool) for k in range(3))
+    left, bottom, front = _SIDES
     right_minus_left = points[~left].mean(0) - points[left].mean(0)
     down = points[bottom].mean(0) - points[~bottom].mean(0)
     back = points[~front].mean(0) - points[front].mean(0)

@@ -20,6 +20,8 @@ and degrades as a vanishing point runs off to infinity. The lift tries both.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from cuboidtrain.geometry.camera_params import MIRROR_X, object_basis, rotation_vector
@@ -41,7 +43,8 @@ KEEP = 3  # the best (intrinsics, signs) by the linear solve's residual become L
 def _normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Points centred and scaled to unit mean radius (conditioning of the line fits)."""
     centre = points.mean(0)
-    scale = float(np.linalg.norm(points - centre, axis=1).mean()) or 1.0
+    gaps = points - centre
+    scale = float(np.sqrt((gaps * gaps).sum(1)).mean()) or 1.0  # np.linalg.norm's arithmetic
     return (points - centre) / scale, centre, scale
 
 
@@ -55,7 +58,16 @@ def edges_by_axis(shape: Shape) -> list[list[tuple[int, int]]]:
     return [sorted(set(g)) for g in groups]
 
 
-def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]]) -> np.ndarray:
+@lru_cache(maxsize=None)
+def _edge_arrays(shape: Shape) -> tuple[np.ndarray, ...]:
+    """`edges_by_axis` as (E, 2) index arrays, computed once a shape."""
+    arrays = tuple(np.asarray(edges) for edges in edges_by_axis(shape))
+    for array in arrays:
+        array.flags.writeable = False  # shared by every caller
+    return arrays
+
+
+def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]] | np.ndarray) -> np.ndarray:
     """Homogeneous (3,) least-squares common point of the edges' lines, unit norm."""
     ends = np.asarray(edges)
     a, b = points[ends[:, 0]], points[ends[:, 1]]
@@ -125,7 +137,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     """Start params (H <= keep, P) and mirror flags (H,) from labelled image corners (N, 2),
     in `geometry`'s layout; empty when no candidate camera gives a box in front of it."""
     unit, centre, scale = _normalise(np.asarray(points, dtype=np.float64))
-    vps = np.array([vanishing_point(unit, edges) for edges in edges_by_axis(shape)])
+    vps = np.array([vanishing_point(unit, edges) for edges in _edge_arrays(shape)])
     focals, principals, directions = [], [], []
     for finite in _finiteness_choices(np.abs(vps[:, 2])):
         directions_xy = np.where(finite[:, None], vps[:, :2] / np.where(finite, vps[:, 2], 1.0)[:, None], vps[:, :2])
