@@ -297,7 +297,8 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     their derivatives (B, M, N, 2)."""
     offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
     per_part = largest_over_edges(offsets)  # (B, P, M)
-    dist = per_part.min(1)  # the nearest part
+    one_part = per_part.shape[1] == 1  # a box: its only part is the nearest
+    dist = per_part[:, 0] if one_part else per_part.min(1)  # the nearest part
     value, slope = _weighted(dist, weights.outside, weights.inside, weights, False, derivatives)
     if valid is not None:  # padding of a batch's shorter outlines
         value = np.where(valid, value, 0.0)
@@ -307,8 +308,8 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
         slope = np.where(valid, slope, 0.0)
     b, m = dist.shape
     rows, points = np.arange(b)[:, None], np.arange(m)[None]
-    part = per_part.argmin(1)  # (B, M)
-    edge = offsets[rows, part, points].argmax(-1)  # (B, M): the edge slot that gives the distance
+    part = 0 if one_part else per_part.argmin(1)  # (B, M)
+    edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)  # (B, M): the edge slot that gives the distance
     # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
     at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
     start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
