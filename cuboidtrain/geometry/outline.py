@@ -93,7 +93,8 @@ class Fields:
     def stacked(cls, fields: Sequence[np.ndarray]) -> Fields:
         """Several (H_k, W_k) fields; `rows` picks each row's."""
         sizes = np.array([f.size for f in fields])
-        return cls(np.concatenate([f.ravel() for f in fields]), np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+        flat = fields[0].ravel() if len(fields) == 1 else np.concatenate([f.ravel() for f in fields])  # one: no copy
+        return cls(flat, np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                    np.array([f.shape[0] for f in fields]), np.array([f.shape[1] for f in fields]))
 
     def rows(self, owner: np.ndarray) -> Fields:
