@@ -325,13 +325,14 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
 
 
 @lru_cache(maxsize=None)
-def _edge_samples(count: int, slots: int) -> tuple[np.ndarray, np.ndarray]:
-    """Where along an edge its `count` samples lie (count,), and that for every sample of `slots`
-    edges (slots count, 1): fixed, computed once."""
+def _edge_samples(count: int, slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where along an edge its `count` samples lie (count,), that for every sample of `slots` edges
+    (slots count, 1), and 1 minus that: fixed, computed once."""
     t = (np.arange(count) + 0.5) / count
     share = np.tile(t, slots)[:, None]
-    t.flags.writeable = share.flags.writeable = False  # shared by every caller
-    return t, share
+    rest = 1 - share
+    t.flags.writeable = share.flags.writeable = rest.flags.writeable = False  # shared by every caller
+    return t, share, rest
 
 
 def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
@@ -339,7 +340,7 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields,
     """Points along the model's outline edges (`full` (B, P, E) their lengths) sampled on the mask's
     distance field: (B, P E T) residuals, and their derivatives (B, P E T, N, 2)."""
     count = weights.samples_per_edge
-    t, share = _edge_samples(count, hull.valid.shape[-1])
+    t, share, rest = _edge_samples(count, hull.valid.shape[-1])
     samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
     b, p = samples.shape[:2]
     flat = samples.reshape(b, p, -1, 2)
@@ -359,8 +360,9 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields,
     corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
     d = np.zeros((b, p, flat.shape[2], n, 2))
     row = np.arange(0, d.size // 2, n).reshape(corner.shape[:-1])  # each sample's first corner, one flat index
-    d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * (1 - share) - value[..., None] * d_root)
-    d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + value[..., None] * d_root)
+    stretch = value[..., None] * d_root
+    d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
+    d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
     return residuals, d.reshape(b, -1, n, 2)
 
 
