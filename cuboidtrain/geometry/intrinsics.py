@@ -208,8 +208,8 @@ class PlausibleRows:
             share = 1.0 + (x[:, 8, None] * rotated_z).min(1)
             behind = share < MIN_DEPTH_SHARE
             values[:, 3] = w * behind * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE
-        values[:, -3] = TYPICAL_PULL[0] * self.typical * free_focal * (kappa - TYPICAL[0])
-        values[:, -2:] = TYPICAL_PULL[1:] * self.typical * free_principal[:, None] * (offset - TYPICAL[1:])
+        values[:, -3] = table[:, 5] * (kappa - TYPICAL[0])  # the typical camera's pulls: `_table`
+        values[:, -2:] = table[:, 7:9] * (offset - TYPICAL[1:])
         if not derivatives:
             return values, None
         jac = np.zeros((len(x), values.shape[1], x.shape[1]))
@@ -218,16 +218,19 @@ class PlausibleRows:
         jac[:, 1, 9], jac[:, 2, 10] = (w * outside * np.sign(offset) / side[:, None]).T
         if front:  # the nearest corner's z is (share - 1) / k where it is behind (k is then not 0)
             jac[:, 3, 8] = np.where(behind, -w * (share - 1) / np.where(behind, x[:, 8], 1.0) / MIN_DEPTH_SHARE, 0.0)
-        pull = TYPICAL_PULL * self.typical
-        jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * d_kappa
-        jac[:, -2, 9], jac[:, -1, 10] = (pull[1:] * free_principal[:, None] / side[:, None]).T
+        jac[:, -3, 7], jac[:, -3, 8] = table[:, 6] * kappa, table[:, 5] * d_kappa
+        jac[:, -2, 9], jac[:, -1, 10] = table[:, 9:11].T
         return values, jac
 
     @cached_property
     def _table(self) -> np.ndarray:
-        """(K, 5): side, centre x, centre y, free focal, free principal: what `terms` reads of its
-        rows' inputs, in one lookup (it runs at every step of every solver)."""
-        return np.column_stack([self.side, self.centre, self.free_focal, self.free_principal])
+        """(K, 11): side, centre x, centre y, free focal, free principal, and the typical camera's pulls
+        as `terms` multiplies them (kappa's, its negative, the principal point's two, those over the
+        side): what `terms` reads of its rows' inputs, in one lookup (it runs at every step of every solver)."""
+        pull = TYPICAL_PULL * self.typical
+        principal = pull[1:] * self.free_principal[:, None]
+        return np.column_stack([self.side, self.centre, self.free_focal, self.free_principal, pull[0] * self.free_focal,
+                                -pull[0] * self.free_focal, principal, principal / self.side[:, None]])
 
     def subset(self, rows: np.ndarray) -> "PlausibleRows":
         return PlausibleRows(self.side[rows], self.centre[rows], self.free_focal[rows], self.free_principal[rows],
