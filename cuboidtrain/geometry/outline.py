@@ -181,9 +181,11 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     is_edge = (side <= 1e-9 * (1 + largest_over_edges(np.abs(side))[..., None])).all(-1)
     slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
     take = np.arange(0, len(corners) * len(_PAIRS), len(_PAIRS))[:, None] + slots  # one flat index: cheaper a call
-    fields = (a.reshape(-1, 2).take(take, axis=0), direction.reshape(-1, 2).take(take, axis=0),
-              normal.reshape(-1, 2).take(take, axis=0), is_edge.reshape(-1)[take], _PAIRS.take(slots, axis=0))
-    return HullEdges(*(v.reshape(*lead, *v.shape[1:]) for v in fields))
+    points, flags = (*lead, HULL_SLOTS, 2), (*lead, HULL_SLOTS)
+    return HullEdges(a.reshape(-1, 2).take(take, axis=0).reshape(points),
+                     direction.reshape(-1, 2).take(take, axis=0).reshape(points),
+                     normal.reshape(-1, 2).take(take, axis=0).reshape(points), is_edge.reshape(-1)[take].reshape(flags),
+                     _PAIRS.take(slots, axis=0).reshape(points))
 
 
 def polygon_offsets(points: np.ndarray, hull: HullEdges) -> np.ndarray:
@@ -239,12 +241,13 @@ def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitW
               derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """A distance's residual and, with `derivatives`, slope: one side linear at weight `outside`, the other robust."""
     tolerant, tolerant_slope = _tolerant(d, weights.robust_px, derivatives)
+    above = d > 0
     if tolerant_when_positive:
-        value = np.where(d > 0, positive * tolerant, negative * d)
-        slope = np.where(d > 0, positive * tolerant_slope, negative) if derivatives else None
+        value = np.where(above, positive * tolerant, negative * d)
+        slope = np.where(above, positive * tolerant_slope, negative) if derivatives else None
     else:
-        value = np.where(d > 0, positive * d, negative * tolerant)
-        slope = np.where(d > 0, positive, negative * tolerant_slope) if derivatives else None
+        value = np.where(above, positive * d, negative * tolerant)
+        slope = np.where(above, positive, negative * tolerant_slope) if derivatives else None
     return value, slope
 
 
