@@ -463,7 +463,7 @@ def outline_corners(shape: Shape | str, keypoints: np.ndarray, tolerance: float 
     hulls = [cv2.convexHull(keypoints[list(p)].astype(np.float32)) for p in shape.parts]
     for part, hull in zip(shape.parts, hulls):
         vertices = hull.reshape(-1, 2).astype(np.float64)
-        gaps = keypoints[list(part)][:, None] - vertices[None]  # (8, V): np.linalg.norm's arithmetic, every corner at once
+        gaps = keypoints[list(part)][:, None] - vertices[None]  # (8, V): np.linalg.norm's arithmetic, all at once
         on_hull = np.sqrt((gaps * gaps).sum(-1)).min(1) <= 1e-3
         for index, seen in zip(part, on_hull.tolist()):
             inside_other = any(cv2.pointPolygonTest(other, tuple(map(float, keypoints[index])), True) > tolerance

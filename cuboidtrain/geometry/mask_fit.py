@@ -35,7 +35,8 @@ from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, Solved, hypotheses, levenberg_marquardt
 from cuboidtrain.geometry.silhouette import confidence, coverage, extent_px
 from cuboidtrain.geometry.uncertainty import spread
-from cuboidtrain.geometry.outline import Fields, MaskFitWeights, MaskTarget, StackedTargets, boundary_points, silhouette_terms
+from cuboidtrain.geometry.outline import (Fields, MaskFitWeights, MaskTarget, StackedTargets, boundary_points,
+                                          silhouette_terms)
 from shared.shapes import Shape
 
 LIFT_K_STARTS = (0.0, 0.3)  # the affine starts' perspective strengths, beside the vanishing-point ones
@@ -465,7 +466,8 @@ class RowArrays:
     pulled_norm: np.ndarray
 
     def of(self, rows: np.ndarray) -> RowArrays:
-        """Rows `rows` (sorted, distinct: the solver's live rows): all of them as they are."""
+        """Rows `rows` of these (the solver's live rows, sorted and distinct: as many as there are means all,
+        returned as they are)."""
         if len(rows) == len(self.owner):
             return self
         return RowArrays(*(v[rows] for v in (self.owner, self.outline, self.valid, self.corners, self.pull, self.norm,

@@ -313,7 +313,8 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     b, m = dist.shape
     rows, points = np.arange(b)[:, None], np.arange(m)[None]
     part = 0 if one_part else per_part.argmin(1)  # (B, M)
-    edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)  # (B, M): the edge slot that gives the distance
+    # (B, M): the edge slot that gives the distance
+    edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
     # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
     at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
     start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
