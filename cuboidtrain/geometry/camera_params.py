@@ -27,8 +27,9 @@ scene and shape): projection equal to the samples' keypoints to 3e-12 px.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
@@ -40,6 +41,8 @@ NUM_PARAMS = {1: 11, 2: 13}  # by number of parts
 WEAK_K = 1e-9  # k at or below this is weak perspective: no finite focal length
 CORNER_SIDES = np.array([[(c >> 1) & 1, c & 1, (c >> 2) & 1] for c in range(8)], dtype=np.float64)  # left, bottom, front
 MIRROR_X = np.diag([-1.0, 1.0, 1.0])
+EYE3 = np.eye(3)
+EYE3.flags.writeable = False  # shared by every caller
 
 
 @lru_cache(maxsize=None)
@@ -68,26 +71,44 @@ def object_basis(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     return coef, const
 
 
+def stack_last(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """np.stack(arrays, axis=-1) of arrays of one shape, without its wrapper (several µs a call, paid
+    at every step of every solver): the same values."""
+    stacked = np.empty((*arrays[0].shape, len(arrays)), dtype=np.result_type(*arrays))
+    for k, array in enumerate(arrays):
+        stacked[..., k] = array
+    return stacked
+
+
 def object_points(params: np.ndarray, shape: Shape, mirror: np.ndarray) -> np.ndarray:
     """(B, N, 3) labelled object corners for (B, P) params; `mirror` (B,) bool reflects x."""
     coef, const = object_basis(shape)
     w, d = np.exp(params[:, 0]), np.exp(params[:, 1])
     theta = [w, d] if len(shape.parts) == 1 else [w, d, w / 2 - params[:, 11] * w, np.exp(params[:, 12])]
     n, q = len(const), coef.shape[2]
-    points = (np.stack(theta, axis=1) @ coef.reshape(n * 3, q).T).reshape(-1, n, 3) + const
-    points[..., 0] *= np.where(mirror, -1.0, 1.0)[:, None]
+    points = (stack_last(theta) @ coef.reshape(n * 3, q).T).reshape(-1, n, 3) + const
+    if mirror.any():  # (x 1 is exact: rows not mirrored are as they were)
+        points[..., 0] *= np.where(mirror, -1.0, 1.0)[:, None]
     return points
 
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     """(B, 3) rotation vectors -> (B, 3, 3) matrices (Rodrigues, stable near 0)."""
-    theta = np.sqrt((rotvec * rotvec).sum(1))
+    return _rodrigues(rotvec)[0]
+
+
+def _rodrigues(rotvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`rotation_matrices`, with what the rotation's derivatives read too (`_rotation_columns`): each
+    vector's squared length (B,) and cross-product matrix (B, 3, 3), computed once for both."""
+    squared_length = (rotvec * rotvec).sum(1)
+    theta = np.sqrt(squared_length)
     small = theta < 1e-8
     safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6, np.sin(theta) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(theta)) / safe**2)
+    squared = theta**2
+    a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
+    b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
     k = _skew(rotvec)
-    return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
+    return EYE3 + a[:, None, None] * k + b[:, None, None] * (k @ k), squared_length, k
 
 
 def rotation_vector(matrix: np.ndarray) -> np.ndarray:
@@ -99,11 +120,19 @@ def rotated_points(params: np.ndarray, shape: Shape, mirror: np.ndarray) -> np.n
     return object_points(params, shape, mirror) @ rotation_matrices(params[:, 2:5]).transpose(0, 2, 1)
 
 
+def _flags(mirror, rows: int) -> np.ndarray:
+    """(rows,) bool mirror flags from one flag or (rows,) of them (np.broadcast_to only where needed:
+    the solvers pass (rows,) at every step, and its wrapper costs more than the projection's products)."""
+    mirror = np.asarray(mirror, dtype=bool)
+    return mirror if mirror.shape == (rows,) else np.broadcast_to(mirror, (rows,))
+
+
 def project(params: np.ndarray, shape: Shape, mirror) -> np.ndarray:
     """(B, P) or (P,) params -> (B, N, 2) or (N, 2) image points, in the model's corner labels."""
+    params = np.asarray(params)
     single = params.ndim == 1
-    params = np.atleast_2d(params)
-    mirror = np.broadcast_to(np.asarray(mirror, dtype=bool), (len(params),))
+    params = params[None] if single else params
+    mirror = _flags(mirror, len(params))
     rotated = rotated_points(params, shape, mirror)
     depth = 1.0 + params[:, 8, None] * rotated[..., 2]
     xy = (rotated[..., :2] + params[:, None, 5:7]) * (np.exp(params[:, 7])[:, None, None] / depth[..., None])
@@ -115,32 +144,34 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     """(B, N, 2) image points and their analytic Jacobian (B, N, 2, P) with respect to (B, P)
     params: the solver's derivatives, exact where forward differences lose half the digits
     (flat valleys of near-frontal views need them) and one evaluation instead of P + 1."""
-    params = np.atleast_2d(params)
+    params = np.asarray(params)
+    params = params[None] if params.ndim == 1 else params
     b, p = params.shape
-    mirror = np.broadcast_to(np.asarray(mirror, dtype=bool), (b,))
+    mirror = _flags(mirror, b)
     objects = object_points(params, shape, mirror)  # (B, N, 3)
-    rot = rotation_matrices(params[:, 2:5])
+    rot, squared_length, skew = _rodrigues(params[:, 2:5])
     rotated = objects @ rot.transpose(0, 2, 1)
     s, k = np.exp(params[:, 7])[:, None], params[:, 8, None]
     den = 1.0 + k * rotated[..., 2]  # (B, N)
-    offset = (rotated[..., :2] + params[:, None, 5:7]) * (s / den)[..., None]  # u - c
+    scale = s / den  # d u / d (R X)'s x, y
+    offset = (rotated[..., :2] + params[:, None, 5:7]) * scale[..., None]  # u - c
     image = offset + params[:, None, 9:11]
     jac = np.zeros((b, objects.shape[1], 2, p))
     # d u / d (R X): s / den on x, y; -(u - c) k / den on z.
     d_rotated = np.zeros((b, objects.shape[1], 2, 3))
-    d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = s / den
+    d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = scale
     d_rotated[..., 2] = -offset * (k / den)[..., None]
     d_object = d_rotated @ rot[:, None]  # (B, N, 2, 3): through R
-    sign = np.where(mirror, -1.0, 1.0)[:, None]
     # Object coordinates: every x scales with w (log w), every z with d (log d).
     jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
     jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
-    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot)
-    jac[..., 0, 5] = jac[..., 1, 6] = (s / den)
+    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot, squared_length, skew)
+    jac[..., 0, 5] = jac[..., 1, 6] = scale
     jac[..., 7] = offset
     jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
     jac[..., 0, 9] = jac[..., 1, 10] = 1.0
     if len(shape.parts) == 2:
+        sign = np.where(mirror, -1.0, 1.0)[:, None]
         w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
         middle, top_left = _split_corners(shape)
         jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
@@ -163,19 +194,20 @@ def _split_corners(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
     return middle, top_left
 
 
-def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """(B, N, 2, 3): d u / d w, the image points' derivatives by the rotation vectors (B, 3), from
+def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndarray, rot: np.ndarray,
+                      theta2: np.ndarray, skew_w: np.ndarray) -> np.ndarray:
+    """(B, N, 2, 3): d u / d w, the image points' derivatives by the rotation vectors (B, 3) (their
+    squared lengths `theta2` (B,) and cross-product matrices `skew_w` (B, 3, 3): `_rodrigues`), from
     their derivatives by the object points (B, N, 2, 3) (d u / d (R X) @ R) at points X (B, N, 3).
 
     Gallego & Yezzi (2015): d(R v)/dw = -R [v]x (w w^T + (R^T - I)[w]x) / |w|^2, and -[v]x at w = 0
     (where R is I): d u / d w = -(d u / d X) [X]x M, M the bracket over |w|^2 (I at w = 0), two
     small products a point instead of three."""
-    theta2 = (rotvec**2).sum(1)
     small = theta2 < 1e-16
     safe = np.where(small, 1.0, theta2)
-    skew_w = _skew(rotvec)  # (B, 3, 3)
-    inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - np.eye(3)) @ skew_w) / safe[:, None, None]
-    inner[small] = np.eye(3)
+    inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - EYE3) @ skew_w) / safe[:, None, None]
+    if small.any():
+        inner[small] = EYE3
     return -(d_object @ _skew(objects)) @ inner[:, None]
 
 
@@ -195,9 +227,9 @@ def ratios(params: np.ndarray, shape: Shape) -> np.ndarray:
     params = np.atleast_2d(params)
     w, d = np.exp(params[:, 0]), np.exp(params[:, 1])
     if len(shape.parts) == 1:
-        return np.stack([d, w], axis=1)
+        return stack_last([d, w])
     split, h_left = params[:, 11], np.exp(params[:, 12])
-    return np.stack([d, split * w, d / h_left, (1 - split) * w / h_left], axis=1)
+    return stack_last([d, split * w, d / h_left, (1 - split) * w / h_left])
 
 
 def log_ratio_jacobian(params: np.ndarray, shape: Shape) -> np.ndarray:
@@ -228,7 +260,8 @@ def canonical(vector: np.ndarray, mirror: bool) -> tuple[np.ndarray, bool]:
 
 @dataclass(frozen=True)
 class CameraParams:
-    """One parameter vector (layout above) and its reflection flag: a fitted or generated cuboid."""
+    """One parameter vector (layout above) and its reflection flag: a fitted or generated cuboid. A value:
+    its vector is not changed once it is made (its projection and naming are computed once, on first use)."""
 
     shape: Shape
     vector: np.ndarray  # (P,)
@@ -236,6 +269,10 @@ class CameraParams:
 
     def keypoints(self) -> np.ndarray:
         """(N, 2) px in the model's corner labels (what the solver matched)."""
+        return self._keypoints.copy()
+
+    @cached_property
+    def _keypoints(self) -> np.ndarray:
         return project(self.vector, self.shape, self.mirror)
 
     def nearest_depth(self) -> float:
@@ -248,9 +285,13 @@ class CameraParams:
     def naming(self) -> np.ndarray:
         """The index order that renames the model's corners by shared.camera's viewer rules
         (a fit may have drifted past a side): `keypoints()[naming()]` are viewer-named."""
+        return self._naming.copy()
+
+    @cached_property
+    def _naming(self) -> np.ndarray:
         rotated = rotated_points(self.vector[None], self.shape, np.array([self.mirror]))[0]
         # Only z differences (FRONT/BACK) and image x (LEFT/RIGHT) matter: the translation can stay out.
-        return viewer_order(self.shape, rotated, self.keypoints()).order
+        return viewer_order(self.shape, rotated, self._keypoints).order
 
     def named_keypoints(self) -> np.ndarray:
         return self.keypoints()[self.naming()]
@@ -422,9 +463,10 @@ def outline_corners(shape: Shape | str, keypoints: np.ndarray, tolerance: float 
     hulls = [cv2.convexHull(keypoints[list(p)].astype(np.float32)) for p in shape.parts]
     for part, hull in zip(shape.parts, hulls):
         vertices = hull.reshape(-1, 2).astype(np.float64)
-        for index in part:
-            on_hull = np.linalg.norm(vertices - keypoints[index], axis=1).min() <= 1e-3
+        gaps = keypoints[list(part)][:, None] - vertices[None]  # (8, V): np.linalg.norm's arithmetic, all at once
+        on_hull = np.sqrt((gaps * gaps).sum(-1)).min(1) <= 1e-3
+        for index, seen in zip(part, on_hull.tolist()):
             inside_other = any(cv2.pointPolygonTest(other, tuple(map(float, keypoints[index])), True) > tolerance
                                for other in hulls if other is not hull)
-            flags[index] = on_hull and not inside_other
+            flags[index] = seen and not inside_other
     return flags

@@ -191,7 +191,7 @@ class PlausibleRows:
         their Jacobian. The in-front row is the nearest corner's; its derivative follows k only
         (the corners' depths held): enough to push a camera out of the building, and LM takes no
         step that raises the cost."""
-        w, table = self.stiffness, self._table[owner]
+        w, table = self.stiffness, self._table.take(owner, axis=0)  # take: a quarter of indexing's cost
         side, centre, free_focal, free_principal = table[:, 0], table[:, 1:3], table[:, 3], table[:, 4]
         # |k|: a hypothesis with k < 0 is the depth-reversed twin of one with k > 0 (`camera.canonical`).
         per_k = side / np.exp(x[:, 7])  # d kappa / d |k|
@@ -201,14 +201,15 @@ class PlausibleRows:
         values = np.empty((len(x), 6 + front))
         short = free_focal * (kappa > 1 / MIN_FOCAL_SIDES)
         values[:, 0] = w * short * (MIN_FOCAL_SIDES * kappa - 1)
-        outside = free_principal[:, None] * (np.abs(offset) > PRINCIPAL_SIDES)
-        values[:, 1:3] = w * outside * (np.abs(offset) - PRINCIPAL_SIDES)
+        distance = np.abs(offset)
+        outside = free_principal[:, None] * (distance > PRINCIPAL_SIDES)
+        values[:, 1:3] = w * outside * (distance - PRINCIPAL_SIDES)
         if front:  # the nearest corner: 1 + k z is the same for both twins (each has z and k negated)
             share = 1.0 + (x[:, 8, None] * rotated_z).min(1)
             behind = share < MIN_DEPTH_SHARE
             values[:, 3] = w * behind * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE
-        values[:, -3] = TYPICAL_PULL[0] * self.typical * free_focal * (kappa - TYPICAL[0])
-        values[:, -2:] = TYPICAL_PULL[1:] * self.typical * free_principal[:, None] * (offset - TYPICAL[1:])
+        values[:, -3] = table[:, 5] * (kappa - TYPICAL[0])  # the typical camera's pulls: `_table`
+        values[:, -2:] = table[:, 7:9] * (offset - TYPICAL[1:])
         if not derivatives:
             return values, None
         jac = np.zeros((len(x), values.shape[1], x.shape[1]))
@@ -217,16 +218,19 @@ class PlausibleRows:
         jac[:, 1, 9], jac[:, 2, 10] = (w * outside * np.sign(offset) / side[:, None]).T
         if front:  # the nearest corner's z is (share - 1) / k where it is behind (k is then not 0)
             jac[:, 3, 8] = np.where(behind, -w * (share - 1) / np.where(behind, x[:, 8], 1.0) / MIN_DEPTH_SHARE, 0.0)
-        pull = TYPICAL_PULL * self.typical
-        jac[:, -3, 7], jac[:, -3, 8] = -pull[0] * free_focal * kappa, pull[0] * free_focal * d_kappa
-        jac[:, -2, 9], jac[:, -1, 10] = (pull[1:] * free_principal[:, None] / side[:, None]).T
+        jac[:, -3, 7], jac[:, -3, 8] = table[:, 6] * kappa, table[:, 5] * d_kappa
+        jac[:, -2, 9], jac[:, -1, 10] = table[:, 9:11].T
         return values, jac
 
     @cached_property
     def _table(self) -> np.ndarray:
-        """(K, 5): side, centre x, centre y, free focal, free principal: what `terms` reads of its
-        rows' inputs, in one lookup (it runs at every step of every solver)."""
-        return np.column_stack([self.side, self.centre, self.free_focal, self.free_principal])
+        """(K, 11): side, centre x, centre y, free focal, free principal, and the typical camera's pulls
+        as `terms` multiplies them (kappa's, its negative, the principal point's two, those over the
+        side): what `terms` reads of its rows' inputs, in one lookup (it runs at every step of every solver)."""
+        pull = TYPICAL_PULL * self.typical
+        principal = pull[1:] * self.free_principal[:, None]
+        return np.column_stack([self.side, self.centre, self.free_focal, self.free_principal, pull[0] * self.free_focal,
+                                -pull[0] * self.free_focal, principal, principal / self.side[:, None]])
 
     def subset(self, rows: np.ndarray) -> "PlausibleRows":
         return PlausibleRows(self.side[rows], self.centre[rows], self.free_focal[rows], self.free_principal[rows],
@@ -262,6 +266,8 @@ class CameraTerms:
         if self.plausible is not None:
             depths = self._depths(x, mirrors) if self.in_front else None
             parts.append(self.plausible.terms(x, owner, depths, derivatives))
+        if len(parts) == 1:  # the plausible bounds alone, most often: no copy
+            return parts[0]
         values = np.concatenate([v for v, _ in parts], axis=1)
         return values, (np.concatenate([j for _, j in parts], axis=1) if derivatives else None)
 

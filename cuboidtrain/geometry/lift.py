@@ -87,8 +87,9 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
     jtj, grad = np.zeros((b, p, p)), np.zeros((b, p))
 
     def normal_equations(at: np.ndarray, r: np.ndarray, jac: np.ndarray) -> None:
-        jtj[at] = jac.transpose(0, 2, 1) @ jac
-        grad[at] = (jac.transpose(0, 2, 1) @ r[..., None])[..., 0]
+        transposed = jac.transpose(0, 2, 1)
+        jtj[at] = transposed @ jac
+        grad[at] = (transposed @ r[..., None])[..., 0]
 
     if trial_jacobian:
         r, jac = jacobian(x, rows)
@@ -99,37 +100,52 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
     stale = np.full(b, not trial_jacobian)  # x moved since its normal equations were formed
     eye = np.eye(p)
     for _ in range(iterations):
-        redo = np.flatnonzero(active & stale)
-        if len(redo):  # a rejected step leaves x, and so J, as they were: no new Jacobian
+        if not trial_jacobian and (redo := np.flatnonzero(active & stale)).size:
+            # a rejected step leaves x, and so J, as they were: no new Jacobian
             normal_equations(redo, *jacobian(x[redo], redo))  # (B', M), (B', M, P)
             stale[redo] = False
+        # Each live row's arrays read once a step, as views while every row is live (most steps): the
+        # solver's numpy calls, not its rows, are its cost.
         live = np.flatnonzero(active)
-        diag = np.diagonal(jtj[live], axis1=1, axis2=2) + 1e-9
-        system = jtj[live] + (damping[live, None] * diag)[:, :, None] * eye
-        delta = -np.linalg.solve(system, grad[live, :, None])[..., 0]
-        trial = x[live] + delta
+        at = slice(None) if len(live) == b else live
+        jtj_live, grad_live, damping_live, cost_live = jtj[at], grad[at], damping[at], cost[at]
+        scaled = damping_live[:, None] * (np.diagonal(jtj_live, axis1=1, axis2=2) + 1e-9)
+        delta = -np.linalg.solve(jtj_live + scaled[:, :, None] * eye, grad_live[:, :, None])[..., 0]
+        trial = x[at] + delta
         if trial_jacobian:  # the trial's Jacobian with its residuals: kept if the step is taken
             trial_r, trial_jac = jacobian(trial, live)
         else:
             trial_r = residual(trial, live)
         new_cost = 0.5 * (trial_r**2).sum(1)
         new_cost[np.isnan(new_cost)] = np.inf  # np.nan_to_num's, at a fifth of its cost a call
-        gain = cost[live] - new_cost
+        gain = cost_live - new_cost
         # Nielsen's damping update (Madsen, Nielsen & Tingleff 2004, sec. 3.2): by how well the
         # linear model predicted the gain; fewer rejected steps than a fixed /3, x4.
-        predicted = 0.5 * (delta * (damping[live, None] * diag * delta - grad[live])).sum(1)
+        predicted = 0.5 * (delta * (scaled * delta - grad_live)).sum(1)
         rho = gain / np.where(predicted > 0, predicted, np.inf)
         better = gain > 0
-        x[live[better]] = trial[better]
-        if trial_jacobian:
-            normal_equations(live[better], trial_r[better], trial_jac[better])
+        if better.all():  # every step taken (most often): no row picked out, no row's old values kept
+            x[at] = trial
+            if trial_jacobian:
+                normal_equations(at, trial_r, trial_jac)
+            else:
+                stale[at] = True
+            cost[at] = cost_live = new_cost
+            damping[at] = damping_live = damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3)
+            growth[at] = 2.0
+            done = (gain <= tolerance * (cost_live + 1e-12)) | (damping_live > 1e10) | (cost_live < 1e-20)
         else:
-            stale[live[better]] = True
-        cost[live] = np.where(better, new_cost, cost[live])
-        damping[live] = np.where(better, damping[live] * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
-                                 damping[live] * growth[live])
-        growth[live] = np.where(better, 2.0, growth[live] * 2)
-        done = (better & (gain <= tolerance * (cost[live] + 1e-12))) | (damping[live] > 1e10) | (cost[live] < 1e-20)
+            taken = live[better]
+            x[taken] = trial[better]
+            if trial_jacobian:
+                normal_equations(taken, trial_r[better], trial_jac[better])
+            else:
+                stale[taken] = True
+            cost[at] = cost_live = np.where(better, new_cost, cost_live)
+            damping[at] = damping_live = np.where(better, damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
+                                                  damping_live * growth[at])
+            growth[at] = np.where(better, 2.0, growth[at] * 2)
+            done = (better & (gain <= tolerance * (cost_live + 1e-12))) | (damping_live > 1e10) | (cost_live < 1e-20)
         active[live[done]] = False
         if enough > 0:
             _stop_groups_that_reached(active, cost, enough, groups)
@@ -152,9 +168,12 @@ def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: floa
     active &= ~hit[groups]
 
 
+_SIDES = tuple(CORNER_SIDES[:, k].astype(bool) for k in range(3))  # each corner's LEFT, BOTTOM, FRONT
+
+
 def _edge_means(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean 2D edge vectors of one labelled box (8, 2): toward RIGHT, BOTTOM and BACK."""
-    left, bottom, front = (CORNER_SIDES[:, k].astype(bool) for k in range(3))
+    left, bottom, front = _SIDES
     right_minus_left = points[~left].mean(0) - points[left].mean(0)
     down = points[bottom].mean(0) - points[~bottom].mean(0)
     back = points[~front].mean(0) - points[front].mean(0)
@@ -205,13 +224,14 @@ def affine_starts(points: np.ndarray, shape: Shape, k_starts=(0.0,)) -> tuple[np
         extra, w = [w / width, np.log(h_left)], width
     centre = points.mean(0)
     starts, mirrors = [], []
+    rotation = _rotation_from_rows(rows)
     for mirror in (False, True):
-        r = _rotation_from_rows(rows)
+        r = rotation
         if mirror:  # same first two rows for the reflected object: R F with R's third row negated
             r = np.vstack([r[:2], -r[2]]) @ np.diag([-1.0, 1.0, 1.0])
+        vector = rotation_vector(r)
         for k in k_starts:
-            starts.append([np.log(w), np.log(d), *rotation_vector(r), 0.0, 0.0, np.log(s), k,
-                           centre[0], centre[1], *extra])
+            starts.append([np.log(w), np.log(d), *vector, 0.0, 0.0, np.log(s), k, centre[0], centre[1], *extra])
             mirrors.append(mirror)
     params, mirror = np.array(starts), np.array(mirrors)
     # The object centre is not the corners' centroid (twobox, perspective): shift c to match.
@@ -230,12 +250,15 @@ def corner_residuals(points: np.ndarray, sqrt_w: np.ndarray, shape: Shape, mirro
         return r if cameras is None else np.concatenate([r, cameras.terms(x, owner[rows], mirrors[rows], False)[0]], axis=1)
 
     def jacobian(x, rows):
-        image, jac = project_with_jacobian(x, shape, mirrors[rows])
-        r = ((image - points[rows]) * sqrt_w[rows]).reshape(len(x), -1)
-        jac = (jac * sqrt_w[rows][..., None]).reshape(len(x), r.shape[1], -1)
+        # A step of every row (most are) reads the rows' arrays as they are, not gathered.
+        every = len(rows) == len(mirrors)
+        flags, weight = (mirrors, sqrt_w) if every else (mirrors[rows], sqrt_w[rows])
+        image, jac = project_with_jacobian(x, shape, flags)
+        r = ((image - (points if every else points[rows])) * weight).reshape(len(x), -1)
+        jac = (jac * weight[..., None]).reshape(len(x), r.shape[1], -1)
         if cameras is None:
             return r, jac
-        held, d_held = cameras.terms(x, owner[rows], mirrors[rows])
+        held, d_held = cameras.terms(x, owner if every else owner[rows], flags)
         return np.concatenate([r, held], axis=1), np.concatenate([jac, d_held], axis=1)
 
     return residual, jacobian

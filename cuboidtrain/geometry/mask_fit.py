@@ -36,7 +36,8 @@ from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
 from cuboidtrain.geometry.lift import Hypotheses, Solved, hypotheses, levenberg_marquardt
 from cuboidtrain.geometry.silhouette import confidence, coverage, extent_px
 from cuboidtrain.geometry.uncertainty import spread
-from cuboidtrain.geometry.outline import MaskFitWeights, MaskTarget, StackedTargets, boundary_points, silhouette_terms
+from cuboidtrain.geometry.outline import (Fields, MaskFitWeights, MaskTarget, StackedTargets, boundary_points,
+                                          silhouette_terms)
 from shared.shapes import Shape
 
 LIFT_K_STARTS = (0.0, 0.3)  # the affine starts' perspective strengths, beside the vanishing-point ones
@@ -460,37 +461,66 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
     anchored = np.array([p is not None for p in prior_ratios])
     anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None] * anchored[:, None]
     prior = np.array([p if p is not None else np.ones(2 * len(shape.parts)) for p in prior_ratios])
+    # What each row reads of its mask, gathered once: a step of every row (most are) reads them as they are.
+    by_row = RowArrays(owner, stacked.outline[owner], stacked.valid[owner], corners[owner], pull[owner],
+                       norm[owner], anchor[owner], prior[owner], stacked.fields.rows(owner),
+                       pull[owner] * norm[owner][..., None])
 
     def terms(x, rows, image, derivatives):
         """The residuals, the silhouette rows' derivatives by image point and the camera rows' Jacobian
         (each camera row computed once, with its derivatives where they are asked for)."""
-        own = owner[rows]
-        fit, d_fit = silhouette_terms(image, shape, stacked.outline[own], stacked.fields.rows(own), weights,
-                                      derivatives, valid=stacked.valid[own])
-        pulled = ((image - corners[own]) * pull[own]).reshape(len(x), -1) * norm[own]
-        extents = [anchor[own] * np.log(ratios(x, shape) / prior[own])] if anchored.any() else []
-        held, d_held = cameras.terms(x, own, mirrors[rows], derivatives) if cameras is not None else (None, None)
-        values = np.concatenate([fit * norm[own], pulled, *extents, *([] if held is None else [held])], axis=1)
+        mine = by_row.of(rows)
+        fit, d_fit = silhouette_terms(image, shape, mine.outline, mine.fields, weights, derivatives, valid=mine.valid)
+        pulled = ((image - mine.corners) * mine.pull).reshape(len(x), -1) * mine.norm
+        extents = [mine.anchor * np.log(ratios(x, shape) / mine.prior)] if anchored.any() else []
+        held, d_held = cameras.terms(x, mine.owner, mirrors[rows], derivatives) if cameras is not None else (None, None)
+        values = np.concatenate([fit * mine.norm, pulled, *extents, *([] if held is None else [held])], axis=1)
         return values, d_fit, d_held
 
     def residual(x, rows):  # a trial step needs no derivatives: the plain projection
         return terms(x, rows, project(x, shape, mirrors[rows]), derivatives=False)[0]
 
     def jacobian(x, rows):
-        own = owner[rows]
+        mine = by_row.of(rows)
         image, d_image = project_with_jacobian(x, shape, mirrors[rows])
         values, d_fit, d_held = terms(x, rows, image, derivatives=True)
         b, n, p = len(x), shape.num_keypoints, x.shape[1]
         # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
-        rows_jac = [(d_fit.reshape(b, -1, 2 * n) @ d_image.reshape(b, 2 * n, p)) * norm[own][..., None],
-                    (d_image * (pull[own] * norm[own][..., None])[..., None]).reshape(b, -1, p)]
+        rows_jac = [(d_fit.reshape(b, -1, 2 * n) @ d_image.reshape(b, 2 * n, p)) * mine.norm[..., None],
+                    (d_image * mine.pulled_norm[..., None]).reshape(b, -1, p)]
         if anchored.any():
-            rows_jac.append(anchor[own][:, :, None] * log_ratio_jacobian(x, shape))
+            rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
         if d_held is not None:
             rows_jac.append(d_held)
         return values, np.concatenate(rows_jac, axis=1)
 
     return residual, jacobian
+
+
+@dataclass(frozen=True)
+class RowArrays:
+    """What the objective's rows (`owner` (B,): each one's mask) read of their masks, one row each: the
+    outline and its padding, the corners and their pull, the norm, the extents' anchor and prior, the field,
+    and the pull times the norm (the corner rows' Jacobian's factor)."""
+
+    owner: np.ndarray
+    outline: np.ndarray
+    valid: np.ndarray
+    corners: np.ndarray
+    pull: np.ndarray
+    norm: np.ndarray
+    anchor: np.ndarray
+    prior: np.ndarray
+    fields: Fields
+    pulled_norm: np.ndarray
+
+    def of(self, rows: np.ndarray) -> RowArrays:
+        """Rows `rows` of these (the solver's live rows, sorted and distinct: as many as there are means all,
+        returned as they are)."""
+        if len(rows) == len(self.owner):
+            return self
+        return RowArrays(*(v[rows] for v in (self.owner, self.outline, self.valid, self.corners, self.pull, self.norm,
+                                             self.anchor, self.prior)), self.fields.rows(rows), self.pulled_norm[rows])
 
 
 def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:

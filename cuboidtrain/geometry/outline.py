@@ -14,6 +14,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from cuboidtrain.geometry.camera_params import stack_last
 from cuboidtrain.geometry.edge_lines import cracks
 from shared.shapes import Shape
 from shared.threads import threads_held
@@ -92,7 +93,8 @@ class Fields:
     def stacked(cls, fields: Sequence[np.ndarray]) -> Fields:
         """Several (H_k, W_k) fields; `rows` picks each row's."""
         sizes = np.array([f.size for f in fields])
-        return cls(np.concatenate([f.ravel() for f in fields]), np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+        flat = fields[0].ravel() if len(fields) == 1 else np.concatenate([f.ravel() for f in fields])  # one: no copy
+        return cls(flat, np.concatenate([[0], np.cumsum(sizes)[:-1]]),
                    np.array([f.shape[0] for f in fields]), np.array([f.shape[1] for f in fields]))
 
     def rows(self, owner: np.ndarray) -> Fields:
@@ -102,7 +104,8 @@ class Fields:
     def broadcast(self, points: np.ndarray) -> tuple:
         """offset, height, width shaped to broadcast against (B, ..., 2) points' (B, ...)."""
         shape = (-1,) + (1,) * (points.ndim - 2)
-        return tuple(np.reshape(v, shape) if np.ndim(v) else v for v in (self.offset, self.height, self.width))
+        return tuple(v.reshape(shape) if isinstance(v, np.ndarray) and v.ndim else v
+                     for v in (self.offset, self.height, self.width))
 
 
 def bilinear(field: np.ndarray | Fields, points: np.ndarray) -> np.ndarray:
@@ -116,10 +119,11 @@ def bilinear_with_gradient(field: np.ndarray | Fields, points: np.ndarray) -> tu
     (zero across a clamped coordinate)."""
     points = np.fmax(points, -1.0)
     x, y, fx, fy, (tl, tr, bl, br) = _cell(Fields.of(field), points)
-    top, bottom = tl * (1 - fx) + tr * fx, bl * (1 - fx) + br * fx
-    gx = np.where(x == points[..., 0], (tr - tl) * (1 - fy) + (br - bl) * fy, 0.0)
+    left_share, top_share = 1 - fx, 1 - fy
+    top, bottom = tl * left_share + tr * fx, bl * left_share + br * fx
+    gx = np.where(x == points[..., 0], (tr - tl) * top_share + (br - bl) * fy, 0.0)
     gy = np.where(y == points[..., 1], bottom - top, 0.0)
-    return top * (1 - fy) + bottom * fy, np.stack([gx, gy], axis=-1)
+    return top * top_share + bottom * fy, stack_last([gx, gy])
 
 
 def _cell(fields: Fields, points: np.ndarray):
@@ -137,6 +141,7 @@ def _cell(fields: Fields, points: np.ndarray):
 
 
 _PAIRS = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])  # 28 candidate hull edges
+_PAIR_STARTS, _PAIR_ENDS = _PAIRS[:, 0].copy(), _PAIRS[:, 1].copy()
 QUARTER_TURN = np.array([[0.0, 1.0], [-1.0, 0.0]])  # (x, y) -> (y, -x)
 
 
@@ -165,7 +170,7 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     per-hypothesis convexHull call), then the edges packed into the first slots."""
     lead = corners.shape[:-2]
     corners = corners.reshape(-1, 8, 2)
-    a, b = corners[:, _PAIRS[:, 0]], corners[:, _PAIRS[:, 1]]
+    a, b = corners.take(_PAIR_STARTS, axis=1), corners.take(_PAIR_ENDS, axis=1)
     direction = b - a
     normal = direction @ QUARTER_TURN.T
     normal /= np.sqrt((normal * normal).sum(-1, keepdims=True)) + 1e-12
@@ -173,11 +178,14 @@ def hull_edges(corners: np.ndarray) -> HullEdges:
     flip = np.where(side.sum(-1) > 0, -1.0, 1.0)  # outward: away from the rest
     normal *= flip[..., None]
     side *= flip[..., None]
-    is_edge = (side <= 1e-9 * (1 + np.abs(side).max(-1, keepdims=True))).all(-1)
+    is_edge = (side <= 1e-9 * (1 + largest_over_edges(np.abs(side))[..., None])).all(-1)
     slots = np.argsort(~is_edge, axis=1, kind="stable")[:, :HULL_SLOTS]
-    take = (np.arange(len(corners))[:, None], slots)  # plain indexing: take_along_axis costs more per call
-    fields = (a[take], direction[take], normal[take], is_edge[take], _PAIRS[slots])
-    return HullEdges(*(v.reshape(*lead, *v.shape[1:]) for v in fields))
+    take = np.arange(0, len(corners) * len(_PAIRS), len(_PAIRS))[:, None] + slots  # one flat index: cheaper a call
+    points, flags = (*lead, HULL_SLOTS, 2), (*lead, HULL_SLOTS)
+    return HullEdges(a.reshape(-1, 2).take(take, axis=0).reshape(points),
+                     direction.reshape(-1, 2).take(take, axis=0).reshape(points),
+                     normal.reshape(-1, 2).take(take, axis=0).reshape(points), is_edge.reshape(-1)[take].reshape(flags),
+                     _PAIRS.take(slots, axis=0).reshape(points))
 
 
 def polygon_offsets(points: np.ndarray, hull: HullEdges) -> np.ndarray:
@@ -191,14 +199,20 @@ def polygon_offsets(points: np.ndarray, hull: HullEdges) -> np.ndarray:
 def polygon_distance(points: np.ndarray, hull: HullEdges) -> np.ndarray:
     """Signed distance (positive outside) of (..., M, 2) points to convex hulls given by their
     edges: the largest outward offset over hull edges (exact inside, a lower bound outside)."""
-    return polygon_offsets(points, hull).max(-1)
+    return largest_over_edges(polygon_offsets(points, hull))
 
 
-def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray,
-                     normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def largest_over_edges(offsets: np.ndarray) -> np.ndarray:
+    """(...,) the largest of (..., E) offsets: read along contiguous rows of a transposed copy, several
+    times faster than a reduction over a last axis of 8 (a maximum is exact: the same values)."""
+    return np.ascontiguousarray(offsets.swapaxes(-1, -2)).max(-2)
+
+
+def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarray, normal: np.ndarray,
+                     length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d/d start and d/d end (..., 2) of the offset (p - start).n of points p from the line
-    through an edge, n its outward unit normal (n = +-quarter turn of the direction / length)."""
-    length = np.linalg.norm(direction, axis=-1, keepdims=True) + 1e-12
+    through an edge, n its outward unit normal (n = +-quarter turn of the direction / length,
+    (..., 1), `edge_lengths`' + 1e-12)."""
     tangent = direction / length
     # With p - a = alpha t + beta n (t the unit direction), n's turn with the edge gives
     # d o / d end = -alpha n / L, and the start moves the line as well: -n - that.
@@ -207,26 +221,33 @@ def _offset_gradient(points: np.ndarray, start: np.ndarray, direction: np.ndarra
     return -normal - d_end, d_end
 
 
-def _tolerant(d: np.ndarray, scale: float) -> np.ndarray:
-    """A residual whose square is Cauchy's loss: linear near 0, log-growing past `scale`."""
-    return np.sign(d) * scale * np.sqrt(np.log1p((d / scale) ** 2))
+def edge_lengths(hull: HullEdges) -> np.ndarray:
+    """(..., E) each hull edge's length (np.linalg.norm's arithmetic, without its wrapper)."""
+    return np.sqrt((hull.direction * hull.direction).sum(-1))
 
 
-def _tolerant_slope(d: np.ndarray, scale: float) -> np.ndarray:
-    """d _tolerant / d d: 1 at 0, falling as the loss saturates."""
+def _tolerant(d: np.ndarray, scale: float, slope: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """A residual whose square is Cauchy's loss: linear near 0, log-growing past `scale`; and, with
+    `slope`, its derivative by d: 1 at 0, falling as the loss saturates (the root computed once for both)."""
     u = (d / scale) ** 2
     root = np.sqrt(np.log1p(u))
-    return np.where(u < 1e-12, 1.0, np.abs(d) / (scale * np.where(root > 0, root, 1.0) * (1 + u)))
+    value = np.sign(d) * scale * root
+    if not slope:
+        return value, None
+    return value, np.where(u < 1e-12, 1.0, np.abs(d) / (scale * np.where(root > 0, root, 1.0) * (1 + u)))
 
 
-def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitWeights, tolerant_when_positive: bool):
-    """A distance's residual and slope: one side linear at weight `outside`, the other robust."""
+def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitWeights, tolerant_when_positive: bool,
+              derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """A distance's residual and, with `derivatives`, slope: one side linear at weight `outside`, the other robust."""
+    tolerant, tolerant_slope = _tolerant(d, weights.robust_px, derivatives)
+    above = d > 0
     if tolerant_when_positive:
-        value = np.where(d > 0, positive * _tolerant(d, weights.robust_px), negative * d)
-        slope = np.where(d > 0, positive * _tolerant_slope(d, weights.robust_px), negative)
+        value = np.where(above, positive * tolerant, negative * d)
+        slope = np.where(above, positive * tolerant_slope, negative) if derivatives else None
     else:
-        value = np.where(d > 0, positive * d, negative * _tolerant(d, weights.robust_px))
-        slope = np.where(d > 0, positive, negative * _tolerant_slope(d, weights.robust_px))
+        value = np.where(above, positive * d, negative * tolerant)
+        slope = np.where(above, positive, negative * tolerant_slope) if derivatives else None
     return value, slope
 
 
@@ -248,12 +269,21 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     A twobox's two parts are one batch axis (B, P, ...): numpy's per-call cost, paid once."""
     b, n = image.shape[:2]
     parts = part_corners(shape)  # (P, 8) the shape's corner indices of each part
-    hull = hull_edges(image[:, parts])  # fields (B, P, E, ...)
-    ends = parts[np.arange(len(parts))[:, None, None], hull.pairs]  # (B, P, E, 2) shape corner indices
-    outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, n, weights, derivatives)
-    edge_value, edge_gradient = _edge_rows(hull, ends, Fields.of(sdf), n, weights, derivatives)
+    hull = hull_edges(image.take(parts, axis=1))  # fields (B, P, E, ...)
+    ends = parts.reshape(-1)[_part_starts(len(parts)) + hull.pairs]  # (B, P, E, 2) shape corner indices
+    lengths = edge_lengths(hull)  # (B, P, E)
+    outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, lengths, n, weights, derivatives)
+    edge_value, edge_gradient = _edge_rows(hull, ends, lengths, Fields.of(sdf), n, weights, derivatives)
     residuals = np.concatenate([outline_value, edge_value], axis=1)
     return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
+
+
+@lru_cache(maxsize=None)
+def _part_starts(parts: int) -> np.ndarray:
+    """(P, 1, 1): where each part's corner indices start in `part_corners(shape).reshape(-1)`."""
+    starts = np.arange(0, 8 * parts, 8)[:, None, None]
+    starts.flags.writeable = False  # shared by every caller
+    return starts
 
 
 @lru_cache(maxsize=None)
@@ -264,37 +294,57 @@ def part_corners(shape: Shape) -> np.ndarray:
     return parts
 
 
-def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray, n: int,
-                  weights: MaskFitWeights, derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray,
+                  lengths: np.ndarray, n: int, weights: MaskFitWeights,
+                  derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
     their derivatives (B, M, N, 2)."""
     offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
-    per_part = offsets.max(-1)  # (B, P, M)
-    dist = per_part.min(1)  # the nearest part
-    value, slope = _weighted(dist, weights.outside, weights.inside, weights, tolerant_when_positive=False)
+    per_part = largest_over_edges(offsets)  # (B, P, M)
+    one_part = per_part.shape[1] == 1  # a box: its only part is the nearest
+    dist = per_part[:, 0] if one_part else per_part.min(1)  # the nearest part
+    value, slope = _weighted(dist, weights.outside, weights.inside, weights, False, derivatives)
     if valid is not None:  # padding of a batch's shorter outlines
-        value, slope = np.where(valid, value, 0.0), np.where(valid, slope, 0.0)
+        value = np.where(valid, value, 0.0)
     if not derivatives:
         return value, None
+    if valid is not None:
+        slope = np.where(valid, slope, 0.0)
     b, m = dist.shape
     rows, points = np.arange(b)[:, None], np.arange(m)[None]
-    part = per_part.argmin(1)  # (B, M)
-    edge = offsets[rows, part, points].argmax(-1)  # (B, M): the edge slot that gives the distance
-    at = (rows, part, edge)
-    d_start, d_end = _offset_gradient(outline, hull.start[at], hull.direction[at], hull.normal[at])
-    corner = ends[at]  # (B, M, 2)
+    part = 0 if one_part else per_part.argmin(1)  # (B, M)
+    # (B, M): the edge slot that gives the distance
+    edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
+    # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
+    at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
+    start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
+                                        for v in (hull.start, hull.direction, hull.normal, ends))
+    d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
     d = np.zeros((b, m, n, 2))
-    d[rows, points, corner[..., 0]] = slope[..., None] * d_start
-    d[rows, points, corner[..., 1]] += slope[..., None] * d_end
+    flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
+    row = (rows * m + points) * n
+    flat[row + corner[..., 0]] = slope[..., None] * d_start
+    flat[row + corner[..., 1]] += slope[..., None] * d_end
     return value, d
 
 
-def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
-               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points along the model's outline edges sampled on the mask's distance field: (B, P E T)
-    residuals, and their derivatives (B, P E T, N, 2)."""
-    count = weights.samples_per_edge
+@lru_cache(maxsize=None)
+def _edge_samples(count: int, slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where along an edge its `count` samples lie (count,), that for every sample of `slots` edges
+    (slots count, 1), and 1 minus that: fixed, computed once."""
     t = (np.arange(count) + 0.5) / count
+    share = np.tile(t, slots)[:, None]
+    rest = 1 - share
+    t.flags.writeable = share.flags.writeable = rest.flags.writeable = False  # shared by every caller
+    return t, share, rest
+
+
+def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
+               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points along the model's outline edges (`full` (B, P, E) their lengths) sampled on the mask's
+    distance field: (B, P E T) residuals, and their derivatives (B, P E T, N, 2)."""
+    count = weights.samples_per_edge
+    t, share, rest = _edge_samples(count, hull.valid.shape[-1])
     samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
     b, p = samples.shape[:2]
     flat = samples.reshape(b, p, -1, 2)
@@ -302,22 +352,21 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, sdf: Fields, n: int, weights: 
     if p == 2:  # a twobox outline inside the other part is no outline
         keep &= polygon_distance(flat, hull.swapped()) > 0
     over, gradient = bilinear_with_gradient(sdf, flat) if derivatives else (bilinear(sdf, flat), None)
-    value, slope = _weighted(over, weights.overhang, weights.outside, weights, tolerant_when_positive=True)
-    full = np.sqrt((hull.direction * hull.direction).sum(-1))  # (B, P, E)
+    value, slope = _weighted(over, weights.overhang, weights.outside, weights, True, derivatives)
     root = np.repeat(np.sqrt(full / count), count, axis=-1)  # sqrt of each sample's share of the edge
     residuals = np.where(keep, value * root, 0.0).reshape(b, -1)
     if not derivatives:
         return residuals, None
     # d root / d end = (direction / L) / (2 count root); the start's is its negative.
     d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=-2) / (2 * root[..., None] + 1e-12)
-    share = np.tile(t, hull.valid.shape[-1])[:, None]
     along = slope[..., None] * gradient * root[..., None]
     scale = keep[..., None].astype(np.float64)
     corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
-    index = (np.arange(b)[:, None, None], np.arange(p)[None, :, None], np.arange(flat.shape[2])[None, None])
     d = np.zeros((b, p, flat.shape[2], n, 2))
-    d[(*index, corner[..., 0])] = scale * (along * (1 - share) - value[..., None] * d_root)
-    d[(*index, corner[..., 1])] += scale * (along * share + value[..., None] * d_root)
+    row = np.arange(0, d.size // 2, n).reshape(corner.shape[:-1])  # each sample's first corner, one flat index
+    stretch = value[..., None] * d_root
+    d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
+    d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
     return residuals, d.reshape(b, -1, n, 2)
 
 

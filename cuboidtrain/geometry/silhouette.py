@@ -38,7 +38,9 @@ def coverage(shape: str | Shape, keypoints: np.ndarray, mask: np.ndarray) -> tup
     """The fitted silhouette's IoU with a bool (H, W) `mask` (`confidence`), and the share of the mask's
     pixels it leaves out (`cuboidtrain.fit.trust`'s unexplained share): one rasterisation for both."""
     fitted = model_silhouette(shape, keypoints, mask.shape)
-    both, union, total = np.logical_and(fitted, mask).sum(), np.logical_or(fitted, mask).sum(), mask.sum()
+    # count_nonzero: a bool mask's counts at a fifth of a sum's cost
+    both, union = np.count_nonzero(np.logical_and(fitted, mask)), np.count_nonzero(np.logical_or(fitted, mask))
+    total = np.count_nonzero(mask)
     return (float(both / union) if union else 0.0), float((total - both) / max(total, 1))
 
 

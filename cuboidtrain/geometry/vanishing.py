@@ -20,6 +20,8 @@ and degrades as a vanishing point runs off to infinity. The lift tries both.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from cuboidtrain.geometry.camera_params import MIRROR_X, object_basis, rotation_vector
@@ -41,7 +43,8 @@ KEEP = 3  # the best (intrinsics, signs) by the linear solve's residual become L
 def _normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Points centred and scaled to unit mean radius (conditioning of the line fits)."""
     centre = points.mean(0)
-    scale = float(np.linalg.norm(points - centre, axis=1).mean()) or 1.0
+    gaps = points - centre
+    scale = float(np.sqrt((gaps * gaps).sum(1)).mean()) or 1.0  # np.linalg.norm's arithmetic
     return (points - centre) / scale, centre, scale
 
 
@@ -55,12 +58,23 @@ def edges_by_axis(shape: Shape) -> list[list[tuple[int, int]]]:
     return [sorted(set(g)) for g in groups]
 
 
-def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]]) -> np.ndarray:
+@lru_cache(maxsize=None)
+def _edge_arrays(shape: Shape) -> tuple[np.ndarray, ...]:
+    """`edges_by_axis` as (E, 2) index arrays, computed once a shape."""
+    arrays = tuple(np.asarray(edges) for edges in edges_by_axis(shape))
+    for array in arrays:
+        array.flags.writeable = False  # shared by every caller
+    return arrays
+
+
+def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]] | np.ndarray) -> np.ndarray:
     """Homogeneous (3,) least-squares common point of the edges' lines, unit norm."""
-    h = np.hstack([points, np.ones((len(points), 1))])
     ends = np.asarray(edges)
-    lines = np.cross(h[ends[:, 0]], h[ends[:, 1]])
-    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True) + 1e-12
+    a, b = points[ends[:, 0]], points[ends[:, 1]]
+    # The cross product of (a, 1) and (b, 1), as np.cross computes it (its products by 1 are exact),
+    # without its wrapper: three lines a start, several starts a record.
+    lines = np.stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+    lines /= np.sqrt((lines[:, :2] * lines[:, :2]).sum(1, keepdims=True)) + 1e-12  # np.linalg.norm's arithmetic
     return np.linalg.svd(lines)[2][-1]
 
 
@@ -90,7 +104,7 @@ def intrinsics(vps: np.ndarray, finite: np.ndarray) -> list[tuple[float, np.ndar
             candidates.append((float(np.sqrt(-(a - principal) @ (b - principal))), principal))
         return candidates
     if len(points) == 1:
-        return [(float(f), points[0]) for f in np.geomspace(0.5, 50.0, FOCAL_STEPS)]
+        return [(f, points[0]) for f in _FOCALS]
     return []
 
 
@@ -102,8 +116,12 @@ def _extents_and_translation(image: np.ndarray, m: np.ndarray, coef: np.ndarray,
     normalised, so they are well conditioned."""
     c, n, _ = image.shape
     q = coef.shape[2]
-    mc = np.einsum("cij,njq->cniq", m, coef)  # (C, N, 3, Q)
-    me = np.einsum("cij,nj->cni", m, const)  # (C, N, 3)
+    # M X's coefficients (C, N, 3, Q) and constants (C, N, 3): einsum's sums over j, written out (the same
+    # products added in the same order, at two thirds of its cost).
+    mc = (m[:, None, :, 0, None] * coef[None, :, None, 0, :] + m[:, None, :, 1, None] * coef[None, :, None, 1, :]
+          + m[:, None, :, 2, None] * coef[None, :, None, 2, :])
+    me = (m[:, None, :, 0] * const[None, :, None, 0] + m[:, None, :, 1] * const[None, :, None, 1]
+          + m[:, None, :, 2] * const[None, :, None, 2])
     a = np.zeros((c, n, 2, q + 3))
     a[..., :q] = image[..., None] * mc[:, :, None, 2] - mc[:, :, :2]
     a[..., 0, q], a[..., 1, q + 1] = -1.0, -1.0
@@ -119,20 +137,24 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     """Start params (H <= keep, P) and mirror flags (H,) from labelled image corners (N, 2),
     in `geometry`'s layout; empty when no candidate camera gives a box in front of it."""
     unit, centre, scale = _normalise(np.asarray(points, dtype=np.float64))
-    vps = np.array([vanishing_point(unit, edges) for edges in edges_by_axis(shape)])
+    vps = np.array([vanishing_point(unit, edges) for edges in _edge_arrays(shape)])
     focals, principals, directions = [], [], []
     for finite in _finiteness_choices(np.abs(vps[:, 2])):
         directions_xy = np.where(finite[:, None], vps[:, :2] / np.where(finite, vps[:, 2], 1.0)[:, None], vps[:, :2])
-        for focal, principal in intrinsics(vps, finite):
-            rays = np.where(finite[:, None], (directions_xy - principal) / focal, directions_xy)
-            focals.append(focal)
-            principals.append(principal)
-            directions.append(np.hstack([rays, finite[:, None].astype(np.float64)]))
+        if not (candidates := intrinsics(vps, finite)):
+            continue
+        # Every candidate's rays at once (C, 3, 2), each the arithmetic one candidate's alone would do.
+        focal, principal = np.array([f for f, _ in candidates]), np.array([c for _, c in candidates])
+        rays = np.where(finite[:, None], (directions_xy - principal[:, None]) / focal[:, None, None], directions_xy)
+        focals += [f for f, _ in candidates]
+        principals += [c for _, c in candidates]
+        directions.append(np.concatenate([rays, np.broadcast_to(finite[:, None].astype(np.float64), (len(rays), 3, 1))],
+                                         axis=2))
     p = 11 if len(shape.parts) == 1 else 13
     if not focals:
         return np.zeros((0, p)), np.zeros(0, dtype=bool)
     # The nearest orthogonal matrices, all candidates in one SVD call: columns = the object axes in the camera.
-    directions = np.array(directions)
+    directions = np.concatenate(directions)
     u, _, vt = np.linalg.svd(directions / np.linalg.norm(directions, axis=2, keepdims=True))
     bases = (u @ vt).transpose(0, 2, 1)
     # Every candidate camera times every sign choice of the axes, solved at once.
@@ -153,6 +175,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     return np.array(starts).reshape(-1, p), np.array(mirrors, dtype=bool)
 
 
+_FOCALS = np.geomspace(0.5, 50.0, FOCAL_STEPS).tolist()  # the focal-length candidates with one finite
 _SIGNS = np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3).astype(np.float64)
 
 
