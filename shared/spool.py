@@ -84,7 +84,10 @@ def check_spool(spool: Path, writable: bool = False, create: bool = False, reada
     spool = Path(spool)
     if create and not spool.exists():
         try:
-            spool.mkdir(parents=True)
+            # exist_ok: generators started together on a new spool race to make it; one makes it, all use it
+            spool.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            pass  # a file of that name: "not a folder", below
         except OSError as exc:
             raise SpoolError(f"spool {spool}: cannot create it ({exc.strerror})") from None
     if not spool.exists():

@@ -250,6 +250,27 @@ def test_writer_creates_a_missing_spool(tmp_path):
     assert len(enumerate_spool(tmp_path / "a" / "b")) == 1
 
 
+def test_a_spool_another_generator_made_meanwhile_is_used_not_refused(tmp_path, monkeypatch):
+    spool = tmp_path / "spool"
+    spool.mkdir()  # made by another generator between this one's look and its own mkdir
+    real, looks = Path.exists, []
+
+    def exists(self, *args, **kwargs):
+        if self == spool and not looks:  # the first look: not there yet
+            looks.append(self)
+            return False
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "exists", exists)
+    assert check_spool(spool, writable=True, create=True) == spool and looks
+
+
+def test_a_file_in_a_new_spools_place_is_not_a_folder(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SpoolError, match="not a folder"):
+        check_spool(tmp_path / "file", create=True)
+
+
 def test_negative_limit_is_refused(tmp_path):
     with pytest.raises(ValueError, match="limit -1"):
         SpoolWriter(tmp_path, -1)
