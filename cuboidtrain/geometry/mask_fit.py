@@ -15,7 +15,7 @@ clean-mask medians improve strongly (box 2.8 -> 0.7 px) while noisy means barely
 A fit that stops short of a clean mask's silhouette (a face seen nearly edge-on drawn on the wrong
 side) is restarted (`reach_silhouette`) from its first fit (`first_fits`, `finished`: nothing fitted
 twice) with its corners moved onto the mask's own hull and outline vertices, and turned about its
-vertical axis, on the silhouette alone; the restart whose silhouette's IoU is highest is kept, and
+vertical axis, on the silhouette first; the restart whose silhouette's IoU is highest is kept, and
 one still short is polished on (`polished`): on 200 held-out clean masks a class (BENCHMARKS.md,
 "A fit that reaches the silhouette").
 """
@@ -62,7 +62,7 @@ RESTART_STARTS = 1  # lift hypotheses a restart fits (beside the turned fits, 2 
 # silhouette's flat valley there, does not cross. 11 short clean twoboxes of a dev spool: 0 -> 5
 # reached turned +-8 alone; the two clean boxes whose twobox (a seam) explained them better
 # reached past it once tilted too (their roofs' slivers).
-# On the silhouette alone (`silhouette_alone`), +-5, 10 and 20 reached 3 more of 41 short clean
+# On the silhouette first (`silhouette_first`), +-5, 10 and 20 reached 3 more of 41 short clean
 # twoboxes of tuning seeds than +-10 (+-5 and 15, or 25: none; the third axis: none), 4 more of 6 on others.
 RESTART_TURNS_DEG = (-20.0, -10.0, -5.0, 5.0, 10.0, 20.0)
 RESTART_AXES = (1, 0)  # the box's own axes turned about: vertical, then across its width (`turned`)
@@ -77,12 +77,16 @@ RESTART_OUTLINE_POINTS = 240
 # stops at IoU 0.98 (the objective's pixel steps: BENCHMARKS.md), a gain of 0.002 is 2-4 px, and such
 # restarts moved the corners 1.61 / 1.16 -> 1.70 / 1.28 px.
 RESTART_GAIN_PX = 32.0
-# A restart and the polish after it (`polished`) read the silhouette alone (`silhouette_alone`): on a
+# A restart and the polish after it (`polished`) read the silhouette first (`silhouette_first`): on a
 # clean mask the outline is all the evidence, and the networks' pull and the Tabulator's anchor, a few
-# px or percent off, held fits at IoU 0.98 where the silhouette alone reached 0.99 (clean twoboxes
-# of seeds not benchmarked, 7 short of 200 -> 3; BENCHMARKS.md, "A fit that reaches the silhouette").
+# px or percent off, held fits at IoU 0.98 where the silhouette reached 0.99 (clean twoboxes of seeds
+# not benchmarked, 7 short of 200 -> 3; BENCHMARKS.md, "A fit that reaches the silhouette"). Not
+# alone: with no pull at all the silhouette's valleys are flat (depth against focal length), and
+# last-bit differences between runs of the same input (most likely numpy's SIMD sums, which follow
+# memory alignment) moved a record by 1e-9 px (half of runs, tests/test_infer_run.py); at a tenth of the first fit's pull it is the same every run and
+# reaches as many masks (tuning seeds 38 of 41 short twoboxes either way).
 # The answer's error bars still read the first fits' objective at it (`on_first_objective`).
-RESTART_PULL = 0.0  # the networks' pull and the ratio anchor in a restart, times the first fit's
+RESTART_PULL = 0.1  # the networks' pull and the ratio anchor in a restart, times the first fit's
 POLISH_ITERATIONS = 30  # the LM's iterations polishing a fit still short after its restarts
 SNAP_POLYGON_PX = 1.5  # the mask's hull simplified to a polygon this close (px) gives the restart's corners
 SNAP_MERGE_PX = 6.0  # hull vertices closer than this are one corner's staircase
@@ -211,7 +215,7 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
                      clean: Sequence[bool] | None = None) -> tuple[list[Solution], list[CuboidFit]]:
     """The first fits' answers and fits with every fit that stopped short of a clean mask's silhouette
     (IoU below `reach`) restarted (`restarted`, on the mask's outline read densely, `densely`, and the
-    silhouette alone, `silhouette_alone`), then polished where still short (`polished`); a move
+    silhouette first, `silhouette_first`), then polished where still short (`polished`); a move
     kept where its silhouette explains more of the mask's pixels, by RESTART_GAIN_PX: its IoU, what the
     fit is to reach. Not the outline's rms: on a clean mask its pixels' staircase leaves it 0.3-0.5 px at
     the truth, and one short twobox of five looked at had a wrong fit of lower rms (0.34 px) than its
@@ -226,7 +230,7 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
              and (clean[k] if clean is not None else polygonal(first.targets[k].mask))]
     if not short:
         return answers, fits
-    outline = replace(first, weights=silhouette_alone(first.weights), stacked=StackedTargets.of(
+    outline = replace(first, weights=silhouette_first(first.weights), stacked=StackedTargets.of(
         [densely(t) if k in short else t for k, t in enumerate(first.targets)]))
 
     def keep(moves: Sequence[tuple[int, Solution, CuboidFit]]) -> list[int]:
@@ -248,7 +252,7 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
     return answers, fits
 
 
-def silhouette_alone(weights: MaskFitWeights) -> MaskFitWeights:
+def silhouette_first(weights: MaskFitWeights) -> MaskFitWeights:
     """`weights` with the networks' pull and the Tabulator's anchor scaled by RESTART_PULL: what a restart reads."""
     return replace(weights, corners=weights.corners * RESTART_PULL, ratios=weights.ratios * RESTART_PULL,
                    depth_ratio=weights.depth_ratio * RESTART_PULL)
@@ -256,7 +260,7 @@ def silhouette_alone(weights: MaskFitWeights) -> MaskFitWeights:
 
 def polished(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int]) -> list[tuple[Solution, CuboidFit]]:
     """For each of `masks`, its answer fitted on by POLISH_ITERATIONS more of the LM on `first`'s objective
-    (a restart's: `silhouette_alone`), one LM for them all, and its fit."""
+    (a restart's: `silhouette_first`), one LM for them all, and its fit."""
     owner, flags = np.asarray(masks), np.array([a.mirror for a in answers])
     residual, jacobian = _objective(first.stacked, first.shape, first.corners, first.confidence, first.prior_ratios,
                                     first.weights, owner, flags, first.cameras)
@@ -386,7 +390,7 @@ def merged_polygon(polygon: np.ndarray) -> np.ndarray:
 def restarted(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int],
               starts: int = RESTART_STARTS) -> list[tuple[Solution, CuboidFit]]:
     """For each of `masks` (their answers so far), the fit whose silhouette explains its mask best (IoU,
-    `best_explained`) of those solved as one LM on `first`'s objective (a restart's: `silhouette_alone`,
+    `best_explained`) of those solved as one LM on `first`'s objective (a restart's: `silhouette_first`,
     its `stacked` targets denser) from the `starts` best lift hypotheses of the answer's corners moved onto the
     mask's outline (`snapped_corners`, the answer's and its Necker twin's), and from the answer
     turned about its own axes (`turned`, RESTART_AXES by RESTART_TURNS_DEG)."""
