@@ -80,11 +80,12 @@ RESTART_GAIN_PX = 32.0
 # A restart and the polish after it (`polished`) read the silhouette first (`silhouette_first`): on a
 # clean mask the outline is all the evidence, and the networks' pull and the Tabulator's anchor, a few
 # px or percent off, held fits at IoU 0.98 where the silhouette reached 0.99 (clean twoboxes of seeds
-# not benchmarked, 7 short of 200 -> 3; BENCHMARKS.md, "A fit that reaches the silhouette"). Not
-# alone: with no pull at all the silhouette's valleys are flat (depth against focal length), and
-# last-bit differences between runs of the same input (most likely numpy's SIMD sums, which follow
-# memory alignment) moved a record by 1e-9 px (half of runs, tests/test_infer_run.py); at a tenth of the first fit's pull it is the same every run and
-# reaches as many masks (tuning seeds 38 of 41 short twoboxes either way).
+# not benchmarked, with the turns below: 7 short of 200 -> 2; BENCHMARKS.md, "A fit that reaches the
+# silhouette"). Not alone: with no pull at all the silhouette's valleys are flat (depth against focal
+# length), and last-bit differences between runs of the same input (most likely numpy's SIMD sums,
+# which follow memory alignment) moved a record by 1e-9 px in half of runs (tests/test_infer_run.py);
+# at a tenth of the first fit's pull it is the same every run and reaches as many masks (tuning
+# seeds' short twoboxes: 38 of 41 either way).
 # The answer's error bars still read the first fits' objective at it (`on_first_objective`).
 RESTART_PULL = 0.1  # the networks' pull and the ratio anchor in a restart, times the first fit's
 POLISH_ITERATIONS = 30  # the LM's iterations polishing a fit still short after its restarts
@@ -235,7 +236,8 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
 
     def keep(moves: Sequence[tuple[int, Solution, CuboidFit]]) -> list[int]:
         """The masks whose fit a move explains better by RESTART_GAIN_PX, taken; those of them still short."""
-        kept = [(k, again, other) for k, again, other in moves if (other.iou - fits[k].iou) * area[k] > RESTART_GAIN_PX]
+        kept = [(k, again, other) for k, again, other in moves
+                if (other.iou - fits[k].iou) * area[k] > RESTART_GAIN_PX]
         for k, again, other in kept:
             answers[k], fits[k] = on_first_objective(first, k, again), other
         return [k for k, _, other in kept if other.iou < reach]
