@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cuboidgen.config import GEN_SHAPES, SCENES, GenConfig
-from shared.console import CLI, choices, console, setup_logging
+from shared.console import CLI, choices, say, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import atomic_path, json_text
 
@@ -82,7 +82,7 @@ def preview(
 
     check_outputs(("--out", out))
     path = render_grid(newest_samples(spool, count), out, columns)
-    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+    say(f"wrote {path}")
 
 
 @app.command()
@@ -116,8 +116,8 @@ def masks(
 
     check_writable("OUT_DIR", out, folder=True)
     written = write_masks(spool, out, count, clean)
-    console.print(f"wrote {written} mask{'' if written == 1 else 's'} and their truth to {out} "
-                  f"(try: cuboidtrain infer {out} --json -)", highlight=False, soft_wrap=True)
+    say(f"wrote {written} mask{'' if written == 1 else 's'} and their truth to {out} "
+        f"(try: cuboidtrain infer {out} --json -)")
 
 
 @app.command()
@@ -148,7 +148,7 @@ def health(
 
 def unhealthy(message: str) -> None:
     # Exit 1, not fail()'s 2: Docker reads a healthcheck's 1 as unhealthy and reserves 2.
-    console.print(f"[red]unhealthy:[/red] {message}", highlight=False, soft_wrap=True)
+    say(f"[red]unhealthy:[/red] {message}")
     raise typer.Exit(1)
 
 
@@ -222,7 +222,7 @@ def occluders_preview(
 
     check_outputs(("--out", out))
     path = render_occluders(OccluderLibrary.load(occluders), out)
-    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+    say(f"wrote {path}")
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ from cuboidtrain.train.config import LR_SCHEDULES, PHASES, TrainConfig
 from cuboidtrain.infer.inputs import DEFAULT_GLOB_HELP, read_cameras
 from cuboidtrain.fit.options import FIT_SHAPES, OPTIMIZERS, FitOptions
 from cuboidtrain.models.settings import EXTRACTORS, MAX_REFINE_STEPS
-from shared.console import CLI, choices, console, fail, setup_logging
+from shared.console import CLI, choices, console, fail, say, setup_logging
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
 from shared.shapes import SHAPES
@@ -107,9 +107,8 @@ def _train(config: TrainConfig) -> None:
         fail(str(exc), code=1)
     if status.rank == 0:  # under torchrun rank 0 speaks for the run
         ckpt = status.last_checkpoint
-        console.print(f"{status.state} at step {status.step}; "
-                      + (f"checkpoint {ckpt.path}" if ckpt else "no checkpoint written (no step was trained)"),
-                      highlight=False, soft_wrap=True)
+        say(f"{status.state} at step {status.step}; "
+            + (f"checkpoint {ckpt.path}" if ckpt else "no checkpoint written (no step was trained)"))
 
 
 EXTRACTOR_HELP = ("How keypoints are read off the heat maps: tabulator (the paper's T), argmax, centre-of-mass, "
@@ -232,11 +231,11 @@ def infer(
                            photos=tuple(photo), mesh=mesh)
     result = run_infer(request, console)
     if result.pictures is not None:
-        console.print(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}", highlight=False, soft_wrap=True)
+        say(f"{result.pictures} picture{'' if result.pictures == 1 else 's'} in {explain}")
     if result.meshes is not None:
-        console.print(f"{result.meshes} mesh{'' if result.meshes == 1 else 'es'} in {mesh}", highlight=False, soft_wrap=True)
+        say(f"{result.meshes} mesh{'' if result.meshes == 1 else 'es'} in {mesh}")
     if result.stopped is not None:
-        console.print(stopped_line(result.tally, result.records, request), highlight=False, soft_wrap=True)
+        say(stopped_line(result.tally, result.records, request))
         raise typer.Exit(result.stopped)
     if result.tally.failed:
         console.print(f"{result.tally.failed} of {result.tally.total} inputs have an error (see their records' "
@@ -288,8 +287,8 @@ def export(
     check_outputs(("--onnx", onnx))
     checkpoint = default_checkpoints([checkpoint] if checkpoint else None, (shape.value,))[0]
     meta = export_checkpoint(checkpoint, onnx, refine_steps=refine_steps, opset=opset)
-    console.print(f"{onnx}: {meta['shape']} model, {meta['size']} px, {meta['refine_steps']} Refiner pass(es), "
-                  f"step {meta['checkpoint_step'] or '?'}, opset {opset}", highlight=False, soft_wrap=True)
+    say(f"{onnx}: {meta['shape']} model, {meta['size']} px, {meta['refine_steps']} Refiner pass(es), "
+        f"step {meta['checkpoint_step'] or '?'}, opset {opset}")
 
 
 STREET_HELP = "A street's known buildings (docs/inference.md: Localization); locate the MASKs in it."
@@ -440,7 +439,7 @@ def report(
     localization = out / "localization.md"
     command = "cuboidtrain report " + shlex.join(sys.argv[2:])
     written = write_report(results, out, command, localization if localization.is_file() else None)
-    console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, soft_wrap=True)
+    say(f"wrote {', '.join(str(p) for p in written)}")
 
 
 models_app = CLI(add_completion=False, help="The shipped models: their cards, and packing a checkpoint into a model file.")
@@ -511,8 +510,8 @@ def models_pack(
     check_outputs(("--out", out))
     figures = validation_for(validation, checkpoint) if validation else None
     card = pack(checkpoint, out, scene, figures, recipe, half, pdm_spool)
-    console.print(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "
-                  f"{out.stat().st_size / 2**20:.1f} MiB", highlight=False, soft_wrap=True)
+    say(f"{out}: {card['shape']} {card['arch']} {card['size']} px, {card['steps']} steps, "
+        f"{out.stat().st_size / 2**20:.1f} MiB")
 
 
 campaign_app = CLI(add_completion=False, help="The GPU campaign (docs/training.md, \"A GPU lease\"): one standing run that each lease continues.")
@@ -551,8 +550,8 @@ def campaign_apply(
     from cuboidtrain.campaign.apply import apply_lease
 
     row = apply_lease(returned, campaign)
-    console.print(f"{campaign}: lease {row['lease']} applied ({row['steps']} steps, {row['minutes_trained']} min trained "
-                  f"on {row['device']}); commit campaign/ now", highlight=False, soft_wrap=True)
+    say(f"{campaign}: lease {row['lease']} applied ({row['steps']} steps, {row['minutes_trained']} min trained "
+        f"on {row['device']}); commit campaign/ now")
 
 
 @app.command()

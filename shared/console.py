@@ -24,8 +24,6 @@ def choices(name: str, values) -> type[Enum]:
     return Enum(name, {value: value for value in values}, type=str)
 
 console = Console(stderr=True)
-# A line that names a path is printed with soft_wrap=True: off a terminal rich wraps at 80 columns,
-# and a path broken across two lines can no longer be copied or matched.
 # Columns a live dashboard leaves free on the right: a terminal echoes Ctrl-C as "^C" after
 # the panel's last line; were that line full width, the echo would wrap onto a new line and
 # the next redraw would start one line too low, leaving the top border printed twice.
@@ -45,10 +43,16 @@ def setup_logging(verbose: bool = False) -> None:
     logging.getLogger("torch").setLevel(logging.DEBUG if verbose else logging.WARNING)
 
 
+def say(line: str) -> None:
+    """One line on stderr as written (markup aside): not highlighted, and never wrapped, for off a
+    terminal rich wraps at 80 columns, and a path broken across two lines can no longer be copied."""
+    console.print(line, highlight=False, soft_wrap=True)
+
+
 def fail(message: str, code: int = 2) -> None:
     """One line on stderr and a non-zero exit (2: a bad value): how every error is reported."""
     # escape: a message quotes values such as [nan, 1.0], which rich would read as markup and drop
-    console.print(f"[red]error:[/red] {escape(message)}", highlight=False, soft_wrap=True)
+    say(f"[red]error:[/red] {escape(message)}")
     raise typer.Exit(code)
 
 
