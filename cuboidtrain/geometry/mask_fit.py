@@ -142,6 +142,14 @@ class FirstFits:
     answers: tuple[Solution, ...]
     fits: tuple[CuboidFit, ...]
 
+    def solve(self, owner: np.ndarray, mirrors: np.ndarray, params: np.ndarray, iterations: int) -> Solved:
+        """Rows `params` (B, P) of masks `owner` (B,) (reflected where `mirrors`) taken `iterations` LM
+        steps on these fits' objective, as one LM: a fit from elsewhere, a restart, a polish (0: only the
+        cost and normal equations at `params`)."""
+        residual, jacobian = _objective(self.stacked, self.shape, self.corners, self.confidence, self.prior_ratios,
+                                        self.weights, owner, mirrors, self.cameras)
+        return levenberg_marquardt(residual, params, iterations, tolerance=1e-7, jacobian=jacobian)
+
 
 def first_fits(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray, confidence: np.ndarray,
                prior_ratios: Sequence[np.ndarray | None], weights: MaskFitWeights = MaskFitWeights(),
@@ -204,10 +212,7 @@ class Solution:
 def fit_from(first: FirstFits, k: int, camera: CameraParams) -> CuboidFit:
     """Mask `k`'s fit on its first fits' objective, started from `camera` instead (an oracle's: the true
     cuboid, benchmarks/accuracy/bench_reach.py --oracle): how far the objective itself lets a fit reach."""
-    residual, jacobian = _objective(first.stacked, first.shape, first.corners, first.confidence, first.prior_ratios,
-                                    first.weights, np.array([k]), np.array([camera.mirror]), first.cameras)
-    solved = levenberg_marquardt(residual, camera.vector[None].copy(), first.iterations, tolerance=1e-7,
-                                 jacobian=jacobian)
+    solved = first.solve(np.array([k]), np.array([camera.mirror]), camera.vector[None].copy(), first.iterations)
     return described(first.targets[k], first.shape, CameraParams(first.shape, solved.params[0], camera.mirror),
                      first.weights)
 
@@ -263,11 +268,9 @@ def silhouette_first(weights: MaskFitWeights) -> MaskFitWeights:
 def polished(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int]) -> list[tuple[Solution, CuboidFit]]:
     """For each of `masks`, its answer fitted on by POLISH_ITERATIONS more of the LM on `first`'s objective
     (a restart's: `silhouette_first`), one LM for them all, and its fit."""
-    owner, flags = np.asarray(masks), np.array([a.mirror for a in answers])
-    residual, jacobian = _objective(first.stacked, first.shape, first.corners, first.confidence, first.prior_ratios,
-                                    first.weights, owner, flags, first.cameras)
-    solved = levenberg_marquardt(residual, np.stack([a.solved.params[a.row] for a in answers]), POLISH_ITERATIONS,
-                                 tolerance=1e-7, jacobian=jacobian)
+    flags = np.array([a.mirror for a in answers])
+    solved = first.solve(np.asarray(masks), flags, np.stack([a.solved.params[a.row] for a in answers]),
+                         POLISH_ITERATIONS)
     moved = [Solution(solved, row, bool(flags[row])) for row in range(len(masks))]
     return [(a, described(first.targets[k], first.shape, a.camera(first.shape), first.weights))
             for k, a in zip(masks, moved)]
@@ -277,9 +280,7 @@ def on_first_objective(first: FirstFits, k: int, answer: Solution) -> Solution:
     """Mask `k`'s `answer`, found on a restart's objective, as a row of `first`'s (the LM's cost and normal
     equations at it, no step taken): its error bars (`uncertainty.spread`) read the same objective as a
     fit that was never restarted."""
-    residual, jacobian = _objective(first.stacked, first.shape, first.corners, first.confidence, first.prior_ratios,
-                                    first.weights, np.array([k]), np.array([answer.mirror]), first.cameras)
-    solved = levenberg_marquardt(residual, answer.solved.params[answer.row][None].copy(), 0, jacobian=jacobian)
+    solved = first.solve(np.array([k]), np.array([answer.mirror]), answer.solved.params[answer.row][None].copy(), 0)
     return Solution(solved, 0, answer.mirror)
 
 
@@ -410,9 +411,7 @@ def restarted(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int
     owner = np.concatenate([owner_mask[rows], np.repeat(masks, len(RESTART_AXES) * len(RESTART_TURNS_DEG))])
     flags = np.concatenate([lifted.mirrors[rows], [t.mirror for t in turns]]).astype(bool)
     params = np.concatenate([lifted.params[rows], np.reshape([t.vector for t in turns], (len(turns), -1))])
-    residual, jacobian = _objective(first.stacked, shape, first.corners, first.confidence, first.prior_ratios,
-                                    first.weights, owner, flags, cameras)
-    solved = levenberg_marquardt(residual, params, first.iterations, tolerance=1e-7, jacobian=jacobian)
+    solved = first.solve(owner, flags, params, first.iterations)
     return [best_explained(first.targets[k], shape, solved, np.flatnonzero(owner == k), flags, first.weights)
             for k in masks]
 
