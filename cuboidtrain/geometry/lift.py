@@ -124,28 +124,22 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         predicted = 0.5 * (delta * (scaled * delta - grad_live)).sum(1)
         rho = gain / np.where(predicted > 0, predicted, np.inf)
         better = gain > 0
-        if better.all():  # every step taken (most often): no row picked out, no row's old values kept
-            x[at] = trial
-            if trial_jacobian:
-                normal_equations(at, trial_r, trial_jac)
-            else:
-                stale[at] = True
-            cost[at] = cost_live = new_cost
-            damping[at] = damping_live = damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3)
-            growth[at] = 2.0
-            done = (gain <= tolerance * (cost_live + 1e-12)) | (damping_live > 1e10) | (cost_live < 1e-20)
+        every = better.all()  # every step taken (most often): no row picked out, no row's old values kept
+        taken, kept = (at, slice(None)) if every else (live[better], better)
+        x[taken] = trial[kept]
+        if trial_jacobian:
+            normal_equations(taken, trial_r[kept], trial_jac[kept])
         else:
-            taken = live[better]
-            x[taken] = trial[better]
-            if trial_jacobian:
-                normal_equations(taken, trial_r[better], trial_jac[better])
-            else:
-                stale[taken] = True
-            cost[at] = cost_live = np.where(better, new_cost, cost_live)
-            damping[at] = damping_live = np.where(better, damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3),
-                                                  damping_live * growth[at])
-            growth[at] = np.where(better, 2.0, growth[at] * 2)
-            done = (better & (gain <= tolerance * (cost_live + 1e-12))) | (damping_live > 1e10) | (cost_live < 1e-20)
+            stale[taken] = True
+        shrunk = damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3)
+        if every:
+            cost_live, damping_live, growth_live = new_cost, shrunk, 2.0
+        else:
+            cost_live = np.where(better, new_cost, cost_live)
+            damping_live = np.where(better, shrunk, damping_live * growth[at])
+            growth_live = np.where(better, 2.0, growth[at] * 2)
+        cost[at], damping[at], growth[at] = cost_live, damping_live, growth_live
+        done = (better & (gain <= tolerance * (cost_live + 1e-12))) | (damping_live > 1e10) | (cost_live < 1e-20)
         active[live[done]] = False
         if enough > 0:
             _stop_groups_that_reached(active, cost, enough, groups)
