@@ -554,6 +554,23 @@ def campaign_apply(
         f"on {row['device']}); commit campaign/ now")
 
 
+@campaign_app.command("evaluate")
+def campaign_evaluate(
+    campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder whose standing state to score."),
+    work: Path = typer.Option(Path("/tmp/campaign-eval"), metavar="DIR", help="Checkpoints, model files and spools (emptied first)."),
+    threads: int = typer.Option(1, help="bench_accuracy's torch threads."),
+) -> None:
+    """Score the standing state and the shipped models on the lease's masks, here: CAMPAIGN/eval.json (for a lease whose own evaluation did not finish)."""
+    from cuboidtrain.campaign.lease import EVAL, evaluate_state
+
+    setup_logging()
+    record = evaluate_state(campaign, work, threads)
+    for name, figures in record["compare"]["sets"].items():
+        say(f"{name}: campaign {figures.get('campaign', '-')} px, shipped {figures.get('shipped', '-')} px (mean corner error, 256 px units)")
+    say(f"{campaign / EVAL}: lease {record['lease']}, the campaign wins {record['compare']['campaign_wins']} of "
+        f"{record['compare']['compared']} sets; commit campaign/ now")
+
+
 @app.command()
 def version() -> None:
     """Print the package version."""

@@ -10,8 +10,10 @@ evaluation starts, so a lease cut short at its end still returns its training.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import logging
 import os
+import platform
 import shutil
 import signal
 import subprocess
@@ -27,6 +29,7 @@ from cuboidtrain.campaign.smoke import smoke_check
 from cuboidtrain.campaign.state import read_log, read_state, restore, state_digest, store
 from cuboidtrain.campaign.training import Course, train_until
 from cuboidtrain.models.zoo import git_commit
+from shared.errors import UsageError
 from shared.files import json_text, write_json
 
 log = logging.getLogger(__name__)
@@ -85,7 +88,12 @@ def run_lease(options: LeaseOptions) -> dict:
     write_lease(out, row, entries)
     # 5. the evaluation, in the time left
     if options.evaluate and checkpoints:
-        row["eval"] = evaluate(plan, campaign, checkpoints, work, out, lease, deadline, options.eval_threads)
+        try:
+            row["eval"] = evaluate(plan, campaign, checkpoints, work, out, lease, deadline, options.eval_threads)
+        except Exception as error:  # the training is in OUT already: a failed score must not cost the lease
+            log.warning("lease %d: the evaluation failed (%s: %s); `cuboidtrain campaign evaluate` scores the "
+                        "state once applied", lease, type(error).__name__, error)
+            row["eval"] = {"failed": f"{type(error).__name__}: {error}"}
         row["minutes"] = round((time.monotonic() - started) / 60, 2)
         write_lease(out, row, entries)
     log.info("lease %d: %s", lease, json_text(row))
@@ -174,6 +182,25 @@ def write_lease(out: Path, row: dict, entries: dict) -> Path:
     tmp.write_text(json_text({"row": row, "state": {s: vars(e) for s, e in entries.items()}}, indent=2, default=list) + "\n")
     os.replace(tmp, path)
     return path
+
+
+def evaluate_state(campaign: Path, work: Path, threads: int | None, timeout_s: float = 3600.0) -> dict:
+    """The standing state's models and the shipped ones on the lease's masks, here (`cuboidtrain campaign
+    evaluate`): for a lease whose own evaluation was cut off or failed. Writes campaign/eval.json, the
+    figures with the lease they belong to; returns its content."""
+    plan, campaign, work = load_plan(campaign), Path(campaign), Path(work)
+    state, leases = read_state(campaign), len(read_log(campaign))
+    if not state:
+        raise UsageError(f"{campaign}: no state yet (no lease applied): nothing to evaluate")
+    shutil.rmtree(work, ignore_errors=True)
+    (work / "out").mkdir(parents=True)
+    checkpoints = {shape: restore(campaign, entry, work / shape / "last.pt") for shape, entry in state.items()}
+    figures = evaluate(plan, campaign, checkpoints, work, work / "out", leases, time.monotonic() + timeout_s, threads)
+    scored = json.loads((work / "out" / EVAL).read_text())
+    record = {"lease": leases, "steps": {s: [e.phase, e.step] for s, e in state.items()}, "where": platform.node() or "here",
+              "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), "compare": figures} | scored
+    write_json(campaign / EVAL, record, indent=1)
+    return record
 
 
 def evaluate(plan: CampaignPlan, campaign: Path, checkpoints: dict[str, Path], work: Path, out: Path, lease: int,
