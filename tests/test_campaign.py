@@ -112,6 +112,40 @@ def test_apply_refuses_a_damaged_part_and_changes_nothing(first_lease, tmp_path)
     assert sorted(p.name for p in copy.iterdir()) == ["plan.json"]
 
 
+
+def test_campaign_evaluate_scores_the_applied_state_here_and_reads_a_kept_nan_as_null(first_lease, tmp_path):
+    """A lease whose own evaluation did not finish is scored here once applied (campaign/eval.json); the
+    shipped models' kept figures are read through finite(): an eval-shipped.json an older writer left with
+    NaN (as the first H200 lease met it, which then wrote no eval.json) gives null, not a crash."""
+    campaign, out, _ = first_lease
+    copy = shutil.copytree(campaign, tmp_path / "campaign")
+    apply_lease(out, copy)
+    kept = json.loads((copy / "eval-shipped.json").read_text())
+    kept["rows"][0]["within_1sd"] = float("nan")
+    (copy / "eval-shipped.json").write_text(json.dumps(kept))  # Python's json writes the NaN token
+    record = lease_module.evaluate_state(copy, tmp_path / "work", threads=1)
+    assert json.loads((copy / "eval.json").read_text()) == record
+    assert record["lease"] == 1 and record["steps"] == {"box": ["1", 2]}
+    assert set(record["compare"]["sets"]) == {"paper-clean/box", "paper/box", "street/box"}
+    assert all(set(f) == {"campaign", "shipped"} for f in record["compare"]["sets"].values())
+    assert record["shipped"]["rows"][0]["within_1sd"] is None and record["shipped_from"] == "eval-shipped.json"
+    with pytest.raises(UsageError, match="no state yet"):
+        lease_module.evaluate_state(campaign, tmp_path / "work2", threads=1)
+
+
+def test_an_evaluation_that_fails_keeps_the_lease_and_says_why(frozen_spool, tmp_path, monkeypatch):
+    monkeypatch.setattr(lease_module, "smoke_check", lambda plan, device: "cpu (smoke check left out)")
+    monkeypatch.setattr(training_module, "subprocess", SimpleNamespace(Popen=TrainerHere, STDOUT=subprocess.STDOUT))
+    def broken(*args, **kwargs):
+        raise ValueError("eval.json: shipped.rows[0].within_1sd is nan")
+    monkeypatch.setattr(lease_module, "evaluate", broken)
+    campaign = new_campaign(tmp_path / "campaign")
+    row = lease(campaign, tmp_path / "a", lease_steps=1, spool=frozen_spool)
+    assert row["eval"] == {"failed": "ValueError: eval.json: shipped.rows[0].within_1sd is nan"}
+    assert json.loads((tmp_path / "a" / "lease.json").read_text())["row"] == row
+    assert apply_lease(tmp_path / "a", campaign)["shapes"]["box"]["to"] == ["1", 1]  # the training was kept
+
+
 class TrainerHere:
     """A lease's trainer command (`python -m cuboidtrain run ...`, cuboidtrain.campaign.training) run to its
     end in this process, its output into the log the lease gave it, then read as a finished process."""
