@@ -1,0 +1,50 @@
+"""bench_selection's evidence (issue 37, Must have 6): the roof's notch, the regression, the witness of the choice."""
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cuboidtrain.fit import fitter as fitter_module
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy"))
+from bench_selection import Witness, called, regression, roof_notch, shares  # noqa: E402
+
+
+def polygon_mask(points, size: int = 128) -> np.ndarray:
+    mask = np.zeros((size, size), np.uint8)
+    cv2.fillPoly(mask, [np.asarray(points, np.int32)], 1)
+    return mask.astype(bool)
+
+
+def test_a_convex_silhouette_has_no_roof_notch_and_a_step_has_one_as_deep_as_it():
+    # a convex quadrilateral's slanted top edge leaves only its rasterised staircase: under a pixel of its 95 px
+    assert roof_notch(polygon_mask([(20, 30), (100, 20), (110, 100), (15, 105)])) < 1 / 95
+    # a twobox's silhouette: the lower part's roof 40 px below the taller's; size 100 px (its width)
+    step = roof_notch(polygon_mask([(10, 10), (50, 10), (50, 50), (110, 50), (110, 110), (10, 110)]))
+    # its depth: the inner corner (50, 50)'s distance to the hull edge (50, 10)-(110, 50) over it, 2400 / 72.1 px
+    assert step == pytest.approx(2400 / np.hypot(60, 40) / 101, abs=0.01)
+    # an occluder's notch from the bottom is not the roof's
+    assert roof_notch(polygon_mask([(10, 10), (110, 10), (110, 110), (70, 110), (70, 60), (50, 60), (50, 110), (10, 110)])) == 0.0
+
+
+def test_the_regression_learns_the_evidence_that_separates_and_calls_by_it():
+    rng = np.random.default_rng(0)
+    rows = [{"scene": "paper", "shape": shape, "gain": (0.05 if shape == "twobox" else -0.01) + 0.01 * rng.standard_normal(),
+             "noise": rng.standard_normal(), "implausible": 0.0}
+            for shape in ("box", "twobox") for _ in range(100)]
+    model = regression(rows, ("gain", "noise", "implausible"))
+    names, _, _, weights = model
+    assert weights[names.index("gain")] > 1 and abs(weights[names.index("noise")]) < 0.3
+    assert called(rows, model, 0.0) == [r["shape"] for r in rows]
+    gated = [r | {"implausible": 1.0} for r in rows]  # a gate sets the twobox aside whatever the regression says
+    assert set(called(gated, model, 0.0)) == {"box"}
+    assert shares(rows, called(gated, model, 0.0))["paper/box"] == 100.0
+
+
+def test_the_witness_keeps_both_classes_fits_and_leaves_the_choice_as_it_was():
+    chosen = fitter_module.choose_cuboid
+    with Witness() as witness:
+        assert fitter_module.choose_cuboid is not chosen
+    assert fitter_module.choose_cuboid is chosen and witness.last == {}
