@@ -94,6 +94,9 @@ def test_apply_takes_a_lease_into_the_campaign_once(first_lease, tmp_path):
     assert (entry.phase, entry.step, entry.moments) == ("1", 2, "float32")
     assert load_checkpoint(restore(copy, entry, tmp_path / "last.pt"))["step"] == 2
     assert (copy / "eval-shipped.json").is_file()  # later leases need not score the shipped models again
+    newest = json.loads((copy / "eval.json").read_text())  # the lease's own evaluation, as the newest
+    assert (newest["lease"], newest["steps"], newest["compare"]) == (1, {"box": ["1", 2]}, row["eval"])
+    assert newest["campaign"] == json.loads((out / "eval.json").read_text())["campaign"]
     with pytest.raises(UsageError, match="already applied"):
         apply_lease(out, copy)
     assert read_log(copy) == [row]

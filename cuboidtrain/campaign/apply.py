@@ -12,7 +12,7 @@ import json
 import shutil
 from pathlib import Path
 
-from cuboidtrain.campaign.evaluation import SHIPPED_EVAL
+from cuboidtrain.campaign.evaluation import SHIPPED_EVAL, evaluation_record
 from cuboidtrain.campaign.lease import EVAL, LEASE
 from cuboidtrain.campaign.state import MANIFEST, ShapeState, append_log, read_log, read_state, state_digest, write_manifest
 from cuboidtrain.models.zoo import git_commit
@@ -55,6 +55,7 @@ def apply_lease(returned: Path, campaign: Path) -> dict:
         row["commit"] = git_commit()
     append_log(campaign, row)
     keep_shipped_figures(folder, campaign)
+    keep_evaluation(folder, campaign, row, entries)
     return row
 
 
@@ -80,3 +81,14 @@ def keep_shipped_figures(folder: Path, campaign: Path) -> None:
     shipped = json.loads((folder / EVAL).read_text()).get("shipped")
     if shipped:
         write_json(campaign / SHIPPED_EVAL, shipped, indent=1)
+
+
+def keep_evaluation(folder: Path, campaign: Path, row: dict, entries: dict[str, ShapeState]) -> None:
+    """The lease's own evaluation as campaign/eval.json, the newest of the standing state; a lease without
+    one leaves the older file, which names its lease (`cuboidtrain campaign evaluate` scores this one)."""
+    if not (folder / EVAL).is_file() or not isinstance(row.get("eval"), dict) or "failed" in row["eval"]:
+        return
+    scored = json.loads((folder / EVAL).read_text())
+    steps = {shape: [entry.phase, entry.step] for shape, entry in entries.items()}
+    write_json(campaign / EVAL, evaluation_record(row["lease"], steps, row["device"], row["date"], row["eval"], scored),
+               indent=1)

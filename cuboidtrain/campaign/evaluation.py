@@ -75,6 +75,12 @@ def shipped_figures(campaign: Path, plan: CampaignPlan) -> dict | None:
     return kept if same else None
 
 
+def evaluation_record(lease: int, steps: dict[str, list], where: str, date: str, compare: dict, scored: dict) -> dict:
+    """campaign/eval.json: the newest evaluation of the standing state, with the lease and steps it belongs
+    to and where it was measured (a lease's own, taken in by `apply`, or `campaign evaluate`'s here)."""
+    return {"lease": lease, "steps": steps, "where": where, "date": date, "compare": compare} | scored
+
+
 def shipped_models(plan: CampaignPlan) -> dict[str, Path]:
     return {shape: shipped_path(shape) for shape in plan.shapes}
 

@@ -23,7 +23,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-from cuboidtrain.campaign.evaluation import SHIPPED_EVAL, bench, compare, pack_models, shipped_figures, shipped_models
+from cuboidtrain.campaign.evaluation import (SHIPPED_EVAL, bench, compare, evaluation_record, pack_models,
+                                             shipped_figures, shipped_models)
 from cuboidtrain.campaign.plan import CampaignPlan, load_plan
 from cuboidtrain.campaign.smoke import smoke_check
 from cuboidtrain.campaign.state import read_log, read_state, restore, state_digest, store
@@ -197,8 +198,8 @@ def evaluate_state(campaign: Path, work: Path, threads: int | None, timeout_s: f
     checkpoints = {shape: restore(campaign, entry, work / shape / "last.pt") for shape, entry in state.items()}
     figures = evaluate(plan, campaign, checkpoints, work, work / "out", leases, time.monotonic() + timeout_s, threads)
     scored = json.loads((work / "out" / EVAL).read_text())
-    record = {"lease": leases, "steps": {s: [e.phase, e.step] for s, e in state.items()}, "where": platform.node() or "here",
-              "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), "compare": figures} | scored
+    record = evaluation_record(leases, {s: [e.phase, e.step] for s, e in state.items()}, platform.node() or "here",
+                               dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), figures, scored)
     write_json(campaign / EVAL, record, indent=1)
     return record
 
