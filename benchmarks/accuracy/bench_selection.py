@@ -130,9 +130,10 @@ def classifier_input(mask: np.ndarray) -> np.ndarray:
 
 
 def classifier(spools: list[Path], minutes: float, batch: int = 128) -> nn.Module:
-    """The CNN trained on the framed noisy masks of a box spool and a twobox spool, one-cycle Adam for `minutes`."""
-    inputs = [np.stack([classifier_input(decode(read_sample_bytes(spool, n)).noisy) for n in enumerate_spool(spool)])
-              for spool in spools]
+    """The CNN trained on the framed noisy masks of a box spool and a twobox spool (those an occluder hid
+    whole left out), cosine-decayed AdamW for `minutes`."""
+    masks = [[decode(read_sample_bytes(spool, n)).noisy for n in enumerate_spool(spool)] for spool in spools]
+    inputs = [np.stack([classifier_input(m) for m in these if m.any()]) for these in masks]
     x = torch.from_numpy(np.concatenate(inputs))[:, None]
     y = torch.cat([torch.full((len(v),), float(k)) for k, v in enumerate(inputs)])
     def block(into: int, out: int) -> nn.Sequential:
@@ -155,7 +156,8 @@ def classifier(spools: list[Path], minutes: float, batch: int = 128) -> nn.Modul
         loss.backward()
         optimizer.step()
         step += 1
-    print(f"classifier: {step} steps of {batch} in {minutes:g} min on {len(x)} masks")
+    hidden = sum(len(these) for these in masks) - len(x)
+    print(f"classifier: {step} steps of {batch} in {minutes:g} min on {len(x)} masks ({hidden} hidden whole, left out)")
     return net.eval()
 
 
