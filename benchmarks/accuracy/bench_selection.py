@@ -115,6 +115,8 @@ def measured(fitter: Fitter, root: Path, samples: int, tuning: bool) -> list[dic
             spool = ba.spool_for(root, shape, scene, samples, seed=seed)
             for name in enumerate_spool(spool)[:samples]:
                 mask = decode(read_sample_bytes(spool, name)).noisy
+                if not mask.any():  # an occluder hid it whole: `infer` refuses it, no choice to score
+                    continue
                 with Witness() as witness:
                     chosen = fitter.fit(mask).shape
                 rows.append({"scene": scene, "shape": shape, "chosen": chosen, "input": classifier_input(mask)}
