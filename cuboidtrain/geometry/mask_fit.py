@@ -464,36 +464,37 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
     # ratio_names order: depth/height, width/height (per part): each pulled by its own weight.
     # A mask without a prior (the Tabulator's head gave a ratio <= 0) is not anchored: its rows are 0.
     anchored = np.array([p is not None for p in prior_ratios])
+    any_anchored = bool(anchored.any())
     anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None] * anchored[:, None]
     prior = np.array([p if p is not None else np.ones(2 * len(shape.parts)) for p in prior_ratios])
     # What each row reads of its mask, gathered once: a step of every row (most are) reads them as they are.
-    by_row = RowArrays(owner, stacked.outline[owner], stacked.valid[owner], corners[owner], pull[owner],
-                       norm[owner], anchor[owner], prior[owner], stacked.fields.rows(owner),
-                       pull[owner] * norm[owner][..., None])
+    by_row = RowArrays(owner, np.asarray(mirrors), stacked.outline[owner], stacked.valid[owner],
+                       corners[owner], pull[owner], norm[owner], anchor[owner], prior[owner],
+                       stacked.fields.rows(owner), pull[owner] * norm[owner][..., None])
 
-    def terms(x, rows, image, derivatives):
-        """The residuals, the silhouette rows' derivatives by image point and the camera rows' Jacobian
-        (each camera row computed once, with its derivatives where they are asked for)."""
-        mine = by_row.of(rows)
+    def terms(x, mine, image, derivatives):
+        """The residuals of rows `mine` (`RowArrays.of`), the silhouette rows' derivatives by image point and
+        the camera rows' Jacobian (each camera row computed once, with its derivatives where they are asked for)."""
         fit, d_fit = silhouette_terms(image, shape, mine.outline, mine.fields, weights, derivatives, valid=mine.valid)
         pulled = ((image - mine.corners) * mine.pull).reshape(len(x), -1) * mine.norm
-        extents = [mine.anchor * np.log(ratios(x, shape) / mine.prior)] if anchored.any() else []
-        held, d_held = cameras.terms(x, mine.owner, mirrors[rows], derivatives) if cameras is not None else (None, None)
+        extents = [mine.anchor * np.log(ratios(x, shape) / mine.prior)] if any_anchored else []
+        held, d_held = cameras.terms(x, mine.owner, mine.mirrors, derivatives) if cameras is not None else (None, None)
         values = np.concatenate([fit * mine.norm, pulled, *extents, *([] if held is None else [held])], axis=1)
         return values, d_fit, d_held
 
     def residual(x, rows):  # a trial step needs no derivatives: the plain projection
-        return terms(x, rows, project(x, shape, mirrors[rows]), derivatives=False)[0]
+        mine = by_row.of(rows)
+        return terms(x, mine, project(x, shape, mine.mirrors), derivatives=False)[0]
 
     def jacobian(x, rows):
-        mine = by_row.of(rows)
-        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
-        values, d_fit, d_held = terms(x, rows, image, derivatives=True)
+        mine = by_row.of(rows)  # gathered once for the projection and the terms
+        image, d_image = project_with_jacobian(x, shape, mine.mirrors)
+        values, d_fit, d_held = terms(x, mine, image, derivatives=True)
         b, n, p = len(x), shape.num_keypoints, x.shape[1]
         # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
         rows_jac = [(d_fit.reshape(b, -1, 2 * n) @ d_image.reshape(b, 2 * n, p)) * mine.norm[..., None],
                     (d_image * mine.pulled_norm[..., None]).reshape(b, -1, p)]
-        if anchored.any():
+        if any_anchored:
             rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
         if d_held is not None:
             rows_jac.append(d_held)
@@ -505,10 +506,11 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
 @dataclass(frozen=True)
 class RowArrays:
     """What the objective's rows (`owner` (B,): each one's mask) read of their masks, one row each: the
-    outline and its padding, the corners and their pull, the norm, the extents' anchor and prior, the field,
-    and the pull times the norm (the corner rows' Jacobian's factor)."""
+    mirror flag, the outline and its padding, the corners and their pull, the norm, the extents' anchor and
+    prior, the field, and the pull times the norm (the corner rows' Jacobian's factor)."""
 
     owner: np.ndarray
+    mirrors: np.ndarray
     outline: np.ndarray
     valid: np.ndarray
     corners: np.ndarray
@@ -524,8 +526,9 @@ class RowArrays:
         returned as they are)."""
         if len(rows) == len(self.owner):
             return self
-        return RowArrays(*(v[rows] for v in (self.owner, self.outline, self.valid, self.corners, self.pull, self.norm,
-                                             self.anchor, self.prior)), self.fields.rows(rows), self.pulled_norm[rows])
+        return RowArrays(*(v[rows] for v in (self.owner, self.mirrors, self.outline, self.valid, self.corners, self.pull,
+                                             self.norm, self.anchor, self.prior)), self.fields.rows(rows),
+                         self.pulled_norm[rows])
 
 
 def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
