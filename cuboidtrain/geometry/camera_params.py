@@ -103,10 +103,13 @@ def _rodrigues(rotvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     squared_length = (rotvec * rotvec).sum(1)
     theta = np.sqrt(squared_length)
     small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    squared = theta**2
-    a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
-    b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
+    if small.any():
+        safe = np.where(small, 1.0, theta)
+        squared = theta**2
+        a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
+        b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
+    else:  # no rotation near 0 (nearly always): the same values, without the series' arrays
+        a, b = np.sin(theta) / theta, (1 - np.cos(theta)) / theta**2
     k = _skew(rotvec)
     return EYE3 + a[:, None, None] * k + b[:, None, None] * (k @ k), squared_length, k
 
@@ -204,9 +207,10 @@ def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndar
     (where R is I): d u / d w = -(d u / d X) [X]x M, M the bracket over |w|^2 (I at w = 0), two
     small products a point instead of three."""
     small = theta2 < 1e-16
-    safe = np.where(small, 1.0, theta2)
+    near_zero = small.any()
+    safe = np.where(small, 1.0, theta2) if near_zero else theta2
     inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - EYE3) @ skew_w) / safe[:, None, None]
-    if small.any():
+    if near_zero:
         inner[small] = EYE3
     return -(d_object @ _skew(objects)) @ inner[:, None]
 
