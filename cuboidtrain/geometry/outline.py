@@ -6,6 +6,7 @@ minimises them.
 """
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -243,10 +244,10 @@ def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitW
     tolerant, tolerant_slope = _tolerant(d, weights.robust_px, derivatives)
     above = d > 0
     if tolerant_when_positive:
-        value = np.where(above, positive * tolerant, negative * d)
+        value = np.where(above, positive * tolerant, d if negative == 1.0 else negative * d)  # x 1: exact, no call
         slope = np.where(above, positive * tolerant_slope, negative) if derivatives else None
     else:
-        value = np.where(above, positive * d, negative * tolerant)
+        value = np.where(above, d if positive == 1.0 else positive * d, negative * tolerant)
         slope = np.where(above, positive, negative * tolerant_slope) if derivatives else None
     return value, slope
 
@@ -311,7 +312,7 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     if valid is not None:
         slope = np.where(valid, slope, 0.0)
     b, m = dist.shape
-    rows, points = np.arange(b)[:, None], np.arange(m)[None]
+    rows, points, row = _point_rows(b, m, n)
     part = 0 if one_part else per_part.argmin(1)  # (B, M)
     # (B, M): the edge slot that gives the distance
     edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
@@ -322,10 +323,27 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
     d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
     d = np.zeros((b, m, n, 2))
     flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
-    row = (rows * m + points) * n
     flat[row + corner[..., 0]] = slope[..., None] * d_start
     flat[row + corner[..., 1]] += slope[..., None] * d_end
     return value, d
+
+
+@lru_cache(maxsize=64)
+def _point_rows(b: int, m: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B, 1) rows, (1, M) points and (B, M) each point's first corner's flat index in (B, M, N, 2)
+    derivatives: fixed by the sizes, computed once for every step of a solver."""
+    rows, points = np.arange(b)[:, None], np.arange(m)[None]
+    row = (rows * m + points) * n
+    rows.flags.writeable = points.flags.writeable = row.flags.writeable = False  # shared by every caller
+    return rows, points, row
+
+
+@lru_cache(maxsize=64)
+def _first_corners(samples: tuple[int, ...], n: int) -> np.ndarray:
+    """`samples`-shaped (B, P, E T): each edge sample's first corner's flat index in its (..., N, 2) derivatives."""
+    row = np.arange(0, math.prod(samples) * n, n).reshape(samples)
+    row.flags.writeable = False  # shared by every caller
+    return row
 
 
 @lru_cache(maxsize=None)
@@ -348,22 +366,22 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields,
     samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
     b, p = samples.shape[:2]
     flat = samples.reshape(b, p, -1, 2)
-    keep = np.repeat(hull.valid, count, axis=-1)  # (B, P, E T)
+    keep = hull.valid.repeat(count, axis=-1)  # (B, P, E T); the method: np.repeat's answer without its wrapper
     if p == 2:  # a twobox outline inside the other part is no outline
         keep &= polygon_distance(flat, hull.swapped()) > 0
     over, gradient = bilinear_with_gradient(sdf, flat) if derivatives else (bilinear(sdf, flat), None)
     value, slope = _weighted(over, weights.overhang, weights.outside, weights, True, derivatives)
-    root = np.repeat(np.sqrt(full / count), count, axis=-1)  # sqrt of each sample's share of the edge
+    root = np.sqrt(full / count).repeat(count, axis=-1)  # sqrt of each sample's share of the edge
     residuals = np.where(keep, value * root, 0.0).reshape(b, -1)
     if not derivatives:
         return residuals, None
     # d root / d end = (direction / L) / (2 count root); the start's is its negative.
-    d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=-2) / (2 * root[..., None] + 1e-12)
+    d_root = (hull.direction / (full[..., None] * count + 1e-12)).repeat(count, axis=-2) / (2 * root[..., None] + 1e-12)
     along = slope[..., None] * gradient * root[..., None]
     scale = keep[..., None].astype(np.float64)
-    corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
+    corner = ends.repeat(count, axis=-2)  # (B, P, E T, 2)
     d = np.zeros((b, p, flat.shape[2], n, 2))
-    row = np.arange(0, d.size // 2, n).reshape(corner.shape[:-1])  # each sample's first corner, one flat index
+    row = _first_corners(corner.shape[:-1], n)  # each sample's first corner, one flat index
     stretch = value[..., None] * d_root
     d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
     d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
