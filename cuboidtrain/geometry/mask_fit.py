@@ -468,7 +468,8 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
     anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None] * anchored[:, None]
     prior = np.array([p if p is not None else np.ones(2 * len(shape.parts)) for p in prior_ratios])
     # What each row reads of its mask, gathered once: a step of every row (most are) reads them as they are.
-    by_row = RowArrays(owner, np.asarray(mirrors), stacked.outline[owner], stacked.valid[owner],
+    padded = stacked.valid[owner] if not stacked.valid.all() else None  # None: no padding to zero (one mask's)
+    by_row = RowArrays(owner, np.asarray(mirrors), stacked.outline[owner], padded,
                        corners[owner], pull[owner], norm[owner], anchor[owner], prior[owner],
                        stacked.fields.rows(owner), pull[owner] * norm[owner][..., None])
 
@@ -512,7 +513,7 @@ class RowArrays:
     owner: np.ndarray
     mirrors: np.ndarray
     outline: np.ndarray
-    valid: np.ndarray
+    valid: np.ndarray | None  # None: every outline point real (no padding)
     corners: np.ndarray
     pull: np.ndarray
     norm: np.ndarray
@@ -526,9 +527,11 @@ class RowArrays:
         returned as they are)."""
         if len(rows) == len(self.owner):
             return self
-        return RowArrays(*(v[rows] for v in (self.owner, self.mirrors, self.outline, self.valid, self.corners, self.pull,
-                                             self.norm, self.anchor, self.prior)), self.fields.rows(rows),
-                         self.pulled_norm[rows])
+        owner, mirrors, outline, corners, pull, norm, anchor, prior = (
+            v[rows] for v in (self.owner, self.mirrors, self.outline, self.corners, self.pull, self.norm, self.anchor,
+                              self.prior))
+        return RowArrays(owner, mirrors, outline, None if self.valid is None else self.valid[rows], corners, pull, norm,
+                         anchor, prior, self.fields.rows(rows), self.pulled_norm[rows])
 
 
 def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
