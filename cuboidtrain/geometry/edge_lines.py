@@ -214,7 +214,8 @@ def densest_offsets(offsets: np.ndarray, edge: np.ndarray, v: int) -> np.ndarray
     bins = (offsets - low[edge]).astype(np.intp)
     width = int(bins.max()) + 3 if len(bins) else 3
     counts = np.bincount(edge * width + bins, minlength=v * width).reshape(v, width)
-    padded = np.pad(counts, ((0, 0), (1, 1)))
+    padded = np.zeros((v, width + 2), dtype=counts.dtype)  # np.pad's zeros either side, without its wrapper (0.1 ms)
+    padded[:, 1:-1] = counts
     window = padded[:, :-2] + padded[:, 1:-1] + padded[:, 2:]
     last = np.zeros(v, dtype=np.intp)
     np.maximum.at(last, edge, bins)
