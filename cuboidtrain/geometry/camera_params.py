@@ -27,7 +27,7 @@ scene and shape): projection equal to the samples' keypoints to 3e-12 px.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
@@ -147,6 +147,13 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     """(B, N, 2) image points and their analytic Jacobian (B, N, 2, P) with respect to (B, P)
     params: the solver's derivatives, exact where forward differences lose half the digits
     (flat valleys of near-frontal views need them) and one evaluation instead of P + 1."""
+    image, jacobian = project_deferred(params, shape, mirror)
+    return image, jacobian()
+
+
+def project_deferred(params: np.ndarray, shape: Shape, mirror) -> tuple[np.ndarray, Callable[[], np.ndarray]]:
+    """`project_with_jacobian`'s image points, and a function of no arguments that computes its Jacobian
+    from what they left: for a solver that needs it only for the steps it takes (the same numbers)."""
     params = np.asarray(params)
     params = params[None] if params.ndim == 1 else params
     b, p = params.shape
@@ -159,27 +166,31 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     scale = s / den  # d u / d (R X)'s x, y
     offset = (rotated[..., :2] + params[:, None, 5:7]) * scale[..., None]  # u - c
     image = offset + params[:, None, 9:11]
-    jac = np.zeros((b, objects.shape[1], 2, p))
-    # d u / d (R X): s / den on x, y; -(u - c) k / den on z.
-    d_rotated = np.zeros((b, objects.shape[1], 2, 3))
-    d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = scale
-    d_rotated[..., 2] = -offset * (k / den)[..., None]
-    d_object = d_rotated @ rot[:, None]  # (B, N, 2, 3): through R
-    # Object coordinates: every x scales with w (log w), every z with d (log d).
-    jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
-    jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
-    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot, squared_length, skew)
-    jac[..., 0, 5] = jac[..., 1, 6] = scale
-    jac[..., 7] = offset
-    jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
-    jac[..., 0, 9] = jac[..., 1, 10] = 1.0
-    if len(shape.parts) == 2:
-        sign = np.where(mirror, -1.0, 1.0)[:, None]
-        w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
-        middle, top_left = _split_corners(shape)
-        jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
-        jac[..., 12] = d_object[..., 1] * np.where(top_left, -h_left, 0.0)[..., None]
-    return image, jac
+
+    def jacobian() -> np.ndarray:
+        jac = np.zeros((b, objects.shape[1], 2, p))
+        # d u / d (R X): s / den on x, y; -(u - c) k / den on z.
+        d_rotated = np.zeros((b, objects.shape[1], 2, 3))
+        d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = scale
+        d_rotated[..., 2] = -offset * (k / den)[..., None]
+        d_object = d_rotated @ rot[:, None]  # (B, N, 2, 3): through R
+        # Object coordinates: every x scales with w (log w), every z with d (log d).
+        jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
+        jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
+        jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot, squared_length, skew)
+        jac[..., 0, 5] = jac[..., 1, 6] = scale
+        jac[..., 7] = offset
+        jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
+        jac[..., 0, 9] = jac[..., 1, 10] = 1.0
+        if len(shape.parts) == 2:
+            sign = np.where(mirror, -1.0, 1.0)[:, None]
+            w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
+            middle, top_left = _split_corners(shape)
+            jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
+            jac[..., 12] = d_object[..., 1] * np.where(top_left, -h_left, 0.0)[..., None]
+        return jac
+
+    return image, jacobian
 
 
 @lru_cache(maxsize=None)

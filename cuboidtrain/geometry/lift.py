@@ -53,7 +53,8 @@ def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: fl
     """Minimise 0.5 |residual(x, rows)|^2 for every row of x0 at once.
 
     `residual(x, rows)` maps (B', P) params and (B',) hypothesis indices to (B', M) residuals.
-    `jacobian(x, rows)`, when given, returns the residuals and their Jacobian (B', M, P);
+    `jacobian(x, rows)`, when given, returns the residuals and their Jacobian (B', M, P), or a function
+    of no arguments that computes it (called only for a trial step that some row takes);
     without it, one call evaluates every hypothesis and every forward-difference column
     (B * (P + 1) rows): numpy's per-call cost is paid once per iteration, not per column.
     Every hypothesis stops once one reaches a cost of `enough` (the lift's exact match); with
@@ -94,7 +95,7 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
 
     if trial_jacobian:
         r, jac = jacobian(x, rows)
-        normal_equations(rows, r, jac)
+        normal_equations(rows, r, _computed(jac))
     else:
         r = residual(x, rows)
     cost, count = 0.5 * (r**2).sum(1), r.shape[1]
@@ -129,7 +130,7 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         taken, kept = (at, slice(None)) if every else (live[better], better)
         x[taken] = trial[kept]
         if trial_jacobian:
-            normal_equations(taken, trial_r[kept], trial_jac[kept])
+            normal_equations(taken, trial_r[kept], _computed(trial_jac)[kept])
         else:
             stale[taken] = True
         shrunk = damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3)
@@ -150,6 +151,11 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         redo = np.flatnonzero(stale)
         normal_equations(redo, *jacobian(x[redo], redo))
     return Solved(x, cost, jtj, count)
+
+
+def _computed(jacobian) -> np.ndarray:
+    """A Jacobian, or the one a deferred Jacobian (a function of no arguments) computes."""
+    return jacobian() if callable(jacobian) else jacobian
 
 
 def _step(matrix: np.ndarray, gradient: np.ndarray) -> np.ndarray:

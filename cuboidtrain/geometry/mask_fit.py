@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from cuboidtrain.geometry.camera_params import (CameraParams, CuboidFit, Evidence, describe, log_ratio_jacobian,
-                                      outline_corners, project, project_with_jacobian, ratios, rotation_matrices,
+                                      outline_corners, project, project_deferred, ratios, rotation_matrices,
                                       rotation_vector)
 from cuboidtrain.geometry.edge_lines import outline_polygon, signed_area
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
@@ -474,9 +474,11 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
                        stacked.fields.rows(owner), pull[owner] * norm[owner][..., None])
 
     def terms(x, mine, image, derivatives):
-        """The residuals of rows `mine` (`RowArrays.of`), the silhouette rows' derivatives by image point and
-        the camera rows' Jacobian (each camera row computed once, with its derivatives where they are asked for)."""
-        fit, d_fit = silhouette_terms(image, shape, mine.outline, mine.fields, weights, derivatives, valid=mine.valid)
+        """The residuals of rows `mine` (`RowArrays.of`), the silhouette rows' derivatives by image point (a
+        function that computes them) and the camera rows' Jacobian (each camera row computed once, with its
+        derivatives where they are asked for)."""
+        fit, d_fit = silhouette_terms(image, shape, mine.outline, mine.fields, weights, derivatives, valid=mine.valid,
+                                      deferred=True)
         pulled = ((image - mine.corners) * mine.pull).reshape(len(x), -1) * mine.norm
         extents = [mine.anchor * np.log(ratios(x, shape) / mine.prior)] if any_anchored else []
         held, d_held = cameras.terms(x, mine.owner, mine.mirrors, derivatives) if cameras is not None else (None, None)
@@ -488,18 +490,25 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
         return terms(x, mine, project(x, shape, mine.mirrors), derivatives=False)[0]
 
     def jacobian(x, rows):
+        """The residuals, and their Jacobian as a function of no arguments: the solver asks for it only where
+        it takes the step (`lift.levenberg_marquardt`; a fifth of the first fits' steps take none)."""
         mine = by_row.of(rows)  # gathered once for the projection and the terms
-        image, d_image = project_with_jacobian(x, shape, mine.mirrors)
+        image, d_image = project_deferred(x, shape, mine.mirrors)
         values, d_fit, d_held = terms(x, mine, image, derivatives=True)
-        b, n, p = len(x), shape.num_keypoints, x.shape[1]
-        # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
-        rows_jac = [(d_fit.reshape(b, -1, 2 * n) @ d_image.reshape(b, 2 * n, p)) * mine.norm[..., None],
-                    (d_image * mine.pulled_norm[..., None]).reshape(b, -1, p)]
-        if any_anchored:
-            rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
-        if d_held is not None:
-            rows_jac.append(d_held)
-        return values, np.concatenate(rows_jac, axis=1)
+
+        def jac() -> np.ndarray:
+            b, n, p = len(x), shape.num_keypoints, x.shape[1]
+            image_jac = d_image()
+            # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
+            rows_jac = [(d_fit().reshape(b, -1, 2 * n) @ image_jac.reshape(b, 2 * n, p)) * mine.norm[..., None],
+                        (image_jac * mine.pulled_norm[..., None]).reshape(b, -1, p)]
+            if any_anchored:
+                rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
+            if d_held is not None:
+                rows_jac.append(d_held)
+            return np.concatenate(rows_jac, axis=1)
+
+        return values, jac
 
     return residual, jacobian
 

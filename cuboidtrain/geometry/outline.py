@@ -254,9 +254,11 @@ def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitW
 
 def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: np.ndarray | Fields,
                      weights: MaskFitWeights, derivatives: bool = False,
-                     valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+                     valid: np.ndarray | None = None, deferred: bool = False) -> tuple[np.ndarray, object]:
     """(B, R) residuals of how well silhouettes with corners `image` (B, N, 2) explain the mask,
-    and, if asked, their derivatives with respect to the corners (B, R, N, 2): each row
+    and, if asked, their derivatives with respect to the corners (B, R, N, 2) (`deferred`: a function
+    of no arguments that computes them from what the residuals left, for a solver that needs them
+    only for the steps it takes: `lift.levenberg_marquardt`): each row
     touches the two corners of one edge (which edge is active is held fixed: the objective
     is piecewise smooth). One mask's `outline` (M, 2) and `sdf` (H, W), or each row's
     (a batch of masks): outline points (B, M, 2), padded where `valid` (B, M) is False (their
@@ -276,7 +278,13 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, lengths, n, weights, derivatives)
     edge_value, edge_gradient = _edge_rows(hull, ends, lengths, Fields.of(sdf), n, weights, derivatives)
     residuals = np.concatenate([outline_value, edge_value], axis=1)
-    return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
+    if not derivatives:
+        return residuals, None
+
+    def gradient() -> np.ndarray:
+        return np.concatenate([outline_gradient(), edge_gradient()], axis=1)
+
+    return residuals, (gradient if deferred else gradient())
 
 
 @lru_cache(maxsize=None)
@@ -297,9 +305,9 @@ def part_corners(shape: Shape) -> np.ndarray:
 
 def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray,
                   lengths: np.ndarray, n: int, weights: MaskFitWeights,
-                  derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+                  derivatives: bool) -> tuple[np.ndarray, object]:
     """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
-    their derivatives (B, M, N, 2)."""
+    (`derivatives`) a function of no arguments giving their derivatives (B, M, N, 2)."""
     offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
     per_part = largest_over_edges(offsets)  # (B, P, M)
     one_part = per_part.shape[1] == 1  # a box: its only part is the nearest
@@ -309,23 +317,26 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
         value = np.where(valid, value, 0.0)
     if not derivatives:
         return value, None
-    if valid is not None:
-        slope = np.where(valid, slope, 0.0)
-    b, m = dist.shape
-    rows, points, row = _point_rows(b, m, n)
-    part = 0 if one_part else per_part.argmin(1)  # (B, M)
-    # (B, M): the edge slot that gives the distance
-    edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
-    # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
-    at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
-    start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
-                                        for v in (hull.start, hull.direction, hull.normal, ends))
-    d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
-    d = np.zeros((b, m, n, 2))
-    flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
-    flat[row + corner[..., 0]] = slope[..., None] * d_start
-    flat[row + corner[..., 1]] += slope[..., None] * d_end
-    return value, d
+
+    def derivative() -> np.ndarray:
+        slopes = slope if valid is None else np.where(valid, slope, 0.0)
+        b, m = dist.shape
+        rows, points, row = _point_rows(b, m, n)
+        part = 0 if one_part else per_part.argmin(1)  # (B, M)
+        # (B, M): the edge slot that gives the distance
+        edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
+        # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
+        at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
+        start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
+                                            for v in (hull.start, hull.direction, hull.normal, ends))
+        d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
+        d = np.zeros((b, m, n, 2))
+        flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
+        flat[row + corner[..., 0]] = slopes[..., None] * d_start
+        flat[row + corner[..., 1]] += slopes[..., None] * d_end
+        return d
+
+    return value, derivative
 
 
 @lru_cache(maxsize=64)
@@ -358,9 +369,10 @@ def _edge_samples(count: int, slots: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
-               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+               derivatives: bool) -> tuple[np.ndarray, object]:
     """Points along the model's outline edges (`full` (B, P, E) their lengths) sampled on the mask's
-    distance field: (B, P E T) residuals, and their derivatives (B, P E T, N, 2)."""
+    distance field: (B, P E T) residuals, and (`derivatives`) a function of no arguments giving their
+    derivatives (B, P E T, N, 2)."""
     count = weights.samples_per_edge
     t, share, rest = _edge_samples(count, hull.valid.shape[-1])
     samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
@@ -375,17 +387,21 @@ def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields,
     residuals = np.where(keep, value * root, 0.0).reshape(b, -1)
     if not derivatives:
         return residuals, None
-    # d root / d end = (direction / L) / (2 count root); the start's is its negative.
-    d_root = (hull.direction / (full[..., None] * count + 1e-12)).repeat(count, axis=-2) / (2 * root[..., None] + 1e-12)
-    along = slope[..., None] * gradient * root[..., None]
-    scale = keep[..., None].astype(np.float64)
-    corner = ends.repeat(count, axis=-2)  # (B, P, E T, 2)
-    d = np.zeros((b, p, flat.shape[2], n, 2))
-    row = _first_corners(corner.shape[:-1], n)  # each sample's first corner, one flat index
-    stretch = value[..., None] * d_root
-    d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
-    d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
-    return residuals, d.reshape(b, -1, n, 2)
+
+    def derivative() -> np.ndarray:
+        # d root / d end = (direction / L) / (2 count root); the start's is its negative.
+        d_root = (hull.direction / (full[..., None] * count + 1e-12)).repeat(count, axis=-2) / (2 * root[..., None] + 1e-12)
+        along = slope[..., None] * gradient * root[..., None]
+        scale = keep[..., None].astype(np.float64)
+        corner = ends.repeat(count, axis=-2)  # (B, P, E T, 2)
+        d = np.zeros((b, p, flat.shape[2], n, 2))
+        row = _first_corners(corner.shape[:-1], n)  # each sample's first corner, one flat index
+        stretch = value[..., None] * d_root
+        d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
+        d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
+        return d.reshape(b, -1, n, 2)
+
+    return residuals, derivative
 
 
 @dataclass(frozen=True)
