@@ -228,6 +228,8 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
     true cuboid (0.52 px, IoU 1). One kept and still short is restarted again, RESTART_ROUNDS in all.
     `clean`: whether each mask is clean (`polygonal`), where the caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
+    if not any(RESTART_FLOOR <= fit.iou < reach for fit in fits):  # none to restart (reach 0: a first fit's)
+        return answers, fits
     area = [int(target.mask.sum()) for target in first.targets]
     # A mask whose fit misses fewer than RESTART_GAIN_PX of its pixels keeps it whatever a restart finds:
     # most 64 px masks (their fits miss 1.5% of some 1,200 px), none restarted in vain.
