@@ -451,7 +451,9 @@ def describe(camera: CameraParams, residual_px: float, iou: float | None = None,
              unexplained: float | None = None) -> CuboidFit:
     """The record's view of fitted parameters: named keypoints, ratios, angles, intrinsics, flags."""
     shape = camera.shape
-    camera = CameraParams(shape, *canonical(camera.vector, camera.mirror))
+    vector, mirror = canonical(camera.vector, camera.mirror)
+    if vector is not camera.vector:  # the k >= 0 twin; else the camera itself, its projection computed once
+        camera = CameraParams(shape, vector, mirror)
     order = camera.naming()
     pinhole = camera.pinhole()
     if pinhole is None:

@@ -118,8 +118,7 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
             trial_r, trial_jac = jacobian(trial, live)
         else:
             trial_r = residual(trial, live)
-        new_cost = 0.5 * (trial_r**2).sum(1)
-        new_cost[np.isnan(new_cost)] = np.inf  # np.nan_to_num's, at a fifth of its cost a call
+        new_cost = 0.5 * (trial_r**2).sum(1)  # NaN for a diverged trial: its gain is NaN, not > 0, and it is rejected
         gain = cost_live - new_cost
         # Nielsen's damping update (Madsen, Nielsen & Tingleff 2004, sec. 3.2): by how well the
         # linear model predicted the gain; fewer rejected steps than a fixed /3, x4.

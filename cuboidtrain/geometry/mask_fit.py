@@ -548,7 +548,7 @@ class RowArrays:
 def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
     """The record's view of one mask's best camera, with its outline residual and IoU (whatever
     optimiser found it)."""
-    image = project(camera.vector[None], shape, np.array([camera.mirror]))
+    image = camera.keypoints()[None]  # computed once for this and `describe`
     outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
-    iou, unexplained = coverage(shape, image[0], target.mask)  # image[0]: camera.keypoints()
+    iou, unexplained = coverage(shape, image[0], target.mask)
     return describe(camera, outline_rms, iou, unexplained)
