@@ -167,13 +167,21 @@ def settled(fit: CuboidFit, start: FitStart, sdf: np.ndarray, known: KnownCamera
 @dataclass(frozen=True)
 class FirstCuboid:
     """One candidate's cuboid fitted from its first start alone (`first_cuboid`), and what a restart
-    goes on from (`reached`): the Fitter restarts a class only where the choice needs it."""
+    goes on from (`reached`): the Fitter restarts a class only where the choice needs it, and gives the
+    error bars only to the class it chose (`with_error_bars`: the choice reads none)."""
 
-    cuboid: FittedCuboid | NoCuboid
+    cuboid: FittedCuboid | NoCuboid  # the LM's without its error bars (spread None): `with_error_bars`
     start: FitStart
     sdf: np.ndarray  # the input's signed distance field (`corner_scores`)
     known: KnownCamera | None
     first: FirstFits | None  # the LM's first fit; None: the soft optimiser's, never restarted
+
+    def with_error_bars(self) -> FittedCuboid | NoCuboid:
+        """`cuboid` with its error bars, as `mask_fit.finished` gives them (the soft optimiser's has its own)."""
+        if self.first is None or isinstance(self.cuboid, NoCuboid):
+            return self.cuboid
+        fit = mask_fit.with_error_bars(self.first, 0, self.first.answers[0], self.cuboid.fit)
+        return replace(self.cuboid, fit=fit)
 
     def reached(self, reach: float) -> FittedCuboid | NoCuboid:
         """The cuboid of a clean mask (`stopped_short` said so) restarted where it stopped short of its
@@ -186,7 +194,8 @@ class FirstCuboid:
 def first_cuboid(candidate: Candidate, target: MaskTarget, optimizer: str = "lm", known: KnownCamera | None = None,
                  plausible: bool = False) -> FirstCuboid:
     """`fit_candidates` for one candidate (the input's `target`, its completion, its outline start), from
-    its first start alone (reach 0: no restart), kept for `FirstCuboid.reached`."""
+    its first start alone (reach 0: no restart), kept for `FirstCuboid.reached`; without its error bars
+    (`FirstCuboid.with_error_bars`)."""
     if candidate.framing is None:
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
     shape = get_shape(candidate.shape)
@@ -194,8 +203,8 @@ def first_cuboid(candidate: Candidate, target: MaskTarget, optimizer: str = "lm"
     if optimizer == "soft":
         [fit] = _solve([start], shape, optimizer, [known])
         return FirstCuboid(settled(fit, start, target.sdf, known), start, target.sdf, known, None)
-    first = _first_fits([start], shape, [known], plausible)
-    return FirstCuboid(settled(finished(first, 0.0)[0], start, target.sdf, known), start, target.sdf, known, first)
+    first = _first_fits([start], shape, [known], plausible)  # no restart (reach 0) and no error bars yet
+    return FirstCuboid(settled(first.fits[0], start, target.sdf, known), start, target.sdf, known, first)
 
 
 def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,

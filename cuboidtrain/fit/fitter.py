@@ -242,6 +242,8 @@ class Fitter:
         else:
             best = choose(candidates)
         cuboid = cuboids.get(best.shape)
+        if cuboid is not None and cuboid is firsts[best.shape].cuboid:  # a first fit's: its error bars, for it alone
+            cuboid = firsts[best.shape].with_error_bars()
         keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
         scores = assess(best, mask, keypoints)
         trust = None if cuboid is None else judge(signs(best, cuboid, mask, [cuboids[c.shape].fit.iou for c in candidates

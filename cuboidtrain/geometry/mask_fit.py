@@ -176,15 +176,18 @@ def finished(first: FirstFits, reach: float | None = None, clean: Sequence[bool]
     """The first fits, each that stopped short of a clean mask's silhouette restarted (`reach_silhouette`),
     with their error bars (`uncertainty.spread`)."""
     answers, fits = reach_silhouette(first, reach, clean)
-    known = first.known
-    for k, (target, answer) in enumerate(zip(first.targets, answers)):
-        camera = answer.camera(first.shape)
-        focal_given = known is not None and known[k] is not None and known[k].focal_held  # EXIF's: a prior
-        bars = spread(camera, 2 * answer.cost, answer.solved.normal[answer.row], answer.solved.residuals, focal_given,
-                      evidence(camera, fits[k].residual_px, target, first.networks[k], first.confidence[k],
-                               first.starts[k]))
-        fits[k] = replace(fits[k], spread=bars)
-    return fits
+    return [with_error_bars(first, k, answer, fit) for k, (answer, fit) in enumerate(zip(answers, fits))]
+
+
+def with_error_bars(first: FirstFits, k: int, answer: Solution, fit: CuboidFit) -> CuboidFit:
+    """Mask `k`'s `fit` (its LM `answer`, on `first`'s objective) with its error bars (`uncertainty.spread`):
+    `finished`'s, or a caller's that needs them for one fit only (`fit.cuboid.FirstCuboid.with_error_bars`)."""
+    known, camera = first.known, answer.camera(first.shape)
+    focal_given = known is not None and known[k] is not None and known[k].focal_held  # EXIF's: a prior
+    bars = spread(camera, 2 * answer.cost, answer.solved.normal[answer.row], answer.solved.residuals, focal_given,
+                  evidence(camera, fit.residual_px, first.targets[k], first.networks[k], first.confidence[k],
+                           first.starts[k]))
+    return replace(fit, spread=bars)
 
 
 def cheapest(cost: np.ndarray, chosen: Sequence[np.ndarray]) -> list[int]:
