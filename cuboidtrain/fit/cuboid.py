@@ -203,8 +203,9 @@ def first_cuboid(candidate: Candidate, target: MaskTarget, optimizer: str = "lm"
     if optimizer == "soft":
         [fit] = _solve([start], shape, optimizer, [known])
         return FirstCuboid(settled(fit, start, target.sdf, known), start, target.sdf, known, None)
-    first = _first_fits([start], shape, [known], plausible)  # no restart (reach 0) and no error bars yet
-    return FirstCuboid(settled(first.fits[0], start, target.sdf, known), start, target.sdf, known, first)
+    first = _first_fits([start], shape, [known], plausible)
+    fit = finished(first, 0.0, error_bars=False)[0]  # no restart (reach 0), no error bars yet
+    return FirstCuboid(settled(fit, start, target.sdf, known), start, target.sdf, known, first)
 
 
 def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,

@@ -172,10 +172,13 @@ def first_fits(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray,
                      tuple(lifted.params[lifted.owner == k] for k in range(len(targets))), iterations, answers, fits)
 
 
-def finished(first: FirstFits, reach: float | None = None, clean: Sequence[bool] | None = None) -> list[CuboidFit]:
+def finished(first: FirstFits, reach: float | None = None, clean: Sequence[bool] | None = None,
+             error_bars: bool = True) -> list[CuboidFit]:
     """The first fits, each that stopped short of a clean mask's silhouette restarted (`reach_silhouette`),
-    with their error bars (`uncertainty.spread`)."""
+    with their error bars (`uncertainty.spread`; `error_bars=False`: none yet, `with_error_bars`)."""
     answers, fits = reach_silhouette(first, reach, clean)
+    if not error_bars:
+        return fits
     return [with_error_bars(first, k, answer, fit) for k, (answer, fit) in enumerate(zip(answers, fits))]
 
 
