@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
-from numpy.linalg import _umath_linalg
 
 from cuboidtrain.geometry.camera_params import CORNER_SIDES, CameraParams, canonical, project, project_with_jacobian, rotation_vector
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
@@ -112,7 +111,7 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         at = slice(None) if len(live) == b else live
         jtj_live, grad_live, damping_live, cost_live = jtj[at], grad[at], damping[at], cost[at]
         scaled = damping_live[:, None] * (jtj_live.diagonal(0, 1, 2) + 1e-9)
-        delta = -_step(jtj_live + scaled[:, :, None] * eye, grad_live)
+        delta = -np.linalg.solve(jtj_live + scaled[:, :, None] * eye, grad_live[:, :, None])[..., 0]
         trial = x[at] + delta
         if trial_jacobian:  # the trial's Jacobian with its residuals: kept if the step is taken
             trial_r, trial_jac = jacobian(trial, live)
@@ -155,14 +154,6 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
 def _computed(jacobian) -> np.ndarray:
     """A Jacobian, or the one a deferred Jacobian (a function of no arguments) computes."""
     return jacobian() if callable(jacobian) else jacobian
-
-
-def _step(matrix: np.ndarray, gradient: np.ndarray) -> np.ndarray:
-    """(B, P): each row's solution of matrix (B, P, P) x = gradient (B, P), by the LAPACK solve np.linalg.solve
-    calls (the same numbers), without its checks and error state (some 4 µs of a step's 68). Where
-    np.linalg.solve raises (a singular matrix: the damping is positive, so only once it has underflowed) the
-    step is NaN, and its cost, inf, rejects it."""
-    return _umath_linalg.solve(matrix, gradient[:, :, None], signature="dd->d")[..., 0]
 
 
 def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: float, groups: np.ndarray | None) -> None:

@@ -23,7 +23,6 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from numpy.linalg import _umath_linalg
 
 from cuboidtrain.geometry.camera_params import MIRROR_X, object_basis, rotation_vector
 from shared.shapes import Shape
@@ -76,7 +75,7 @@ def vanishing_point(points: np.ndarray, edges: list[tuple[int, int]] | np.ndarra
     # without its wrapper: three lines a start, several starts a record.
     lines = np.stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
     lines /= np.sqrt((lines[:, :2] * lines[:, :2]).sum(1, keepdims=True)) + 1e-12  # np.linalg.norm's arithmetic
-    return _umath_linalg.svd_f(lines, signature="d->ddd")[2][-1]  # np.linalg.svd's LAPACK call, without its wrapper
+    return np.linalg.svd(lines)[2][-1]
 
 
 def intrinsics(vps: np.ndarray, finite: np.ndarray) -> list[tuple[float, np.ndarray]]:
@@ -159,7 +158,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
     # The nearest orthogonal matrices, all candidates in one SVD call: columns = the object axes in the camera.
     directions = np.concatenate(directions)
     lengths = np.sqrt((directions * directions).sum(2, keepdims=True))  # np.linalg.norm's arithmetic
-    u, _, vt = _umath_linalg.svd_f(directions / lengths, signature="d->ddd")  # np.linalg.svd's, unwrapped
+    u, _, vt = np.linalg.svd(directions / lengths)
     bases = (u @ vt).transpose(0, 2, 1)
     # Every candidate camera times every sign choice of the axes, solved at once.
     focal = np.repeat(focals, len(_SIGNS))
