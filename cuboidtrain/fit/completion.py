@@ -66,4 +66,4 @@ def completed_target(candidate: Candidate, target: MaskTarget) -> MaskTarget:
     seen = bilinear(completed, target.outline) > -OCCLUSION_EDGE_PX
     outline = target.outline[seen] if seen.sum() >= MIN_OUTLINE_POINTS else target.outline
     # Outside the input, the distance to the completed building, 0 inside it; inside, the input's.
-    return MaskTarget(target.mask, outline, np.where(target.mask, target.sdf, np.maximum(completed, 0.0)))
+    return MaskTarget(target.mask, outline, np.where(target.mask, target.sdf, np.maximum(completed, 0.0)), target.cracks)

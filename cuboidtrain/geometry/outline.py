@@ -42,12 +42,12 @@ class MaskFitWeights:
     max_boundary_points: int = 120
 
 
-def boundary_points(mask: np.ndarray, limit: int) -> np.ndarray:
+def boundary_points(mask: np.ndarray, limit: int, every: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(M, 2) points on the mask's outline, at most `limit` of them, evenly taken: the midpoints
     between 4-neighbouring pixel centres of which one is in and one out (`edge_lines.cracks`). Under
     the pixel-centre rule the true outline crosses each such crack within half a pixel, unbiased,
-    unlike contour pixel centres (0.5 px inside)."""
-    points = cracks(mask)[0]
+    unlike contour pixel centres (0.5 px inside). `every`: the mask's `cracks`, where the caller has them."""
+    points = (cracks(mask) if every is None else every)[0]
     if len(points) > limit:
         points = points[np.linspace(0, len(points) - 1, limit).astype(int)]
     return points
@@ -412,10 +412,12 @@ class MaskTarget:
     mask: np.ndarray  # (H, W) bool
     outline: np.ndarray  # (M, 2) px
     sdf: np.ndarray  # (H, W) px, positive outside
+    cracks: tuple[np.ndarray, np.ndarray] | None = None  # every outline point of `mask` and its axis (`edge_lines.cracks`)
 
     @classmethod
     def of(cls, mask: np.ndarray, weights: MaskFitWeights = MaskFitWeights()) -> MaskTarget:
-        return cls(mask, boundary_points(mask, weights.max_boundary_points), signed_distance_field(mask))
+        every = cracks(mask)  # kept: the edge lines read them too (`edge_lines.edge_lines`)
+        return cls(mask, boundary_points(mask, weights.max_boundary_points, every), signed_distance_field(mask), every)
 
 
 @dataclass(frozen=True)
