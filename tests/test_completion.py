@@ -3,6 +3,7 @@ hid and the Refiner fills in is excused from the overhang cost and its cut edge 
 outline; a Refiner's blurred outline along the input's own adds nothing."""
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from cuboidtrain.fit import completion as stage
@@ -53,3 +54,21 @@ def test_a_blurred_outline_along_the_input_adds_nothing():
     building = square(256, 40, 216)
     target = MaskTarget.of(building)
     assert stage.completed_target(refined_candidate(building, grow_model_px=1), target) is target
+
+
+def test_the_opening_read_near_the_added_pixels_is_the_whole_images():
+    """`opened` works on the added pixels' neighbourhood only: the same pixels as OpenCV's opening of the
+    whole image, for blobs of any size at the image's edges and far from them, and for none at all."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        height, width = rng.integers(4, 90, 2)
+        added = np.zeros((height, width), dtype=np.uint8)
+        for _ in range(rng.integers(0, 4)):
+            y, x = rng.integers(0, height), rng.integers(0, width)
+            added[max(0, y - rng.integers(0, 25)): y + rng.integers(1, 25),
+                  max(0, x - rng.integers(0, 25)): x + rng.integers(1, 25)] = 1
+        added &= (rng.random((height, width)) > 0.1).astype(np.uint8)  # ragged edges, holes
+        radius = int(rng.integers(1, 8))
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        np.testing.assert_array_equal(stage.opened(added, disc, radius),
+                                      cv2.morphologyEx(added, cv2.MORPH_OPEN, disc) > 0)

@@ -8,7 +8,7 @@ import pytest
 
 from cuboidtrain.fit.cuboid import FROM_HEAT_MAPS, FROM_OUTLINE, FitStart, outline_start
 from cuboidtrain.geometry.camera_params import project, rotation_vector
-from cuboidtrain.geometry.edge_lines import corners_from_edges, edge_lines, outline_polygon
+from cuboidtrain.geometry.edge_lines import corners_from_edges, cracks, edge_lines, outline_polygon, windowed
 from cuboidtrain.geometry.mask_fit import fit_mask
 from cuboidtrain.geometry.outline import MaskTarget
 from shared.camera import rotation
@@ -186,3 +186,19 @@ def test_a_twobox_start_is_left_to_the_heat_maps():
     assert outline_start(start, mask, twobox, model_scale=0.25) is start
     assert start.interior == FROM_HEAT_MAPS
 
+
+
+def test_the_cracks_of_a_window_picked_from_the_whole_masks_are_those_found_in_it():
+    """`windowed` picks from a mask's cracks those `cracks(mask, window)` finds, in its order: windows
+    inside the mask's frame, across its edges and of one pixel's width."""
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        height, width = rng.integers(3, 60, 2)
+        mask = rng.random((height, width)) > rng.uniform(0.2, 0.8)
+        left, right = np.sort(rng.integers(0, width + 1, 2))
+        top, bottom = np.sort(rng.integers(0, height + 1, 2))
+        if left == right or top == bottom:
+            continue
+        found, picked = cracks(mask, (left, top, right, bottom)), windowed(*cracks(mask), (left, top, right, bottom))
+        np.testing.assert_array_equal(picked[0], found[0])
+        np.testing.assert_array_equal(picked[1], found[1])

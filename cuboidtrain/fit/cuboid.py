@@ -146,7 +146,7 @@ def fit_candidates(candidates: Sequence[Candidate], masks: Sequence[np.ndarray |
     for name in dict.fromkeys(c.shape for c in candidates):
         batch = [i for i, c in enumerate(candidates) if c.shape == name]
         starts = [outline_start(fit_start(candidates[i], targets[i], completion), targets[i].mask, get_shape(name),
-                                candidates[i].framing.scale) for i in batch]
+                                candidates[i].framing.scale, targets[i].cracks) for i in batch]
         fits = _solve(starts, get_shape(name), optimizer, [known[i] for i in batch], plausible, reach)
         for i, fit, start in zip(batch, fits, starts):
             fitted[i] = settled(fit, start, targets[i].sdf, known[i])
@@ -167,13 +167,21 @@ def settled(fit: CuboidFit, start: FitStart, sdf: np.ndarray, known: KnownCamera
 @dataclass(frozen=True)
 class FirstCuboid:
     """One candidate's cuboid fitted from its first start alone (`first_cuboid`), and what a restart
-    goes on from (`reached`): the Fitter restarts a class only where the choice needs it."""
+    goes on from (`reached`): the Fitter restarts a class only where the choice needs it, and gives the
+    error bars only to the class it chose (`with_error_bars`: the choice reads none)."""
 
-    cuboid: FittedCuboid | NoCuboid
+    cuboid: FittedCuboid | NoCuboid  # the LM's without its error bars (spread None): `with_error_bars`
     start: FitStart
     sdf: np.ndarray  # the input's signed distance field (`corner_scores`)
     known: KnownCamera | None
     first: FirstFits | None  # the LM's first fit; None: the soft optimiser's, never restarted
+
+    def with_error_bars(self) -> FittedCuboid | NoCuboid:
+        """`cuboid` with its error bars, as `mask_fit.finished` gives them (the soft optimiser's has its own)."""
+        if self.first is None or isinstance(self.cuboid, NoCuboid):
+            return self.cuboid
+        fit = mask_fit.with_error_bars(self.first, 0, self.first.answers[0], self.cuboid.fit)
+        return replace(self.cuboid, fit=fit)
 
     def reached(self, reach: float) -> FittedCuboid | NoCuboid:
         """The cuboid of a clean mask (`stopped_short` said so) restarted where it stopped short of its
@@ -186,16 +194,18 @@ class FirstCuboid:
 def first_cuboid(candidate: Candidate, target: MaskTarget, optimizer: str = "lm", known: KnownCamera | None = None,
                  plausible: bool = False) -> FirstCuboid:
     """`fit_candidates` for one candidate (the input's `target`, its completion, its outline start), from
-    its first start alone (reach 0: no restart), kept for `FirstCuboid.reached`."""
+    its first start alone (reach 0: no restart), kept for `FirstCuboid.reached`; without its error bars
+    (`FirstCuboid.with_error_bars`)."""
     if candidate.framing is None:
         raise ValueError("a cuboid fit needs the candidate's framing: the map back to the input's pixels")
     shape = get_shape(candidate.shape)
-    start = outline_start(fit_start(candidate, target), target.mask, shape, candidate.framing.scale)
+    start = outline_start(fit_start(candidate, target), target.mask, shape, candidate.framing.scale, target.cracks)
     if optimizer == "soft":
         [fit] = _solve([start], shape, optimizer, [known])
         return FirstCuboid(settled(fit, start, target.sdf, known), start, target.sdf, known, None)
     first = _first_fits([start], shape, [known], plausible)
-    return FirstCuboid(settled(finished(first, 0.0)[0], start, target.sdf, known), start, target.sdf, known, first)
+    fit = finished(first, 0.0, error_bars=False)[0]  # no restart (reach 0), no error bars yet
+    return FirstCuboid(settled(fit, start, target.sdf, known), start, target.sdf, known, first)
 
 
 def _solve(starts: Sequence[FitStart], shape: Shape, optimizer: str,
@@ -242,17 +252,19 @@ def fit_start(candidate: Candidate, target: MaskTarget, completion: bool = True)
                     ratio_prior(candidate))
 
 
-def outline_start(start: FitStart, mask: np.ndarray, shape: Shape, model_scale: float) -> FitStart:
+def outline_start(start: FitStart, mask: np.ndarray, shape: Shape, model_scale: float,
+                  every: tuple[np.ndarray, np.ndarray] | None = None) -> FitStart:
     """`start` with each corner its box's outline fixes moved toward where the input mask's edge lines
     put it (`edge_lines.corners_from_edges`, the outline split by the networks' corners' polygon):
     the two estimates weighed by their variances, the networks' NETWORK_SD_MODEL_PX model px
     (`model_scale`: model px a input px). The fit starts from and is pulled toward the result, so
     that where the outline fixes the interior, its geometry leads. Boxes only (a twobox's outline
-    is no convex polygon), and outlines no rougher than ROUGH_OUTLINE_PX."""
+    is no convex polygon), and outlines no rougher than ROUGH_OUTLINE_PX. `every`: the mask's cracks, where
+    the caller has them (`MaskTarget.cracks`)."""
     if len(shape.parts) != 1:
         return start
     corners = start.corners
-    edges = edge_lines(mask, corners, outline_polygon(corners))
+    edges = edge_lines(mask, corners, outline_polygon(corners), every)
     if not np.median([line.rms_px if line is not None else np.inf for line in edges.lines]) <= ROUGH_OUTLINE_PX:
         return start
     fixed = corners_from_edges(edges, shape)

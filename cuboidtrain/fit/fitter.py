@@ -17,6 +17,7 @@ for `eval`'s batches as for one framed mask. `report` and `localize` fit through
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -225,8 +226,8 @@ class Fitter:
         its keypoints mapped back to the input's pixels; with `cuboid`, each candidate's cuboid
         fitted to the component, judged by its own silhouette, and its projection kept."""
         candidates = []
-        for model in self.models:
-            candidates.append(self.fit_framed(model, *self.framed(model, mask), oracle))
+        for model in self.models:  # with `cuboid` each is judged by its cuboid's IoU (`choose_cuboid`), not its own
+            candidates.append(self.fit_framed(model, *self.framed(model, mask), oracle, judged=not self.options.cuboid))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
         # First without restarts, then only where the chosen class stopped short (`reached`)
         firsts = {c.shape: self.first_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
@@ -241,6 +242,8 @@ class Fitter:
         else:
             best = choose(candidates)
         cuboid = cuboids.get(best.shape)
+        if cuboid is not None and cuboid is firsts[best.shape].cuboid:  # a first fit's: its error bars, for it alone
+            cuboid = firsts[best.shape].with_error_bars()
         keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
         scores = assess(best, mask, keypoints)
         trust = None if cuboid is None else judge(signs(best, cuboid, mask, [cuboids[c.shape].fit.iou for c in candidates
@@ -258,17 +261,18 @@ class Fitter:
         return frame(mask, model.size, self.options.margin, model.grey_input)
 
     def fit_framed(self, model: CuboidNet, framed_mask: np.ndarray, framing: Framing | None = None,
-                   oracle: Oracle | None = None) -> Candidate:
+                   oracle: Oracle | None = None, judged: bool = True) -> Candidate:
         """One framed (S, S) mask at model resolution, bool or grey (`masks.levels`) -> its Candidate:
         keypoints (N, 2) model px, ratios, confidence, refine passes, and what an explanation draws
         (refined, heatmaps). `framing`, the map back to the input's pixels, is carried along
-        (`oracle`: `predict`'s)."""
+        (`oracle`: `predict`'s); `judged=False`: its confidence left NaN, for a caller that judges it
+        otherwise (the cuboid's IoU: a rasterisation that buys nothing there)."""
         if framed_mask.shape != (model.size, model.size):
             raise ValueError(f"framed mask {framed_mask.shape}: expected ({model.size}, {model.size}) for this model")
         x1 = torch.from_numpy(signed(framed_mask))[None, None]
         with one_thread(self.device):  # the same numbers however many threads this machine gives torch
             out = self.predict(model, x1, oracle, framing)
-        return self.candidate(model, out, 0, framed_mask, framing)
+        return self.candidate(model, out, 0, framed_mask, framing, judged)
 
     def fit_cuboids(self, candidates: Sequence[Candidate], masks: Sequence[np.ndarray | MaskTarget],
                     known: Sequence[KnownCamera | None] | None = None,
@@ -308,10 +312,11 @@ class Fitter:
         return again
 
     def candidate(self, model: CuboidNet, out: ChainOutput, row: int, framed_mask: np.ndarray,
-                  framing: Framing | None = None) -> Candidate:
+                  framing: Framing | None = None, judged: bool = True) -> Candidate:
         """Row `row` of the chain's output for a batch of framed masks (`predict`) -> its Candidate,
         as `fit_framed` makes it for one mask (`eval` runs the networks batched, then fits each
-        row's cuboid from here). NonFiniteFit where that row's output is not finite."""
+        row's cuboid from here). NonFiniteFit where that row's output is not finite; `judged=False`:
+        no confidence (NaN)."""
         keypoints = out.keypoints[row].double().cpu().numpy()
         geometry = get_shape(model.shape)
         if not (np.isfinite(keypoints).all() and torch.isfinite(out.ratios[row]).all()):
@@ -321,7 +326,7 @@ class Fitter:
             shape=model.shape,
             keypoints=keypoints,
             ratios=geometry.ratio_dict(out.ratios[row].cpu().tolist()),
-            confidence=confidence(geometry, keypoints, framed_mask >= 0.5),  # the object: half covered or more
+            confidence=confidence(geometry, keypoints, framed_mask >= 0.5) if judged else math.nan,  # half covered or more
             refine_steps=out.refine_steps,
             refine_converged=out.refine_converged,
             refined=out.refined[row, 0].float().cpu().numpy(),

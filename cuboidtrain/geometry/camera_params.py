@@ -27,7 +27,7 @@ scene and shape): projection equal to the samples' keypoints to 3e-12 px.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
@@ -103,10 +103,13 @@ def _rodrigues(rotvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     squared_length = (rotvec * rotvec).sum(1)
     theta = np.sqrt(squared_length)
     small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    squared = theta**2
-    a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
-    b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
+    if small.any():
+        safe = np.where(small, 1.0, theta)
+        squared = theta**2
+        a = np.where(small, 1.0 - squared / 6, np.sin(theta) / safe)
+        b = np.where(small, 0.5 - squared / 24, (1 - np.cos(theta)) / safe**2)
+    else:  # no rotation near 0 (nearly always): the same values, without the series' arrays
+        a, b = np.sin(theta) / theta, (1 - np.cos(theta)) / theta**2
     k = _skew(rotvec)
     return EYE3 + a[:, None, None] * k + b[:, None, None] * (k @ k), squared_length, k
 
@@ -144,6 +147,13 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     """(B, N, 2) image points and their analytic Jacobian (B, N, 2, P) with respect to (B, P)
     params: the solver's derivatives, exact where forward differences lose half the digits
     (flat valleys of near-frontal views need them) and one evaluation instead of P + 1."""
+    image, jacobian = project_deferred(params, shape, mirror)
+    return image, jacobian()
+
+
+def project_deferred(params: np.ndarray, shape: Shape, mirror) -> tuple[np.ndarray, Callable[[], np.ndarray]]:
+    """`project_with_jacobian`'s image points, and a function of no arguments that computes its Jacobian
+    from what they left: for a solver that needs it only for the steps it takes (the same numbers)."""
     params = np.asarray(params)
     params = params[None] if params.ndim == 1 else params
     b, p = params.shape
@@ -156,27 +166,31 @@ def project_with_jacobian(params: np.ndarray, shape: Shape, mirror) -> tuple[np.
     scale = s / den  # d u / d (R X)'s x, y
     offset = (rotated[..., :2] + params[:, None, 5:7]) * scale[..., None]  # u - c
     image = offset + params[:, None, 9:11]
-    jac = np.zeros((b, objects.shape[1], 2, p))
-    # d u / d (R X): s / den on x, y; -(u - c) k / den on z.
-    d_rotated = np.zeros((b, objects.shape[1], 2, 3))
-    d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = scale
-    d_rotated[..., 2] = -offset * (k / den)[..., None]
-    d_object = d_rotated @ rot[:, None]  # (B, N, 2, 3): through R
-    # Object coordinates: every x scales with w (log w), every z with d (log d).
-    jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
-    jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
-    jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot, squared_length, skew)
-    jac[..., 0, 5] = jac[..., 1, 6] = scale
-    jac[..., 7] = offset
-    jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
-    jac[..., 0, 9] = jac[..., 1, 10] = 1.0
-    if len(shape.parts) == 2:
-        sign = np.where(mirror, -1.0, 1.0)[:, None]
-        w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
-        middle, top_left = _split_corners(shape)
-        jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
-        jac[..., 12] = d_object[..., 1] * np.where(top_left, -h_left, 0.0)[..., None]
-    return image, jac
+
+    def jacobian() -> np.ndarray:
+        jac = np.zeros((b, objects.shape[1], 2, p))
+        # d u / d (R X): s / den on x, y; -(u - c) k / den on z.
+        d_rotated = np.zeros((b, objects.shape[1], 2, 3))
+        d_rotated[..., 0, 0] = d_rotated[..., 1, 1] = scale
+        d_rotated[..., 2] = -offset * (k / den)[..., None]
+        d_object = d_rotated @ rot[:, None]  # (B, N, 2, 3): through R
+        # Object coordinates: every x scales with w (log w), every z with d (log d).
+        jac[..., 0] = d_object[..., 0] * objects[..., None, 0]
+        jac[..., 1] = d_object[..., 2] * objects[..., None, 2]
+        jac[..., 2:5] = _rotation_columns(d_object, params[:, 2:5], objects, rot, squared_length, skew)
+        jac[..., 0, 5] = jac[..., 1, 6] = scale
+        jac[..., 7] = offset
+        jac[..., 8] = -offset * (rotated[..., 2] / den)[..., None]
+        jac[..., 0, 9] = jac[..., 1, 10] = 1.0
+        if len(shape.parts) == 2:
+            sign = np.where(mirror, -1.0, 1.0)[:, None]
+            w, h_left = np.exp(params[:, 0])[:, None], np.exp(params[:, 12])[:, None]
+            middle, top_left = _split_corners(shape)
+            jac[..., 11] = d_object[..., 0] * np.where(middle, -w * sign, 0.0)[..., None]
+            jac[..., 12] = d_object[..., 1] * np.where(top_left, -h_left, 0.0)[..., None]
+        return jac
+
+    return image, jacobian
 
 
 @lru_cache(maxsize=None)
@@ -204,9 +218,10 @@ def _rotation_columns(d_object: np.ndarray, rotvec: np.ndarray, objects: np.ndar
     (where R is I): d u / d w = -(d u / d X) [X]x M, M the bracket over |w|^2 (I at w = 0), two
     small products a point instead of three."""
     small = theta2 < 1e-16
-    safe = np.where(small, 1.0, theta2)
+    near_zero = small.any()
+    safe = np.where(small, 1.0, theta2) if near_zero else theta2
     inner = (rotvec[:, :, None] * rotvec[:, None, :] + (rot.transpose(0, 2, 1) - EYE3) @ skew_w) / safe[:, None, None]
-    if small.any():
+    if near_zero:
         inner[small] = EYE3
     return -(d_object @ _skew(objects)) @ inner[:, None]
 
@@ -436,7 +451,9 @@ def describe(camera: CameraParams, residual_px: float, iou: float | None = None,
              unexplained: float | None = None) -> CuboidFit:
     """The record's view of fitted parameters: named keypoints, ratios, angles, intrinsics, flags."""
     shape = camera.shape
-    camera = CameraParams(shape, *canonical(camera.vector, camera.mirror))
+    vector, mirror = canonical(camera.vector, camera.mirror)
+    if vector is not camera.vector:  # the k >= 0 twin; else the camera itself, its projection computed once
+        camera = CameraParams(shape, vector, mirror)
     order = camera.naming()
     pinhole = camera.pinhole()
     if pinhole is None:

@@ -185,29 +185,32 @@ class PlausibleRows:
                    np.array([k is None or k.principal_px is None for k in known], dtype=np.float64))
 
     def terms(self, x: np.ndarray, owner: np.ndarray, rotated_z: np.ndarray | None,
-              derivatives: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+              derivatives: bool = True, front: bool | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """(B, 6 or 7) residuals of params (B, P) of inputs `owner` (B,) whose rotated corners have
-        depths `rotated_z` (B, N) (object centre at 0, in height units; None: no in-front row), and
-        their Jacobian. The in-front row is the nearest corner's; its derivative follows k only
-        (the corners' depths held): enough to push a camera out of the building, and LM takes no
-        step that raises the cost."""
+        depths `rotated_z` (B, N) (object centre at 0, in height units; None: no in-front row, or with
+        `front`, no corner near the camera: `CameraTerms._depths`), and their Jacobian. The in-front row
+        is the nearest corner's; its derivative follows k only (the corners' depths held): enough to push
+        a camera out of the building, and LM takes no step that raises the cost."""
         w, table = self.stiffness, self._table.take(owner, axis=0)  # take: a quarter of indexing's cost
         side, centre, free_focal, free_principal = table[:, 0], table[:, 1:3], table[:, 3], table[:, 4]
         # |k|: a hypothesis with k < 0 is the depth-reversed twin of one with k > 0 (`camera.canonical`).
         per_k = side / np.exp(x[:, 7])  # d kappa / d |k|
         kappa = per_k * np.abs(x[:, 8])  # the frame's side over the focal length
         offset = (x[:, 9:11] - centre) / side[:, None]
-        front = rotated_z is not None
+        front = rotated_z is not None if front is None else front
         values = np.empty((len(x), 6 + front))
         short = free_focal * (kappa > 1 / MIN_FOCAL_SIDES)
         values[:, 0] = w * short * (MIN_FOCAL_SIDES * kappa - 1)
         distance = np.abs(offset)
         outside = free_principal[:, None] * (distance > PRINCIPAL_SIDES)
         values[:, 1:3] = w * outside * (distance - PRINCIPAL_SIDES)
-        if front:  # the nearest corner: 1 + k z is the same for both twins (each has z and k negated)
+        near = front and rotated_z is not None
+        if near:  # the nearest corner: 1 + k z is the same for both twins (each has z and k negated)
             share = 1.0 + (x[:, 8, None] * rotated_z).min(1)
             behind = share < MIN_DEPTH_SHARE
             values[:, 3] = w * behind * (MIN_DEPTH_SHARE - share) / MIN_DEPTH_SHARE
+        elif front:  # every corner far in front: what the row above gives at z = 0 (0 x -0.9 / 0.1), and a 0 derivative
+            values[:, 3] = -0.0
         values[:, -3] = table[:, 5] * (kappa - TYPICAL[0])  # the typical camera's pulls: `_table`
         values[:, -2:] = table[:, 7:9] * (offset - TYPICAL[1:])
         if not derivatives:
@@ -216,7 +219,7 @@ class PlausibleRows:
         d_kappa = per_k * np.sign(x[:, 8])
         jac[:, 0, 7], jac[:, 0, 8] = -w * MIN_FOCAL_SIDES * short * kappa, w * MIN_FOCAL_SIDES * short * d_kappa
         jac[:, 1, 9], jac[:, 2, 10] = (w * outside * np.sign(offset) / side[:, None]).T
-        if front:  # the nearest corner's z is (share - 1) / k where it is behind (k is then not 0)
+        if near:  # the nearest corner's z is (share - 1) / k where it is behind (k is then not 0)
             jac[:, 3, 8] = np.where(behind, -w * (share - 1) / np.where(behind, x[:, 8], 1.0) / MIN_DEPTH_SHARE, 0.0)
         jac[:, -3, 7], jac[:, -3, 8] = table[:, 6] * kappa, table[:, 5] * d_kappa
         jac[:, -2, 9], jac[:, -1, 10] = table[:, 9:11].T
@@ -265,22 +268,24 @@ class CameraTerms:
             parts.append(self.held.terms(x, owner, derivatives))
         if self.plausible is not None:
             depths = self._depths(x, mirrors) if self.in_front else None
-            parts.append(self.plausible.terms(x, owner, depths, derivatives))
+            parts.append(self.plausible.terms(x, owner, depths, derivatives, self.in_front))
         if len(parts) == 1:  # the plausible bounds alone, most often: no copy
             return parts[0]
         values = np.concatenate([v for v, _ in parts], axis=1)
         return values, (np.concatenate([j for _, j in parts], axis=1) if derivatives else None)
 
-    def _depths(self, x: np.ndarray, mirrors: np.ndarray) -> np.ndarray:
+    def _depths(self, x: np.ndarray, mirrors: np.ndarray) -> np.ndarray | None:
         """(B, N) the corners' depths about the box centre (height units), only where a corner could
         be near the camera: no corner is further from the centre than the box's half-diagonal, so
-        where |k| times that leaves every corner past MIN_DEPTH_SHARE, zeros do (and cost nothing)."""
+        where |k| times that leaves every corner past MIN_DEPTH_SHARE, zeros do (and cost nothing);
+        None where no row's could (most steps: `PlausibleRows.terms` then writes the row as zeros give it)."""
         extents = np.exp(x[:, :2])  # width, depth; height 1 (a twobox's LEFT part: p12, below)
         reach = 0.5 * np.sqrt((extents**2).sum(1) + np.maximum(1.0, np.exp(x[:, 12]) if x.shape[1] > 12 else 1.0) ** 2)
-        near = np.flatnonzero(1.0 - np.abs(x[:, 8]) * reach * 2.0 < MIN_DEPTH_SHARE)  # x2: the twobox's taller part
+        near = (1.0 - np.abs(x[:, 8]) * reach * 2.0 < MIN_DEPTH_SHARE).nonzero()[0]  # x2: the twobox's taller part
+        if not len(near):
+            return None
         depths = np.zeros((len(x), self.shape.num_keypoints))
-        if len(near):
-            depths[near] = rotated_points(x[near], self.shape, mirrors[near])[..., 2]
+        depths[near] = rotated_points(x[near], self.shape, mirrors[near])[..., 2]
         return depths
 
     def subset(self, rows: np.ndarray) -> "CameraTerms":

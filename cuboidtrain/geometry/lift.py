@@ -52,7 +52,8 @@ def levenberg_marquardt(residual, x0: np.ndarray, iterations: int = 50, step: fl
     """Minimise 0.5 |residual(x, rows)|^2 for every row of x0 at once.
 
     `residual(x, rows)` maps (B', P) params and (B',) hypothesis indices to (B', M) residuals.
-    `jacobian(x, rows)`, when given, returns the residuals and their Jacobian (B', M, P);
+    `jacobian(x, rows)`, when given, returns the residuals and their Jacobian (B', M, P), or a function
+    of no arguments that computes it (called only for a trial step that some row takes);
     without it, one call evaluates every hypothesis and every forward-difference column
     (B * (P + 1) rows): numpy's per-call cost is paid once per iteration, not per column.
     Every hypothesis stops once one reaches a cost of `enough` (the lift's exact match); with
@@ -93,7 +94,7 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
 
     if trial_jacobian:
         r, jac = jacobian(x, rows)
-        normal_equations(rows, r, jac)
+        normal_equations(rows, r, _computed(jac))
     else:
         r = residual(x, rows)
     cost, count = 0.5 * (r**2).sum(1), r.shape[1]
@@ -106,18 +107,17 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
             stale[redo] = False
         # Each live row's arrays read once a step, as views while every row is live (most steps): the
         # solver's numpy calls, not its rows, are its cost.
-        live = np.flatnonzero(active)
+        live = active.nonzero()[0]  # np.flatnonzero's and np.diagonal's answers, without their wrappers
         at = slice(None) if len(live) == b else live
         jtj_live, grad_live, damping_live, cost_live = jtj[at], grad[at], damping[at], cost[at]
-        scaled = damping_live[:, None] * (np.diagonal(jtj_live, axis1=1, axis2=2) + 1e-9)
+        scaled = damping_live[:, None] * (jtj_live.diagonal(0, 1, 2) + 1e-9)
         delta = -np.linalg.solve(jtj_live + scaled[:, :, None] * eye, grad_live[:, :, None])[..., 0]
         trial = x[at] + delta
         if trial_jacobian:  # the trial's Jacobian with its residuals: kept if the step is taken
             trial_r, trial_jac = jacobian(trial, live)
         else:
             trial_r = residual(trial, live)
-        new_cost = 0.5 * (trial_r**2).sum(1)
-        new_cost[np.isnan(new_cost)] = np.inf  # np.nan_to_num's, at a fifth of its cost a call
+        new_cost = 0.5 * (trial_r**2).sum(1)  # NaN for a diverged trial: its gain is NaN, not > 0, and it is rejected
         gain = cost_live - new_cost
         # Nielsen's damping update (Madsen, Nielsen & Tingleff 2004, sec. 3.2): by how well the
         # linear model predicted the gain; fewer rejected steps than a fixed /3, x4.
@@ -128,7 +128,7 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         taken, kept = (at, slice(None)) if every else (live[better], better)
         x[taken] = trial[kept]
         if trial_jacobian:
-            normal_equations(taken, trial_r[kept], trial_jac[kept])
+            normal_equations(taken, trial_r[kept], _computed(trial_jac)[kept])
         else:
             stale[taken] = True
         shrunk = damping_live * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3)
@@ -149,6 +149,11 @@ def _solve(residual, jacobian, x0: np.ndarray, iterations: int, tolerance: float
         redo = np.flatnonzero(stale)
         normal_equations(redo, *jacobian(x[redo], redo))
     return Solved(x, cost, jtj, count)
+
+
+def _computed(jacobian) -> np.ndarray:
+    """A Jacobian, or the one a deferred Jacobian (a function of no arguments) computes."""
+    return jacobian() if callable(jacobian) else jacobian
 
 
 def _stop_groups_that_reached(active: np.ndarray, cost: np.ndarray, enough: float, groups: np.ndarray | None) -> None:

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from cuboidtrain.geometry.camera_params import (CameraParams, CuboidFit, Evidence, describe, log_ratio_jacobian,
-                                      outline_corners, project, project_with_jacobian, ratios, rotation_matrices,
+                                      outline_corners, project, project_deferred, ratios, rotation_matrices,
                                       rotation_vector)
 from cuboidtrain.geometry.edge_lines import outline_polygon, signed_area
 from cuboidtrain.geometry.intrinsics import CameraTerms, KnownCamera
@@ -172,19 +172,25 @@ def first_fits(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray,
                      tuple(lifted.params[lifted.owner == k] for k in range(len(targets))), iterations, answers, fits)
 
 
-def finished(first: FirstFits, reach: float | None = None, clean: Sequence[bool] | None = None) -> list[CuboidFit]:
+def finished(first: FirstFits, reach: float | None = None, clean: Sequence[bool] | None = None,
+             error_bars: bool = True) -> list[CuboidFit]:
     """The first fits, each that stopped short of a clean mask's silhouette restarted (`reach_silhouette`),
-    with their error bars (`uncertainty.spread`)."""
+    with their error bars (`uncertainty.spread`; `error_bars=False`: none yet, `with_error_bars`)."""
     answers, fits = reach_silhouette(first, reach, clean)
-    known = first.known
-    for k, (target, answer) in enumerate(zip(first.targets, answers)):
-        camera = answer.camera(first.shape)
-        focal_given = known is not None and known[k] is not None and known[k].focal_held  # EXIF's: a prior
-        bars = spread(camera, 2 * answer.cost, answer.solved.normal[answer.row], answer.solved.residuals, focal_given,
-                      evidence(camera, fits[k].residual_px, target, first.networks[k], first.confidence[k],
-                               first.starts[k]))
-        fits[k] = replace(fits[k], spread=bars)
-    return fits
+    if not error_bars:
+        return fits
+    return [with_error_bars(first, k, answer, fit) for k, (answer, fit) in enumerate(zip(answers, fits))]
+
+
+def with_error_bars(first: FirstFits, k: int, answer: Solution, fit: CuboidFit) -> CuboidFit:
+    """Mask `k`'s `fit` (its LM `answer`, on `first`'s objective) with its error bars (`uncertainty.spread`):
+    `finished`'s, or a caller's that needs them for one fit only (`fit.cuboid.FirstCuboid.with_error_bars`)."""
+    known, camera = first.known, answer.camera(first.shape)
+    focal_given = known is not None and known[k] is not None and known[k].focal_held  # EXIF's: a prior
+    bars = spread(camera, 2 * answer.cost, answer.solved.normal[answer.row], answer.solved.residuals, focal_given,
+                  evidence(camera, fit.residual_px, first.targets[k], first.networks[k], first.confidence[k],
+                           first.starts[k]))
+    return replace(fit, spread=bars)
 
 
 def cheapest(cost: np.ndarray, chosen: Sequence[np.ndarray]) -> list[int]:
@@ -228,6 +234,8 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
     true cuboid (0.52 px, IoU 1). One kept and still short is restarted again, RESTART_ROUNDS in all.
     `clean`: whether each mask is clean (`polygonal`), where the caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
+    if not any(RESTART_FLOOR <= fit.iou < reach for fit in fits):  # none to restart (reach 0: a first fit's)
+        return answers, fits
     area = [int(target.mask.sum()) for target in first.targets]
     # A mask whose fit misses fewer than RESTART_GAIN_PX of its pixels keeps it whatever a restart finds:
     # most 64 px masks (their fits miss 1.5% of some 1,200 px), none restarted in vain.
@@ -464,40 +472,51 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
     # ratio_names order: depth/height, width/height (per part): each pulled by its own weight.
     # A mask without a prior (the Tabulator's head gave a ratio <= 0) is not anchored: its rows are 0.
     anchored = np.array([p is not None for p in prior_ratios])
+    any_anchored = bool(anchored.any())
     anchor = np.tile([weights.depth_ratio, weights.ratios], len(shape.parts))[None] * anchored[:, None]
     prior = np.array([p if p is not None else np.ones(2 * len(shape.parts)) for p in prior_ratios])
     # What each row reads of its mask, gathered once: a step of every row (most are) reads them as they are.
-    by_row = RowArrays(owner, stacked.outline[owner], stacked.valid[owner], corners[owner], pull[owner],
-                       norm[owner], anchor[owner], prior[owner], stacked.fields.rows(owner),
-                       pull[owner] * norm[owner][..., None])
+    padded = stacked.valid[owner] if not stacked.valid.all() else None  # None: no padding to zero (one mask's)
+    by_row = RowArrays(owner, np.asarray(mirrors), stacked.outline[owner], padded,
+                       corners[owner], pull[owner], norm[owner], anchor[owner], prior[owner],
+                       stacked.fields.rows(owner), pull[owner] * norm[owner][..., None])
 
-    def terms(x, rows, image, derivatives):
-        """The residuals, the silhouette rows' derivatives by image point and the camera rows' Jacobian
-        (each camera row computed once, with its derivatives where they are asked for)."""
-        mine = by_row.of(rows)
-        fit, d_fit = silhouette_terms(image, shape, mine.outline, mine.fields, weights, derivatives, valid=mine.valid)
+    def terms(x, mine, image, derivatives):
+        """The residuals of rows `mine` (`RowArrays.of`), the silhouette rows' derivatives by image point (a
+        function that computes them) and the camera rows' Jacobian (each camera row computed once, with its
+        derivatives where they are asked for)."""
+        fit, d_fit = silhouette_terms(image, shape, mine.outline, mine.fields, weights, derivatives, valid=mine.valid,
+                                      deferred=True)
         pulled = ((image - mine.corners) * mine.pull).reshape(len(x), -1) * mine.norm
-        extents = [mine.anchor * np.log(ratios(x, shape) / mine.prior)] if anchored.any() else []
-        held, d_held = cameras.terms(x, mine.owner, mirrors[rows], derivatives) if cameras is not None else (None, None)
+        extents = [mine.anchor * np.log(ratios(x, shape) / mine.prior)] if any_anchored else []
+        held, d_held = cameras.terms(x, mine.owner, mine.mirrors, derivatives) if cameras is not None else (None, None)
         values = np.concatenate([fit * mine.norm, pulled, *extents, *([] if held is None else [held])], axis=1)
         return values, d_fit, d_held
 
     def residual(x, rows):  # a trial step needs no derivatives: the plain projection
-        return terms(x, rows, project(x, shape, mirrors[rows]), derivatives=False)[0]
+        mine = by_row.of(rows)
+        return terms(x, mine, project(x, shape, mine.mirrors), derivatives=False)[0]
 
     def jacobian(x, rows):
-        mine = by_row.of(rows)
-        image, d_image = project_with_jacobian(x, shape, mirrors[rows])
-        values, d_fit, d_held = terms(x, rows, image, derivatives=True)
-        b, n, p = len(x), shape.num_keypoints, x.shape[1]
-        # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
-        rows_jac = [(d_fit.reshape(b, -1, 2 * n) @ d_image.reshape(b, 2 * n, p)) * mine.norm[..., None],
-                    (d_image * mine.pulled_norm[..., None]).reshape(b, -1, p)]
-        if anchored.any():
-            rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
-        if d_held is not None:
-            rows_jac.append(d_held)
-        return values, np.concatenate(rows_jac, axis=1)
+        """The residuals, and their Jacobian as a function of no arguments: the solver asks for it only where
+        it takes the step (`lift.levenberg_marquardt`; a fifth of the first fits' steps take none)."""
+        mine = by_row.of(rows)  # gathered once for the projection and the terms
+        image, d_image = project_deferred(x, shape, mine.mirrors)
+        values, d_fit, d_held = terms(x, mine, image, derivatives=True)
+
+        def jac() -> np.ndarray:
+            b, n, p = len(x), shape.num_keypoints, x.shape[1]
+            image_jac = d_image()
+            # (B, R, N x 2) @ (B, N x 2, P): numpy's matmul, several times faster than its einsum here
+            rows_jac = [(d_fit().reshape(b, -1, 2 * n) @ image_jac.reshape(b, 2 * n, p)) * mine.norm[..., None],
+                        (image_jac * mine.pulled_norm[..., None]).reshape(b, -1, p)]
+            if any_anchored:
+                rows_jac.append(mine.anchor[:, :, None] * log_ratio_jacobian(x, shape))
+            if d_held is not None:
+                rows_jac.append(d_held)
+            return np.concatenate(rows_jac, axis=1)
+
+        return values, jac
 
     return residual, jacobian
 
@@ -505,12 +524,13 @@ def _objective(stacked: StackedTargets, shape: Shape, corners: np.ndarray, confi
 @dataclass(frozen=True)
 class RowArrays:
     """What the objective's rows (`owner` (B,): each one's mask) read of their masks, one row each: the
-    outline and its padding, the corners and their pull, the norm, the extents' anchor and prior, the field,
-    and the pull times the norm (the corner rows' Jacobian's factor)."""
+    mirror flag, the outline and its padding, the corners and their pull, the norm, the extents' anchor and
+    prior, the field, and the pull times the norm (the corner rows' Jacobian's factor)."""
 
     owner: np.ndarray
+    mirrors: np.ndarray
     outline: np.ndarray
-    valid: np.ndarray
+    valid: np.ndarray | None  # None: every outline point real (no padding)
     corners: np.ndarray
     pull: np.ndarray
     norm: np.ndarray
@@ -524,14 +544,17 @@ class RowArrays:
         returned as they are)."""
         if len(rows) == len(self.owner):
             return self
-        return RowArrays(*(v[rows] for v in (self.owner, self.outline, self.valid, self.corners, self.pull, self.norm,
-                                             self.anchor, self.prior)), self.fields.rows(rows), self.pulled_norm[rows])
+        owner, mirrors, outline, corners, pull, norm, anchor, prior = (
+            v[rows] for v in (self.owner, self.mirrors, self.outline, self.corners, self.pull, self.norm, self.anchor,
+                              self.prior))
+        return RowArrays(owner, mirrors, outline, None if self.valid is None else self.valid[rows], corners, pull, norm,
+                         anchor, prior, self.fields.rows(rows), self.pulled_norm[rows])
 
 
 def described(target: MaskTarget, shape: Shape, camera: CameraParams, weights: MaskFitWeights) -> CuboidFit:
     """The record's view of one mask's best camera, with its outline residual and IoU (whatever
     optimiser found it)."""
-    image = project(camera.vector[None], shape, np.array([camera.mirror]))
+    image = camera.keypoints()[None]  # computed once for this and `describe`
     outline_rms = float(np.sqrt(np.mean(silhouette_terms(image, shape, target.outline, target.sdf, weights)[0] ** 2)))
-    iou, unexplained = coverage(shape, image[0], target.mask)  # image[0]: camera.keypoints()
+    iou, unexplained = coverage(shape, image[0], target.mask)
     return describe(camera, outline_rms, iou, unexplained)

@@ -6,6 +6,7 @@ minimises them.
 """
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,12 +42,12 @@ class MaskFitWeights:
     max_boundary_points: int = 120
 
 
-def boundary_points(mask: np.ndarray, limit: int) -> np.ndarray:
+def boundary_points(mask: np.ndarray, limit: int, every: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(M, 2) points on the mask's outline, at most `limit` of them, evenly taken: the midpoints
     between 4-neighbouring pixel centres of which one is in and one out (`edge_lines.cracks`). Under
     the pixel-centre rule the true outline crosses each such crack within half a pixel, unbiased,
-    unlike contour pixel centres (0.5 px inside)."""
-    points = cracks(mask)[0]
+    unlike contour pixel centres (0.5 px inside). `every`: the mask's `cracks`, where the caller has them."""
+    points = (cracks(mask) if every is None else every)[0]
     if len(points) > limit:
         points = points[np.linspace(0, len(points) - 1, limit).astype(int)]
     return points
@@ -243,19 +244,21 @@ def _weighted(d: np.ndarray, positive: float, negative: float, weights: MaskFitW
     tolerant, tolerant_slope = _tolerant(d, weights.robust_px, derivatives)
     above = d > 0
     if tolerant_when_positive:
-        value = np.where(above, positive * tolerant, negative * d)
+        value = np.where(above, positive * tolerant, d if negative == 1.0 else negative * d)  # x 1: exact, no call
         slope = np.where(above, positive * tolerant_slope, negative) if derivatives else None
     else:
-        value = np.where(above, positive * d, negative * tolerant)
+        value = np.where(above, d if positive == 1.0 else positive * d, negative * tolerant)
         slope = np.where(above, positive, negative * tolerant_slope) if derivatives else None
     return value, slope
 
 
 def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: np.ndarray | Fields,
                      weights: MaskFitWeights, derivatives: bool = False,
-                     valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+                     valid: np.ndarray | None = None, deferred: bool = False) -> tuple[np.ndarray, object]:
     """(B, R) residuals of how well silhouettes with corners `image` (B, N, 2) explain the mask,
-    and, if asked, their derivatives with respect to the corners (B, R, N, 2): each row
+    and, if asked, their derivatives with respect to the corners (B, R, N, 2) (`deferred`: a function
+    of no arguments that computes them from what the residuals left, for a solver that needs them
+    only for the steps it takes: `lift.levenberg_marquardt`): each row
     touches the two corners of one edge (which edge is active is held fixed: the objective
     is piecewise smooth). One mask's `outline` (M, 2) and `sdf` (H, W), or each row's
     (a batch of masks): outline points (B, M, 2), padded where `valid` (B, M) is False (their
@@ -275,7 +278,13 @@ def silhouette_terms(image: np.ndarray, shape: Shape, outline: np.ndarray, sdf: 
     outline_value, outline_gradient = _outline_rows(outline, valid, hull, ends, lengths, n, weights, derivatives)
     edge_value, edge_gradient = _edge_rows(hull, ends, lengths, Fields.of(sdf), n, weights, derivatives)
     residuals = np.concatenate([outline_value, edge_value], axis=1)
-    return residuals, (np.concatenate([outline_gradient, edge_gradient], axis=1) if derivatives else None)
+    if not derivatives:
+        return residuals, None
+
+    def gradient() -> np.ndarray:
+        return np.concatenate([outline_gradient(), edge_gradient()], axis=1)
+
+    return residuals, (gradient if deferred else gradient())
 
 
 @lru_cache(maxsize=None)
@@ -296,9 +305,9 @@ def part_corners(shape: Shape) -> np.ndarray:
 
 def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges, ends: np.ndarray,
                   lengths: np.ndarray, n: int, weights: MaskFitWeights,
-                  derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+                  derivatives: bool) -> tuple[np.ndarray, object]:
     """The mask's outline points against the nearest part's silhouette: (B, M) residuals, and
-    their derivatives (B, M, N, 2)."""
+    (`derivatives`) a function of no arguments giving their derivatives (B, M, N, 2)."""
     offsets = polygon_offsets(outline if outline.ndim == 2 else outline[:, None], hull)  # (B, P, M, E)
     per_part = largest_over_edges(offsets)  # (B, P, M)
     one_part = per_part.shape[1] == 1  # a box: its only part is the nearest
@@ -308,24 +317,44 @@ def _outline_rows(outline: np.ndarray, valid: np.ndarray | None, hull: HullEdges
         value = np.where(valid, value, 0.0)
     if not derivatives:
         return value, None
-    if valid is not None:
-        slope = np.where(valid, slope, 0.0)
-    b, m = dist.shape
+
+    def derivative() -> np.ndarray:
+        slopes = slope if valid is None else np.where(valid, slope, 0.0)
+        b, m = dist.shape
+        rows, points, row = _point_rows(b, m, n)
+        part = 0 if one_part else per_part.argmin(1)  # (B, M)
+        # (B, M): the edge slot that gives the distance
+        edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
+        # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
+        at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
+        start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
+                                            for v in (hull.start, hull.direction, hull.normal, ends))
+        d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
+        d = np.zeros((b, m, n, 2))
+        flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
+        flat[row + corner[..., 0]] = slopes[..., None] * d_start
+        flat[row + corner[..., 1]] += slopes[..., None] * d_end
+        return d
+
+    return value, derivative
+
+
+@lru_cache(maxsize=64)
+def _point_rows(b: int, m: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B, 1) rows, (1, M) points and (B, M) each point's first corner's flat index in (B, M, N, 2)
+    derivatives: fixed by the sizes, computed once for every step of a solver."""
     rows, points = np.arange(b)[:, None], np.arange(m)[None]
-    part = 0 if one_part else per_part.argmin(1)  # (B, M)
-    # (B, M): the edge slot that gives the distance
-    edge = (offsets[:, 0] if one_part else offsets[rows, part, points]).argmax(-1)
-    # Each point's edge as one flat index into the hull's (B, P, E) edges: one gather a field.
-    at = (rows * lengths.shape[1] + part) * lengths.shape[2] + edge
-    start, direction, normal, corner = (v.reshape(-1, 2).take(at, axis=0)  # take: a quarter of indexing's cost
-                                        for v in (hull.start, hull.direction, hull.normal, ends))
-    d_start, d_end = _offset_gradient(outline, start, direction, normal, lengths.reshape(-1)[at][..., None] + 1e-12)
-    d = np.zeros((b, m, n, 2))
-    flat = d.reshape(-1, 2)  # (B M N, 2): each point's corner by one flat index
     row = (rows * m + points) * n
-    flat[row + corner[..., 0]] = slope[..., None] * d_start
-    flat[row + corner[..., 1]] += slope[..., None] * d_end
-    return value, d
+    rows.flags.writeable = points.flags.writeable = row.flags.writeable = False  # shared by every caller
+    return rows, points, row
+
+
+@lru_cache(maxsize=64)
+def _first_corners(samples: tuple[int, ...], n: int) -> np.ndarray:
+    """`samples`-shaped (B, P, E T): each edge sample's first corner's flat index in its (..., N, 2) derivatives."""
+    row = np.arange(0, math.prod(samples) * n, n).reshape(samples)
+    row.flags.writeable = False  # shared by every caller
+    return row
 
 
 @lru_cache(maxsize=None)
@@ -340,34 +369,39 @@ def _edge_samples(count: int, slots: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def _edge_rows(hull: HullEdges, ends: np.ndarray, full: np.ndarray, sdf: Fields, n: int, weights: MaskFitWeights,
-               derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+               derivatives: bool) -> tuple[np.ndarray, object]:
     """Points along the model's outline edges (`full` (B, P, E) their lengths) sampled on the mask's
-    distance field: (B, P E T) residuals, and their derivatives (B, P E T, N, 2)."""
+    distance field: (B, P E T) residuals, and (`derivatives`) a function of no arguments giving their
+    derivatives (B, P E T, N, 2)."""
     count = weights.samples_per_edge
     t, share, rest = _edge_samples(count, hull.valid.shape[-1])
     samples = hull.start[..., None, :] + hull.direction[..., None, :] * t[:, None]  # (B, P, E, T, 2)
     b, p = samples.shape[:2]
     flat = samples.reshape(b, p, -1, 2)
-    keep = np.repeat(hull.valid, count, axis=-1)  # (B, P, E T)
+    keep = hull.valid.repeat(count, axis=-1)  # (B, P, E T); the method: np.repeat's answer without its wrapper
     if p == 2:  # a twobox outline inside the other part is no outline
         keep &= polygon_distance(flat, hull.swapped()) > 0
     over, gradient = bilinear_with_gradient(sdf, flat) if derivatives else (bilinear(sdf, flat), None)
     value, slope = _weighted(over, weights.overhang, weights.outside, weights, True, derivatives)
-    root = np.repeat(np.sqrt(full / count), count, axis=-1)  # sqrt of each sample's share of the edge
+    root = np.sqrt(full / count).repeat(count, axis=-1)  # sqrt of each sample's share of the edge
     residuals = np.where(keep, value * root, 0.0).reshape(b, -1)
     if not derivatives:
         return residuals, None
-    # d root / d end = (direction / L) / (2 count root); the start's is its negative.
-    d_root = np.repeat(hull.direction / (full[..., None] * count + 1e-12), count, axis=-2) / (2 * root[..., None] + 1e-12)
-    along = slope[..., None] * gradient * root[..., None]
-    scale = keep[..., None].astype(np.float64)
-    corner = np.repeat(ends, count, axis=-2)  # (B, P, E T, 2)
-    d = np.zeros((b, p, flat.shape[2], n, 2))
-    row = np.arange(0, d.size // 2, n).reshape(corner.shape[:-1])  # each sample's first corner, one flat index
-    stretch = value[..., None] * d_root
-    d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
-    d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
-    return residuals, d.reshape(b, -1, n, 2)
+
+    def derivative() -> np.ndarray:
+        # d root / d end = (direction / L) / (2 count root); the start's is its negative.
+        d_root = (hull.direction / (full[..., None] * count + 1e-12)).repeat(count, axis=-2) / (2 * root[..., None] + 1e-12)
+        along = slope[..., None] * gradient * root[..., None]
+        scale = keep[..., None].astype(np.float64)
+        corner = ends.repeat(count, axis=-2)  # (B, P, E T, 2)
+        d = np.zeros((b, p, flat.shape[2], n, 2))
+        row = _first_corners(corner.shape[:-1], n)  # each sample's first corner, one flat index
+        stretch = value[..., None] * d_root
+        d.reshape(-1, 2)[row + corner[..., 0]] = scale * (along * rest - stretch)
+        d.reshape(-1, 2)[row + corner[..., 1]] += scale * (along * share + stretch)
+        return d.reshape(b, -1, n, 2)
+
+    return residuals, derivative
 
 
 @dataclass(frozen=True)
@@ -378,10 +412,12 @@ class MaskTarget:
     mask: np.ndarray  # (H, W) bool
     outline: np.ndarray  # (M, 2) px
     sdf: np.ndarray  # (H, W) px, positive outside
+    cracks: tuple[np.ndarray, np.ndarray] | None = None  # every outline point of `mask` and its axis (`edge_lines.cracks`)
 
     @classmethod
     def of(cls, mask: np.ndarray, weights: MaskFitWeights = MaskFitWeights()) -> MaskTarget:
-        return cls(mask, boundary_points(mask, weights.max_boundary_points), signed_distance_field(mask))
+        every = cracks(mask)  # kept: the edge lines read them too (`edge_lines.edge_lines`)
+        return cls(mask, boundary_points(mask, weights.max_boundary_points, every), signed_distance_field(mask), every)
 
 
 @dataclass(frozen=True)

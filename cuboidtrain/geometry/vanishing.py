@@ -99,7 +99,7 @@ def intrinsics(vps: np.ndarray, finite: np.ndarray) -> list[tuple[float, np.ndar
     if len(points) == 2:
         a, b = points
         candidates = []
-        for t in np.linspace(0.02, 0.98, LINE_STEPS):
+        for t in _ALONG:
             principal = a + t * (b - a)
             candidates.append((float(np.sqrt(-(a - principal) @ (b - principal))), principal))
         return candidates
@@ -117,11 +117,13 @@ def _extents_and_translation(image: np.ndarray, m: np.ndarray, coef: np.ndarray,
     c, n, _ = image.shape
     q = coef.shape[2]
     # M X's coefficients (C, N, 3, Q) and constants (C, N, 3): einsum's sums over j, written out (the same
-    # products added in the same order, at two thirds of its cost).
-    mc = (m[:, None, :, 0, None] * coef[None, :, None, 0, :] + m[:, None, :, 1, None] * coef[None, :, None, 1, :]
-          + m[:, None, :, 2, None] * coef[None, :, None, 2, :])
-    me = (m[:, None, :, 0] * const[None, :, None, 0] + m[:, None, :, 1] * const[None, :, None, 1]
-          + m[:, None, :, 2] * const[None, :, None, 2])
+    # products added in the same order, at two thirds of its cost), each term laid out (C, 3, N Q) so that
+    # numpy's inner loops run along N Q, not Q (the same values, at half the cost), then viewed (C, N, 3, Q).
+    by_axis, const_by_axis = coef.transpose(1, 0, 2).reshape(3, n * q), const.T  # [j]: coef[:, j, :], const[:, j]
+    mc = (m[:, :, 0, None] * by_axis[0] + m[:, :, 1, None] * by_axis[1]
+          + m[:, :, 2, None] * by_axis[2]).reshape(c, 3, n, q).transpose(0, 2, 1, 3)
+    me = (m[:, :, 0, None] * const_by_axis[0] + m[:, :, 1, None] * const_by_axis[1]
+          + m[:, :, 2, None] * const_by_axis[2]).transpose(0, 2, 1)
     a = np.zeros((c, n, 2, q + 3))
     a[..., :q] = image[..., None] * mc[:, :, None, 2] - mc[:, :, :2]
     a[..., 0, q], a[..., 1, q + 1] = -1.0, -1.0
@@ -155,7 +157,8 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
         return np.zeros((0, p)), np.zeros(0, dtype=bool)
     # The nearest orthogonal matrices, all candidates in one SVD call: columns = the object axes in the camera.
     directions = np.concatenate(directions)
-    u, _, vt = np.linalg.svd(directions / np.linalg.norm(directions, axis=2, keepdims=True))
+    lengths = np.sqrt((directions * directions).sum(2, keepdims=True))  # np.linalg.norm's arithmetic
+    u, _, vt = np.linalg.svd(directions / lengths)
     bases = (u @ vt).transpose(0, 2, 1)
     # Every candidate camera times every sign choice of the axes, solved at once.
     focal = np.repeat(focals, len(_SIGNS))
@@ -176,6 +179,7 @@ def vanishing_starts(points: np.ndarray, shape: Shape, keep: int = KEEP) -> tupl
 
 
 _FOCALS = np.geomspace(0.5, 50.0, FOCAL_STEPS).tolist()  # the focal-length candidates with one finite
+_ALONG = np.linspace(0.02, 0.98, LINE_STEPS)  # where the principal point lies between two finite vanishing points
 _SIGNS = np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3).astype(np.float64)
 
 
