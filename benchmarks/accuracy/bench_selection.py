@@ -24,9 +24,8 @@ the share called twobox: what evidence the masks had before they were damaged.
 blocks, 0.2 M weights) trained for `--classifier-minutes` on one thread to call the class from the
 framed noisy mask alone (64 px, grey, as the shipped models read it; flipped at random), scored on
 the same masks, alone and as one more piece of evidence (its logit) in the regression. The spools
-below are the 128 px training spools `SPOOLS=spools-irr SAMPLES=20000 IRREGULAR=20000 recipes/shipped.sh` draws
-(20,000
-`paper`, `street` and `irregular` samples).
+below are the 128 px training spools that `SPOOLS=spools-irr SAMPLES=20000 IRREGULAR=20000
+recipes/shipped.sh` draws (20,000 `paper`, `street` and `irregular` samples a class).
 
     .venv/bin/python benchmarks/accuracy/bench_selection.py --samples 200 --tuning-samples 150 --decidable \
         --classifier spools-irr/train-box-128 spools-irr/train-twobox-128 --classifier-minutes 25
