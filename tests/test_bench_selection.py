@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 
 from cuboidtrain.fit import fitter as fitter_module
+from cuboidtrain.fit.fitter import Fitter
+from cuboidtrain.fit.options import FitOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy"))
-from bench_selection import Witness, called, regression, roof_notch, shares  # noqa: E402
+from bench_selection import EVIDENCE, Witness, called, evidence, regression, roof_notch, shares  # noqa: E402
 
 
 def polygon_mask(points, size: int = 128) -> np.ndarray:
@@ -48,3 +50,17 @@ def test_the_witness_keeps_both_classes_fits_and_leaves_the_choice_as_it_was():
     with Witness() as witness:
         assert fitter_module.choose_cuboid is not chosen
     assert fitter_module.choose_cuboid is chosen and witness.last == {}
+
+
+def test_the_witness_keeps_both_classes_fits_and_the_evidence_is_finite():
+    """Both classes' cuboids and the networks' own confidence (which `infer --cuboid` leaves NaN: the
+    cuboids' IoU judges there), so that every piece of evidence is a number."""
+    mask = polygon_mask([(30, 40), (70, 30), (110, 45), (105, 110), (70, 118), (28, 105)])
+    with Witness() as witness:
+        Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)).fit(mask)
+    assert set(witness.last["cuboids"]) == {"box", "twobox"}
+    assert all(0 <= c <= 1 for c in witness.last["networks"].values())
+    found = evidence(mask, witness.last)
+    assert tuple(found) == EVIDENCE and all(np.isfinite(v) for v in found.values())
+    # a convex hexagon, a box's silhouette: no notch but its staircase, its pixels about its hull's area (centres: a little less)
+    assert found["roof_notch"] < 1 / 80 and 0.95 < found["solidity"] < 1.05

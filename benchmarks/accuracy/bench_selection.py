@@ -11,7 +11,8 @@ at several thresholds, on bench_accuracy's own masks beside the shipped rule:
 * `narrow_share`, `height_ratio`: the twobox's narrower part over its width, its lower part's height
   over the taller's (the sliver and seam gates' measures, here weighed instead of cut);
 * `solidity`: the mask's area over its convex hull's; `network_margin`: the twobox model's keypoint
-  confidence less the box model's (`candidates.choose`'s evidence, before any cuboid);
+  confidence less the box model's (`geometry.silhouette.confidence`: `candidates.choose`'s evidence
+  without a cuboid);
 * `roof_notch`: the deepest notch opening down from the outline's top, a share of its size
   (`geometry.silhouette.roof_notches` counts them past a depth);
 * `implausible`: 1 where a gate sets the twobox aside (the rule keeps the gates whatever the regression says).
@@ -48,7 +49,7 @@ from cuboidtrain.fit.cuboid import implausible, impossible
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.masks import frame
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.geometry.silhouette import extent_px
+from cuboidtrain.geometry.silhouette import confidence, extent_px
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.models.zoo import default_checkpoints
 from shared.sample import decode
@@ -69,7 +70,9 @@ class Witness:
 
     def __enter__(self) -> "Witness":
         def witnessed(candidates, cuboids):
-            self.last = {"networks": {c.shape: c.confidence for c in candidates}, "cuboids": dict(cuboids)}
+            # the networks' own confidence, which `infer --cuboid` no longer computes (the cuboids' IoU judges)
+            self.last = {"networks": {c.shape: confidence(c.shape, c.keypoints, c.framed >= 0.5) for c in candidates},
+                         "cuboids": dict(cuboids)}
             return self.chosen(candidates, cuboids)
         fitter_module.choose_cuboid = witnessed
         return self
