@@ -116,17 +116,24 @@ def test_apply_refuses_a_damaged_part_and_changes_nothing(first_lease, tmp_path)
 
 
 
-def test_campaign_evaluate_scores_the_applied_state_here_and_reads_a_kept_nan_as_null(first_lease, tmp_path):
+def test_campaign_evaluate_scores_the_applied_state_here_and_reads_a_kept_nan_as_null(first_lease, tmp_path, monkeypatch):
     """A lease whose own evaluation did not finish is scored here once applied (campaign/eval.json); the
     shipped models' kept figures are read through finite(): an eval-shipped.json an older writer left with
-    NaN (as the first H200 lease met it, which then wrote no eval.json) gives null, not a crash."""
+    NaN (as the first H200 lease met it, which then wrote no eval.json) gives null, not a crash. bench_accuracy
+    itself ran in the lease above: here its figures for the same weights stand in for a second run."""
     campaign, out, _ = first_lease
     copy = shutil.copytree(campaign, tmp_path / "campaign")
     apply_lease(out, copy)
     kept = json.loads((copy / "eval-shipped.json").read_text())
     kept["rows"][0]["within_1sd"] = float("nan")
     (copy / "eval-shipped.json").write_text(json.dumps(kept))  # Python's json writes the NaN token
+    benched = []
+    def bench(models, samples, spools, threads, timeout_s, path):
+        benched.append({shape: load_checkpoint(file)["step"] for shape, file in models.items()})
+        return json.loads((out / "eval.json").read_text())["campaign"]
+    monkeypatch.setattr(lease_module, "bench", bench)
     record = lease_module.evaluate_state(copy, tmp_path / "work", threads=1)
+    assert benched == [{"box": 2}]  # the applied state's model, packed; the shipped ones' figures kept, not rerun
     assert json.loads((copy / "eval.json").read_text()) == record
     assert record["lease"] == 1 and record["steps"] == {"box": ["1", 2]}
     assert set(record["compare"]["sets"]) == {"paper-clean/box", "paper/box", "street/box"}
