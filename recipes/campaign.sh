@@ -11,7 +11,7 @@
 # (campaign/plan.json, campaign/state.json) resumed side by side until MINUTES less the plan's
 # eval_minutes; the new state (in parts of at most 15 MB), lease.json (the log row) and then
 # eval.json (bench_accuracy's sets, the campaign's models and the shipped ones) into OUT, with this
-# script's output as OUT/lease.log. Carried wheels in .whl/ (watchdog, xxhash) are installed first.
+# script's output as OUT/lease.log. Carried wheels in $WHEELS (default .whl/: watchdog, xxhash) are installed first.
 #
 # On the CPU with tiny settings (tests/test_campaign.py runs it so):
 #   OUT=/tmp/lease DEVICE=cpu CAMPAIGN=/tmp/tiny-campaign MINUTES=4 PY=.venv/bin/python recipes/campaign.sh --lease-steps 2
@@ -19,9 +19,10 @@ set -uo pipefail
 OUT=${OUT:?OUT: the folder the lent machine sends back}
 PY=${PY:-python3}
 MINUTES=${MINUTES:-9.5} DEVICE=${DEVICE:-cuda} CAMPAIGN=${CAMPAIGN:-campaign} WORK=${WORK:-/tmp/campaign-work}
+WHEELS=${WHEELS:-.whl}  # the lent machine's Python's wheels (cp312): the tests here point it elsewhere
 mkdir -p "$OUT"
-if compgen -G ".whl/*.whl" > /dev/null; then  # packages the lent machine lacks, carried as wheels
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+if compgen -G "$WHEELS/*.whl" > /dev/null; then  # packages the lent machine lacks, carried as wheels
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$WHEELS"/*.whl || exit 1
     export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
 fi
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1

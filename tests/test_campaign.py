@@ -61,8 +61,10 @@ def first_lease(tmp_path_factory) -> tuple[Path, Path, dict]:
     campaign, out = new_campaign(root / "campaign"), root / "out"
     # MINUTES is a deadline, not a duration (--lease-steps ends the training): 4, not 2, so that on a busy
     # machine the evaluation is not cut off at it (seen at 2: the row then lacks the shipped models' figures)
+    # WHEELS: not the checkout's .whl/, which after a real lease holds the lent machine's cp312 wheels (seen: pip
+    # refused them here and the lease failed before it began)
     env = os.environ | {"OUT": str(out), "PY": sys.executable, "DEVICE": "cpu", "CAMPAIGN": str(campaign), "MINUTES": "4",
-                        "WORK": str(root / "work"), "COMMIT": "test"}
+                        "WORK": str(root / "work"), "COMMIT": "test", "WHEELS": str(root / "no-wheels")}
     done = subprocess.run([str(ROOT / "recipes" / "campaign.sh"), "--lease-steps", "2", "--threads", "1",
                            "--eval-threads", "1"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
