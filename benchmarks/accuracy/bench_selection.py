@@ -49,7 +49,7 @@ from cuboidtrain.fit.cuboid import implausible, impossible
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.masks import frame
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.geometry.silhouette import confidence, extent_px
+from cuboidtrain.geometry.silhouette import confidence, extent_px, top_notches
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.models.zoo import default_checkpoints
 from shared.sample import decode
@@ -82,19 +82,9 @@ class Witness:
 
 
 def roof_notch(mask: np.ndarray) -> float:
-    """The deepest convexity defect of the largest outline that opens down from its top (the hull edge
-    over it runs more across than up and down), as a share of the silhouette's size; 0 where none."""
-    outlines, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    outline = max(outlines, key=cv2.contourArea) if outlines else np.zeros((0, 1, 2), np.int32)
-    if len(outline) < 4:
-        return 0.0
-    defects = cv2.convexityDefects(outline, np.sort(cv2.convexHull(outline, returnPoints=False), axis=0))
-    points, deepest = outline[:, 0], 0.0
-    for start, end, far, depth in (defects if defects is not None else np.zeros((0, 1, 4), int)).reshape(-1, 4):
-        (x0, y0), (x1, y1), (_, y) = points[start], points[end], points[far]
-        if abs(x1 - x0) > abs(y1 - y0) and y > (y0 + y1) / 2:
-            deepest = max(deepest, depth / 256 / extent_px(mask))  # OpenCV's depths: 8 fractional bits
-    return float(deepest)
+    """The deepest notch opening down from the outline's top (`silhouette.top_notches`), as a share of the
+    silhouette's size; 0 where none."""
+    return float(top_notches(mask).max(initial=0) / 256 / extent_px(mask))  # OpenCV's depths: 8 fractional bits
 
 
 def evidence(mask: np.ndarray, seen: dict) -> dict[str, float]:
@@ -174,9 +164,14 @@ def with_logits(rows: list[dict], net: nn.Module) -> list[dict]:
     return [r | {"classifier": logit} for r, logit in zip(rows, logits)]
 
 
+def evidence_matrix(rows: list[dict], names: tuple[str, ...]) -> np.ndarray:
+    """(masks, names): each mask's evidence, clipped to +-8 (a gain share over a box that explains nearly all)."""
+    return np.clip(np.array([[r[k] for k in names] for r in rows]), -8, 8)
+
+
 def regression(rows: list[dict], names: tuple[str, ...] = EVIDENCE, l2: float = 0.01, steps: int = 4000) -> tuple:
     """The standardised evidence's means, scales and logistic weights (intercept last), by gradient descent."""
-    x = np.clip(np.array([[r[k] for k in names] for r in rows]), -8, 8)
+    x = evidence_matrix(rows, names)
     y = np.array([r["shape"] == "twobox" for r in rows], float)
     mean, scale = x.mean(0), x.std(0) + 1e-9
     z = np.c_[(x - mean) / scale, np.ones(len(x))]
@@ -188,7 +183,7 @@ def regression(rows: list[dict], names: tuple[str, ...] = EVIDENCE, l2: float = 
 
 def called(rows: list[dict], model, threshold: float) -> list[str]:
     names, mean, scale, weights = model
-    x = np.clip(np.array([[r[k] for k in names] for r in rows]), -8, 8)
+    x = evidence_matrix(rows, names)
     odds = np.c_[(x - mean) / scale, np.ones(len(x))] @ weights
     return ["twobox" if o > threshold and not r["implausible"] else "box" for o, r in zip(odds, rows)]
 

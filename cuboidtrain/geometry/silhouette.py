@@ -55,25 +55,27 @@ def extent_px(mask: np.ndarray) -> float:
 
 def roof_notches(mask: np.ndarray, depth: float, size: float | None = None) -> int:
     """How many notches open down from the top of the silhouette's outline deeper than `depth` (a share
-    of its size, `extent_px`): convexity defects of its largest outline whose hull edge runs more across
-    than up and down, with the notch below it. A projected box's silhouette is convex; a twobox's
+    of its size, `extent_px`): `top_notches`. A projected box's silhouette is convex; a twobox's
     shows at most one, where the lower box meets the taller; a row of houses shows one between each
     two roofs. An occluder standing in front (a tree, a person, a sign) cuts its notch from the bottom
     or the side, which this does not count. `size`: the silhouette's `extent_px`, where the caller has it."""
+    size = extent_px(mask) if size is None else size
+    return int(np.count_nonzero(top_notches(mask) > depth * size * 256))  # OpenCV's depths are fixed point, 8 bits
+
+
+def top_notches(mask: np.ndarray) -> np.ndarray:
+    """The depths (px in OpenCV's fixed point: 8 fractional bits) of the convexity defects of the silhouette's
+    largest outline that open down from its top: the hull edge over the notch runs more across than up and
+    down, and the notch lies below it. Empty where there are none."""
     outlines, _ = cv2.findContours(np.asarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    if not outlines:
-        return 0
-    outline = max(outlines, key=cv2.contourArea)
+    outline = max(outlines, key=cv2.contourArea) if outlines else np.zeros((0, 1, 2), np.int32)
     if len(outline) < 4:
-        return 0
+        return np.zeros(0)
     hull = np.sort(cv2.convexHull(outline, returnPoints=False), axis=0)  # sorted: OpenCV asks monotone indices
     defects = cv2.convexityDefects(outline, hull)
     if defects is None:
-        return 0
-    size = extent_px(mask) if size is None else size
-    points, limit = outline[:, 0], depth * size * 256  # OpenCV's depths are fixed point, 8 bits
-    count = 0
-    for start, end, far, deep in defects.reshape(-1, 4):
-        (x0, y0), (x1, y1), (_, y) = points[start], points[end], points[far]
-        count += bool(deep > limit and abs(x1 - x0) > abs(y1 - y0) and y > (y0 + y1) / 2)
-    return count
+        return np.zeros(0)
+    start, end, far, deep = defects.reshape(-1, 4).T
+    points = outline[:, 0].astype(np.int64)
+    (x0, y0), (x1, y1), y = points[start].T, points[end].T, points[far, 1]
+    return deep[(np.abs(x1 - x0) > np.abs(y1 - y0)) & (y > (y0 + y1) / 2)]
