@@ -10,7 +10,6 @@ evaluation starts, so a lease cut short at its end still returns its training.
 from __future__ import annotations
 
 import datetime as dt
-import json
 import logging
 import os
 import platform
@@ -37,6 +36,7 @@ log = logging.getLogger(__name__)
 
 LEASE = "lease.json"
 EVAL = "eval.json"
+STAMP = "%Y-%m-%dT%H:%M:%SZ"  # a log row's and an evaluation's date, UTC
 # The generator as a process of this interpreter: the lent machine has the project on PYTHONPATH, not installed.
 CUBOIDGEN = [sys.executable, "-c", "import sys; from cuboidgen.cli import main; sys.argv[0] = 'cuboidgen'; main()"]
 SEED_BASE = 1_000_000  # the generators' seeds: LEASE * 100 + shape * 10 + scene above it, clear of every recipe's and bench's
@@ -90,7 +90,8 @@ def run_lease(options: LeaseOptions) -> dict:
     # 5. the evaluation, in the time left
     if options.evaluate and checkpoints:
         try:
-            row["eval"] = evaluate(plan, campaign, checkpoints, work, out, lease, deadline, options.eval_threads)
+            scored = evaluate(plan, campaign, checkpoints, work, out, lease, deadline, options.eval_threads)
+            row["eval"] = compare(scored["campaign"], scored["shipped"])
         except Exception as error:  # the training is in OUT already: a failed score must not cost the lease
             log.warning("lease %d: the evaluation failed (%s: %s); `cuboidtrain campaign evaluate` scores the "
                         "state once applied", lease, type(error).__name__, error)
@@ -169,7 +170,7 @@ def lease_row(plan: CampaignPlan, lease: int, base: str, clock: dt.datetime, dev
             "failed": next((s.failed for s in segs if s.failed), None),
         }
     known = [s for s in shapes.values() if s["samples_per_s"] is not None]
-    return {"lease": lease, "date": clock.strftime("%Y-%m-%dT%H:%M:%SZ"), "device": device, "commit": commit,
+    return {"lease": lease, "date": clock.strftime(STAMP), "device": device, "commit": commit,
             "arch": plan.arch, "size": plan.size, "minutes_trained": round(trained_s / 60, 2),
             "steps": sum(s["steps"] for s in shapes.values()),
             "samples_per_s": round(sum(s["samples_per_s"] for s in known), 1) if known else None,
@@ -196,17 +197,18 @@ def evaluate_state(campaign: Path, work: Path, threads: int | None, timeout_s: f
     shutil.rmtree(work, ignore_errors=True)
     (work / "out").mkdir(parents=True)
     checkpoints = {shape: restore(campaign, entry, work / shape / "last.pt") for shape, entry in state.items()}
-    figures = evaluate(plan, campaign, checkpoints, work, work / "out", leases, time.monotonic() + timeout_s, threads)
-    scored = json.loads((work / "out" / EVAL).read_text())
+    scored = evaluate(plan, campaign, checkpoints, work, work / "out", leases, time.monotonic() + timeout_s, threads)
     record = evaluation_record(leases, {s: [e.phase, e.step] for s, e in state.items()}, platform.node() or "here",
-                               dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), figures, scored)
+                               dt.datetime.now(dt.timezone.utc).strftime(STAMP),
+                               compare(scored["campaign"], scored["shipped"]), scored)
     write_json(campaign / EVAL, record, indent=1)
     return record
 
 
 def evaluate(plan: CampaignPlan, campaign: Path, checkpoints: dict[str, Path], work: Path, out: Path, lease: int,
              deadline: float, threads: int | None) -> dict:
-    """The campaign's models and the shipped ones on bench_accuracy's sets; eval.json in OUT. The shipped
+    """The campaign's models and the shipped ones on bench_accuracy's sets: eval.json in OUT, and its content
+    (`campaign`, `shipped`, `shipped_from`; `evaluation.compare` sums it up for the log row). The shipped
     models are scored only where no earlier lease kept their figures (the first lease), beside the
     campaign's, each bench in its own process on its own copy of the seeded masks (the same masks)."""
     threads = threads or min(4, os.cpu_count() or 1)
@@ -217,7 +219,7 @@ def evaluate(plan: CampaignPlan, campaign: Path, checkpoints: dict[str, Path], w
         benched = {who: pool.submit(bench, files, plan.eval_samples, work / f"eval-spools-{who}", threads,
                                     deadline - time.monotonic() - 5, work / f"bench-{who}.json")
                    for who, files in runs.items()}
-    ours, theirs = benched["campaign"].result(), kept or benched["shipped"].result()
-    write_json(out / EVAL, {"campaign": ours, "shipped": theirs, "shipped_from": SHIPPED_EVAL if kept else "this lease"},
-               indent=1)
-    return compare(ours, theirs)
+    scored = {"campaign": benched["campaign"].result(), "shipped": kept or benched["shipped"].result(),
+              "shipped_from": SHIPPED_EVAL if kept else "this lease"}
+    write_json(out / EVAL, scored, indent=1)
+    return scored
