@@ -234,13 +234,11 @@ def reach_silhouette(first: FirstFits, reach: float | None = None,
     true cuboid (0.52 px, IoU 1). One kept and still short is restarted again, RESTART_ROUNDS in all.
     `clean`: whether each mask is clean (`polygonal`), where the caller knows."""
     answers, fits, reach = list(first.answers), list(first.fits), RESTART_IOU if reach is None else reach
-    if not any(RESTART_FLOOR <= fit.iou < reach for fit in fits):  # none to restart (reach 0: a first fit's)
-        return answers, fits
-    area = [int(target.mask.sum()) for target in first.targets]
+    below = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < reach]  # none at reach 0: a first fit's
+    area = {k: int(first.targets[k].mask.sum()) for k in below}  # the masks' pixels, counted only where asked
     # A mask whose fit misses fewer than RESTART_GAIN_PX of its pixels keeps it whatever a restart finds:
     # most 64 px masks (their fits miss 1.5% of some 1,200 px), none restarted in vain.
-    short = [k for k, fit in enumerate(fits) if RESTART_FLOOR <= fit.iou < reach
-             and (1 - fit.iou) * area[k] > RESTART_GAIN_PX
+    short = [k for k in below if (1 - fits[k].iou) * area[k] > RESTART_GAIN_PX
              and (clean[k] if clean is not None else polygonal(first.targets[k].mask))]
     if not short:
         return answers, fits
