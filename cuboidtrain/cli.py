@@ -522,7 +522,7 @@ app.add_typer(campaign_app, name="campaign")
 def campaign_lease(
     out: Path = typer.Option(..., envvar="OUT", metavar="DIR", help="The folder the lent machine sends back ($OUT): the state's parts, lease.json, eval.json."),
     campaign: Path = typer.Option(Path("campaign"), metavar="DIR", help="The campaign folder: plan.json, the standing state, log.jsonl."),
-    minutes: float = typer.Option(9.5, help="The whole command's minutes, smoke check to the last file; training ends the plan's eval_minutes before."),
+    minutes: float = typer.Option(9.5, help="The whole command's minutes, smoke check to the last file; training ends the plan's eval_minutes before (15 s with --no-evaluate)."),
     device: str = typer.Option("cuda", help="cuda (the smoke check fails in seconds without it), cuda:N or cpu."),
     work: Path = typer.Option(Path("/tmp/campaign-work"), metavar="DIR", help="Spools, run folders and logs (emptied first; not sent back)."),
     lease_steps: Optional[int] = typer.Option(None, help="Train at most this many steps a shape (a deterministic stop, for tests)."),

@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -286,3 +287,21 @@ def test_a_plan_with_an_unknown_key_or_phase_is_refused(tmp_path):
                                                                       {"phase": "1", "steps": 1, "lr": 1e-3}]}))
     with pytest.raises(UsageError, match="phases"):
         load_plan(tmp_path)
+
+
+def test_a_lease_without_evaluation_trains_until_the_state_must_be_packed(frozen_spool, tmp_path, monkeypatch):
+    """Leases 3-5 ran --no-evaluate and still stopped the plan's eval_minutes before their deadline."""
+    monkeypatch.setattr(lease_module, "smoke_check", lambda plan, device: "cpu (smoke check left out)")
+    monkeypatch.setattr(training_module, "subprocess", SimpleNamespace(Popen=TrainerHere, STDOUT=subprocess.STDOUT))
+    ends = []
+    real = lease_module.train_until
+    def train_until(plan, courses, spools, device, deadline, *args, **kwargs):
+        ends.append(deadline - time.monotonic())
+        return real(plan, courses, spools, device, deadline, *args, **kwargs)
+    monkeypatch.setattr(lease_module, "train_until", train_until)
+    campaign = new_campaign(tmp_path / "campaign")
+    lease(campaign, tmp_path / "a", lease_steps=1, spool=frozen_spool, evaluate=False, minutes=2.0)
+    lease(campaign, tmp_path / "b", lease_steps=1, spool=frozen_spool, evaluate=True, minutes=2.0)
+    # seconds of the 120 left to train, measured a moment after the lease began
+    assert 120 - lease_module.STORE_MINUTES * 60 - 10 < ends[0] <= 120 - lease_module.STORE_MINUTES * 60
+    assert ends[1] <= 120 - TINY.eval_minutes * 60 < ends[0] - 20
