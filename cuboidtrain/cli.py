@@ -199,6 +199,7 @@ def infer(
     extractor: ExtractorChoice = in_panel(EXTRACTOR, MODELS),
     pdm_components: str = in_panel(PDM_COMPONENTS, MODELS),
     cuboid: bool = typer.Option(INFER_CUBOID, "--cuboid/--networks-only", help="--cuboid (the default): fit a perspective box to each mask at its own resolution, from the networks' corners: keypoints are its projection, ratios its own, and the record gains a `cuboid` object (rotation, focal length, IoU, per-corner scores). --networks-only: the networks' corners alone (free points, the Tabulator's ratios), about 2.5x faster (BENCHMARKS.md).", rich_help_panel=MODELS),
+    no_classifier: bool = typer.Option(not FIT.shape_classifier, "--no-classifier", help="Box or twobox by the fitted silhouettes alone, not the shape classifier's sure call on a rough mask (shape_call).", rich_help_panel=MODELS),
     optimizer: OptimizerChoice = typer.Option(OptimizerChoice[FIT.optimizer], metavar="NAME", help="The cuboid fit's solver: lm (Levenberg-Marquardt on the outline, ~45 ms a mask) or soft (a soft-rasterised silhouette by L-BFGS: more accurate on every measured set, ~35x slower; BENCHMARKS.md, \"Choosing the mask-fit optimiser\").", rich_help_panel=MODELS),
     focal_px: Optional[float] = typer.Option(None, metavar="F", help="The camera's focal length in the inputs' pixels, where known: held by the cuboid fit (the record says so). With the camera given, depth/height is several times more accurate (BENCHMARKS.md).", rich_help_panel=CAMERA),
     principal_px: Optional[tuple[float, float]] = typer.Option(None, metavar="X Y", help="The camera's principal point in the inputs' pixels, where known (a full frame with --label-id or --all-components: its centre unless given).", rich_help_panel=CAMERA),
@@ -223,7 +224,7 @@ def infer(
     setup_logging()
     options = FitOptions(shape=shape.value, refine_steps=refine_steps, margin=margin, extractor=extractor.value,
                          pdm_components=pdm_components, all_components=all_components, label_id=label_id,
-                         threshold=threshold, invert=invert, device=device, cuboid=cuboid, optimizer=optimizer.value, focal_px=focal_px,
+                         threshold=threshold, invert=invert, device=device, cuboid=cuboid, shape_classifier=not no_classifier, optimizer=optimizer.value, focal_px=focal_px,
                          principal_px=principal_px, cameras=read_cameras(camera) if camera is not None else ())
     request = InferRequest(paths=tuple(paths or []), from_list=from_list, glob=glob, checkpoints=tuple(checkpoint),
                            options=options, json_out=json_destination(json_out, jsonl, sys.stdout.isatty()),
@@ -569,6 +570,40 @@ def campaign_evaluate(
         say(f"{name}: campaign {figures.get('campaign', '-')} px, shipped {figures.get('shipped', '-')} px (mean corner error, 256 px units)")
     say(f"{campaign / EVAL}: lease {record['lease']}, the campaign wins {record['compare']['campaign_wins']} of "
         f"{record['compare']['compared']} sets; commit campaign/ now")
+
+
+classifier_app = CLI(add_completion=False, help="The shape classifier: the fourth network, which calls a rough silhouette box or twobox (cuboidtrain.models.classifier).")
+app.add_typer(classifier_app, name="classifier")
+
+
+@classifier_app.command("train")
+def classifier_train(
+    box: Path = typer.Option(..., metavar="DIR", help="A spool of box samples (cuboidgen run --shape box): their noisy masks are the box class."),
+    twobox: Path = typer.Option(..., metavar="DIR", help="A spool of twobox samples: the twobox class."),
+    out: Path = typer.Option(..., metavar="OUT.pt", help="The classifier file to write (replaced atomically); the shipped one is cuboidtrain/models/shipped/classifier.pt."),
+    minutes: Optional[float] = typer.Option(None, min=0.01, help="Train this long (the learning rate a cosine over it)."),
+    steps: Optional[int] = typer.Option(None, min=1, help="Or this many steps of --batch-size masks (whichever ends first)."),
+    batch_size: int = typer.Option(128, min=2, help="Masks a step."),
+    seed: int = typer.Option(0, help="The weights' and the batches' seed."),
+    threads: int = typer.Option(1, min=1, help="Torch threads (one: it trains beside the daemons)."),
+    scene: list[str] = typer.Option([], metavar="NAME", help="A scene the spools were drawn from, for the card (repeat)."),
+    recipe: Optional[str] = typer.Option(None, help="The command that drew the spools and trained it, for the card."),
+) -> None:
+    """Train the shape classifier on a box spool and a twobox spool and write its file (weights and card)."""
+    import torch
+
+    from cuboidtrain.models.classifier import save_classifier
+    from cuboidtrain.models.zoo import git_commit
+    from cuboidtrain.train.classifier_training import train_classifier
+
+    setup_logging()
+    check_outputs(("--out", out))
+    torch.set_num_threads(threads)
+    spools = {"box": box, "twobox": twobox}
+    trained = train_classifier(spools, minutes, steps, batch_size, seed)
+    save_classifier(out, trained.net, trained.card(spools, scene, git_commit(), recipe))
+    say(f"{out}: shape classifier, {trained.steps:,} steps of {batch_size} on {sum(trained.masks.values()):,} masks "
+        f"in {trained.wall_time_s / 60:.1f} min, {out.stat().st_size / 2**10:.0f} KiB")
 
 
 @app.command()

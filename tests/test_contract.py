@@ -85,7 +85,7 @@ def test_every_record_field_is_documented_and_every_documented_field_is_written(
         assert set(record) <= set(documented), set(record) - set(documented)
     assert set().union(*per_component, *cuboid) == set(documented)
     # the optional fields are the ones the table says are optional
-    assert {k for k in documented if not all(k in r for r in plain)} == {"component", "cuboid", "ratios_sd", "trust"}
+    assert {k for k in documented if not all(k in r for r in plain)} == {"component", "cuboid", "ratios_sd", "trust", "shape_call"}
     assert "only with `--all-components`" in section("The infer record")
     assert "not with `--networks-only`" in section("The infer record")
 

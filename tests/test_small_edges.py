@@ -72,16 +72,24 @@ def test_the_panel_title_says_why_a_lower_score_won_in_digits_that_tell_them_apa
         "box: twobox's IoU 0.950 is higher, but the twobox was set aside: its two parts' heights differ by 3% " \
         "(< 10%): a box with a seam"
     assert reason({"box": 0.93, "twobox": 0.41}) is None and reason({"box": 0.5}) is None  # it scored highest
+    from cuboidtrain.fit.shape_call import CLASSIFIER, ShapeCall
+
+    called = Fit(shape="box", keypoints=np.zeros((8, 2)), ratios={"depth_height": 1.0, "width_height": 1.0},
+                 confidence=0.9, refine_steps=1, refine_converged=True, candidates={"box": 0.9, "twobox": 0.93},
+                 cuboid="fitted", shape_call=ShapeCall(CLASSIFIER, 0.12))
+    assert choice_reason(called) == "box: the shape classifier's call on this rough silhouette (88% sure); twobox's IoU 0.930 is higher"
 
 
 def test_the_model_table_splits_no_number_in_80_columns_without_a_terminal():
     done = command_here(["models"], env={"COLUMNS": "80", "PATH": ""})
     assert done.returncode == 0
     rows = [line for line in done.stderr.splitlines() if line.startswith("│ ")]
-    assert [row.split("│")[1].strip() for row in rows] == ["box", "twobox"]  # one line a model: nothing wrapped
-    assert [row.split("│")[4].strip() for row in rows] == ["grey", "grey"]  # both shipped models read grey inputs
+    # one line a model, nothing wrapped: the box and twobox models and the shape classifier between them
+    assert [row.split("│")[1].strip() for row in rows] == ["box", "box|twobox", "twobox"]
+    assert [row.split("│")[4].strip() for row in rows] == ["grey"] * 3  # every shipped model reads grey inputs
     for row in rows:
-        assert re.search(r"│ [\d,]+ │ [\d,]+ │ \d+\.\d\d +│ \d+\.\d\d/\d+\.\d\d/\d+\.\d\d +│ \d+\.\d │$", row), row
+        figures = r"-/-/-" if "classifier" in row else r"\d+\.\d\d/\d+\.\d\d/\d+\.\d\d"  # corner errors: the fitting models'
+        assert re.search(rf"│ [\d,]+ +│ [\d,]+ +│ \d+\.\d\d +│ {figures} +│ \d+\.\d │$", row), row
 
 
 # --- the trainer's dashboard redraws in place ----------------------------------------------

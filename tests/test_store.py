@@ -40,8 +40,8 @@ def test_a_fit_and_a_failure_become_the_infer_record_only_when_written():
     both = to_record(outcome("a.png", None), with_component=True, cuboid=True)
     keys = [*failed]
     keys.insert(keys.index("ratios") + 1, "ratios_sd")  # the cuboid fit's error bars, beside the ratios
-    assert list(both) == [*keys, "trust", "cuboid", "component"]
-    assert both == failed | {"ratios_sd": None, "trust": None, "cuboid": None, "component": None}
+    assert list(both) == [*keys, "trust", "cuboid", "shape_call", "component"]
+    assert both == failed | {"ratios_sd": None, "trust": None, "cuboid": None, "shape_call": None, "component": None}
 
 
 def test_records_round_trip_with_their_index_and_input(tmp_path):

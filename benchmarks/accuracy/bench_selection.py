@@ -47,11 +47,12 @@ import bench_accuracy as ba
 from cuboidtrain.fit import fitter as fitter_module
 from cuboidtrain.fit.cuboid import implausible, impossible
 from cuboidtrain.fit.fitter import Fitter
-from cuboidtrain.fit.masks import frame
+from cuboidtrain.fit.shape_call import classifier_input
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.geometry.silhouette import confidence, extent_px, top_notches
 from cuboidtrain.models.checkpoint import load_model
 from cuboidtrain.models.zoo import default_checkpoints
+from cuboidtrain.train.classifier_training import train_classifier
 from shared.sample import decode
 from shared.shapes import get_shape
 from shared.spool import enumerate_spool, read_sample_bytes
@@ -69,11 +70,12 @@ class Witness:
         self.chosen, self.last = fitter_module.choose_cuboid, {}
 
     def __enter__(self) -> "Witness":
-        def witnessed(candidates, cuboids):
-            # the networks' own confidence, which `infer --cuboid` no longer computes (the cuboids' IoU judges)
+        def witnessed(candidates, cuboids, called=None):
+            # the networks' own confidence, which `infer --cuboid` no longer computes (the cuboids' IoU judges),
+            # and the class the silhouettes alone choose (the shape classifier's call left out)
             self.last = {"networks": {c.shape: confidence(c.shape, c.keypoints, c.framed >= 0.5) for c in candidates},
-                         "cuboids": dict(cuboids)}
-            return self.chosen(candidates, cuboids)
+                         "cuboids": dict(cuboids), "silhouette": self.chosen(candidates, cuboids)[0].shape}
+            return self.chosen(candidates, cuboids, called)
         fitter_module.choose_cuboid = witnessed
         return self
 
@@ -114,53 +116,24 @@ def measured(fitter: Fitter, root: Path, samples: int, tuning: bool) -> list[dic
                     continue
                 with Witness() as witness:
                     chosen = fitter.fit(mask).shape
-                rows.append({"scene": scene, "shape": shape, "chosen": chosen, "input": classifier_input(mask)}
+                rows.append({"scene": scene, "shape": shape, "chosen": chosen, "silhouette": witness.last["silhouette"],
+                             "input": classifier_input(mask)}
                             | evidence(mask, witness.last))
     return rows
 
 
-CLASSIFIER_SIZE = 64
-
-
-def classifier_input(mask: np.ndarray) -> np.ndarray:
-    return frame(mask, CLASSIFIER_SIZE, grey=True)[0].astype(np.float32)
-
-
 def classifier(spools: list[Path], minutes: float, batch: int = 128) -> nn.Module:
-    """The CNN trained on the framed noisy masks of a box spool and a twobox spool (those an occluder hid
-    whole left out), cosine-decayed AdamW for `minutes`."""
-    masks = [[decode(read_sample_bytes(spool, n)).noisy for n in enumerate_spool(spool)] for spool in spools]
-    inputs = [np.stack([classifier_input(m) for m in these if m.any()]) for these in masks]
-    x = torch.from_numpy(np.concatenate(inputs))[:, None]
-    y = torch.cat([torch.full((len(v),), float(k)) for k, v in enumerate(inputs)])
-    def block(into: int, out: int) -> nn.Sequential:
-        return nn.Sequential(nn.Conv2d(into, out, 3, padding=1), nn.BatchNorm2d(out), nn.ReLU(),
-                             nn.Conv2d(out, out, 3, padding=1, stride=2), nn.BatchNorm2d(out), nn.ReLU())
-    torch.manual_seed(0)
-    net = nn.Sequential(block(1, 16), block(16, 32), block(32, 64), block(64, 96), nn.AdaptiveAvgPool2d(1), nn.Flatten(),
-                        nn.Linear(96, 1))
-    optimizer = torch.optim.AdamW(net.parameters(), 2e-3, weight_decay=1e-4)
-    start, step = time.monotonic(), 0
-    while time.monotonic() - start < minutes * 60:
-        chosen = torch.randint(len(x), (batch,))
-        flip = torch.rand(batch)[:, None, None, None] < 0.5  # a mirrored building is the same class
-        done = min((time.monotonic() - start) / (minutes * 60), 1.0)
-        for group in optimizer.param_groups:  # a cosine over the minutes
-            group["lr"] = 1e-5 + (2e-3 - 1e-5) * 0.5 * (1 + np.cos(np.pi * done))
-        loss = nn.functional.binary_cross_entropy_with_logits(net(torch.where(flip, x[chosen].flip(-1), x[chosen]))[:, 0],
-                                                              y[chosen])
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        step += 1
-    hidden = sum(len(these) for these in masks) - len(x)
-    print(f"classifier: {step} steps of {batch} in {minutes:g} min on {len(x)} masks ({hidden} hidden whole, left out)")
-    return net.eval()
+    """The shape classifier (`cuboidtrain.train.classifier_training`) trained on a box spool and a twobox spool
+    for `minutes`: what `cuboidtrain classifier train` ships, here without its file."""
+    trained = train_classifier({"box": spools[0], "twobox": spools[1]}, minutes, batch_size=batch)
+    print(f"classifier: {trained.steps} steps of {batch} in {minutes:g} min on {sum(trained.masks.values())} masks "
+          f"({trained.hidden} hidden whole, left out)")
+    return trained.net
 
 
 def with_logits(rows: list[dict], net: nn.Module) -> list[dict]:
     with torch.no_grad():
-        logits = net(torch.from_numpy(np.stack([r["input"] for r in rows]))[:, None])[:, 0].tolist()
+        logits = net(torch.from_numpy(np.stack([r["input"] for r in rows]))[:, None]).tolist()
     return [r | {"classifier": logit} for r, logit in zip(rows, logits)]
 
 
@@ -227,6 +200,7 @@ def main() -> None:
     model = regression(tuning)
     result = {"evidence": dict(zip(EVIDENCE, np.round(model[3][:-1], 3).tolist())),
               "shipped": shares(scored, [r["chosen"] for r in scored]),
+              "silhouette": shares(scored, [r["silhouette"] for r in scored]),
               "regression": {str(t): shares(scored, called(scored, model, t)) for t in THRESHOLDS},
               "decidable": decidable(fitter, args.spools, args.tuning_samples) if args.decidable else None}
     if args.classifier:
@@ -236,7 +210,8 @@ def main() -> None:
         result["classifier"] = shares(scored, ["twobox" if r["classifier"] > 0 else "box" for r in scored])
         result["regression_with_classifier"] = {str(t): shares(scored, called(scored, both, t)) for t in THRESHOLDS}
     print("% of masks given their own class:", " ".join(f"{k}" for k in result["shipped"]))
-    print(f"{'shipped rule':>26}", " ".join(f"{v:5.1f}" for v in result["shipped"].values()))
+    print(f"{'shipped (infer)':>26}", " ".join(f"{v:5.1f}" for v in result["shipped"].values()))
+    print(f"{'the silhouettes alone':>26}", " ".join(f"{v:5.1f}" for v in result["silhouette"].values()))
     for label, table in [(f"regression > {t}", f) for t, f in result["regression"].items()] + \
             ([("classifier alone", result["classifier"])] if args.classifier else []) + \
             [(f"+ classifier > {t}", f) for t, f in result.get("regression_with_classifier", {}).items()]:

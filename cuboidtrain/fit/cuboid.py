@@ -326,19 +326,24 @@ def impossible(fit: CuboidFit) -> str | None:
     return None
 
 
-def choose_cuboid(candidates: list[Candidate], cuboids: dict[str, FittedCuboid]) -> tuple[Candidate, list[str]]:
+def choose_cuboid(candidates: list[Candidate], cuboids: dict[str, FittedCuboid],
+                  called: str | None = None) -> tuple[Candidate, list[str]]:
     """The candidate whose fitted cuboid explains the input best (its IoU, richer classes by
-    CUBOID_MARGIN) among the plausible ones, a warning for each better-explaining class set aside
+    CUBOID_MARGIN) among the plausible ones, or the class `called` by the shape classifier where it is
+    among them (a rough mask: `shape_call`), a warning for each better-explaining class set aside
     as implausible or impossible, and one where even the chosen one is impossible (a forced shape)."""
     judged = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
     broken = {c.shape: impossible(cuboids[c.shape].fit) for c in judged}
     reasons = {c.shape: broken[c.shape] or implausible(cuboids[c.shape].fit) for c in judged}
     possible = [c for c in judged if broken[c.shape] is None] or judged
     plausible = [c for c in possible if reasons[c.shape] is None] or possible  # none plausible: judge all alike
-    best = choose(plausible, margin=CUBOID_MARGIN)
+    best = next((c for c in plausible if c.shape == called), None) or choose(plausible, margin=CUBOID_MARGIN)
     warnings = [f"the {c.shape} cuboid explained the input better (IoU {c.confidence:.3f} against {best.confidence:.3f}) "
                 f"but was set aside: {reasons[c.shape]}"
                 for c in judged if c not in plausible and c.confidence > best.confidence + CUBOID_MARGIN]
+    if called is not None and called != best.shape and called in reasons:
+        warnings.append(f"the shape classifier called the mask {called}, but the {called} cuboid was set aside: "
+                        f"{reasons[called]}")
     if broken[best.shape] is not None:
         warnings.append(f"the {best.shape} cuboid is no building: {broken[best.shape]}; its 3D answer is not to be trusted")
     return best, warnings

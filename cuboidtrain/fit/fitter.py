@@ -40,6 +40,7 @@ from cuboidtrain.models.checkpoint import load_models
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.models.refine import refine
 from cuboidtrain.fit.options import FitOptions
+from cuboidtrain.fit.shape_call import ShapeCall, call_shape, shipped_classifier
 from cuboidtrain.fit.trust import Trust, judge, signs
 from shared.errors import UsageError
 from shared.files import non_finite
@@ -65,6 +66,7 @@ class Fit:
     component: int | None = None  # 0 = largest; set with FitOptions(all_components=True)
     cuboid: FittedCuboid | None = None  # with FitOptions(cuboid=True): the box whose projection is `keypoints`
     trust: Trust | None = None  # with the cuboid: how far to trust the fit, and why (`cuboidtrain.fit.trust`)
+    shape_call: ShapeCall | None = None  # with the shape classifier: who called the class (`cuboidtrain.fit.shape_call`)
     # What an explanation draws (the winning candidate: refined mask, heat maps, framed input, Framing).
     explanation: Explanation | None = field(default=None, repr=False, compare=False)
 
@@ -82,6 +84,7 @@ class Fit:
         if self.cuboid is not None:
             record["trust"] = None if self.trust is None else self.trust.record()
             record["cuboid"] = self.cuboid.record()
+            record["shape_call"] = None if self.shape_call is None else self.shape_call.record()
         return record | ({"component": self.component} if with_component else {})
 
 
@@ -141,6 +144,15 @@ class Fitter:
                        for m in self.models}
         for model in self.models:
             model.to(self.device).eval()
+        self.classifier = self._classifier()
+
+    def _classifier(self):
+        """The shipped shape classifier where it has a class to call (the cuboid fit, box and twobox
+        both tried) and the options ask for it; else None."""
+        shapes = {m.shape for m in self.models}
+        if not (self.options.shape_classifier and self.options.cuboid and {"box", "twobox"} <= shapes):
+            return None
+        return shipped_classifier()
 
     @classmethod
     def from_files(cls, paths: Sequence[str | Path], options: FitOptions | None = None) -> "Fitter":
@@ -233,11 +245,13 @@ class Fitter:
         firsts = {c.shape: self.first_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
         cuboids = {shape: first.cuboid for shape, first in firsts.items()}
         set_aside: list[str] = []
+        call = call_shape(self.classifier, mask) if cuboids else None
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
-            best, set_aside = choose_cuboid(candidates, cuboids)
+            called = None if call is None else call.shape  # a rough mask's class, by the classifier
+            best, set_aside = choose_cuboid(candidates, cuboids, called)
             if again := self.reached(best, firsts, cuboids, mask):
                 cuboids |= again
-                best, set_aside = choose_cuboid(candidates, cuboids)
+                best, set_aside = choose_cuboid(candidates, cuboids, called)
             candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
         else:
             best = choose(candidates)
@@ -246,14 +260,22 @@ class Fitter:
             cuboid = firsts[best.shape].with_error_bars()
         keypoints = best.framing.to_input(best.keypoints) if cuboid is None else cuboid.fit.keypoints
         scores = assess(best, mask, keypoints)
-        trust = None if cuboid is None else judge(signs(best, cuboid, mask, [cuboids[c.shape].fit.iou for c in candidates
-                                                                            if c.shape != best.shape]))
+        trust = None if cuboid is None else self.trust(best, cuboid, cuboids, mask, call)
         return Fit(shape=best.shape, keypoints=keypoints, ratios=best.ratios if cuboid is None else cuboid.fit.ratios,
                    confidence=scores.confidence, refine_steps=best.refine_steps,
                    refine_converged=best.refine_converged,
                    warnings=scores.warnings + tuple(set_aside) + (() if trust is None else trust.lines()),
                    candidates={c.shape: c.confidence for c in candidates}, input=name, cuboid=cuboid, trust=trust,
+                   shape_call=call,
                    explanation=Explanation(candidate=best, mask=mask))
+
+    @staticmethod
+    def trust(best: Candidate, cuboid: FittedCuboid, cuboids: dict[str, FittedCuboid], mask: np.ndarray,
+              call: ShapeCall | None) -> Trust:
+        """How far to trust the chosen fit (`trust.judge`): its signs beside the other classes' IoU, and the
+        shape classifier's doubt where it called the class chosen."""
+        others = [c.fit.iou for shape, c in cuboids.items() if shape != best.shape]
+        return judge(signs(best, cuboid, mask, others), call if call is not None and call.shape == best.shape else None)
 
     def framed(self, model: CuboidNet, mask: np.ndarray) -> tuple[np.ndarray, Framing]:
         """`mask`'s object framed as `model` reads it (`masks.frame`): at its own size, with the options'

@@ -77,6 +77,9 @@ class FitOptions:
     cameras: tuple[tuple[str, KnownCamera], ...] = ()  # per input (its path as given, or its file name): --camera FILE
     photos: tuple[tuple[str, PhotoCamera], ...] = ()  # per input (its path as given): its photo's EXIF camera, --photo
     plausible_camera: bool = True  # a fitted camera kept plausible (geometry.intrinsics.PlausibleRows)
+    # With the cuboid fit and both classes: on a rough mask the shipped shape classifier calls the class
+    # (cuboidtrain.fit.shape_call); off, or on a clean mask, the fitted cuboids' silhouettes do.
+    shape_classifier: bool = True
 
     def validate(self) -> "FitOptions":
         """The checked options, strings parsed; a ValueError names the bad value and what was expected.

@@ -36,6 +36,7 @@ import numpy as np
 
 from cuboidtrain.fit.candidates import Candidate, border_cut
 from cuboidtrain.fit.cuboid import FittedCuboid, heatmap_peaks
+from cuboidtrain.fit.shape_call import ShapeCall
 from cuboidtrain.geometry.camera_params import CuboidFit
 from cuboidtrain.geometry.silhouette import extent_px, model_silhouette, roof_notches
 from shared.shapes import get_shape
@@ -139,10 +140,11 @@ def level(value: float, low: float, found: list[NamedWarning]) -> str:
     return "high" if value >= HIGH and not found else "medium"
 
 
-def judge(values: dict[str, float]) -> Trust:
-    """The trust of a fit with these signs: its score, level and warnings."""
+def judge(values: dict[str, float], call: ShapeCall | None = None) -> Trust:
+    """The trust of a fit with these signs (and `call`, where the shape classifier called the class the
+    fit has: then the shape is no guess, whatever the IoU's margin): its score, level and warnings."""
     value = score(values)
-    found = warnings(values, value)
+    found = warnings(values, value, call)
     return Trust(value, level(value, low_score(values), found), dict(values), tuple(found))
 
 
@@ -181,12 +183,14 @@ SMALLEST_MEASURED_PX = 32.0
 # noisy buildings, one notch 26-32%; a row of two houses mostly shows one notch, as a twobox does.
 ROOF_NOTCH_DEPTH = 0.08
 ROOF_NOTCHES = 2
+SHAPE_ACTION = "read `candidates` and `shape_call`; pass --shape box or --shape twobox if you know it"
 FLAGS = ("not-a-box", "border-cut")  # the warnings that say a silhouette is no whole box or twobox
 NOT_A_BOX_ACTION = "give each building its own mask (split a row of houses), or do not use the 3D answer"
 
 
-def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
-    """The named warnings these signs (and their score `value`) earn, each with what was seen and what to do."""
+def warnings(values: dict[str, float], value: float, call: ShapeCall | None = None) -> list[NamedWarning]:
+    """The named warnings these signs (and their score `value`, and the shape classifier's `call`) earn,
+    each with what was seen and what to do."""
     found = []
     if values["border_cut"] > LIMITS["border_cut"]:
         found.append(NamedWarning("border-cut", f"{100 * values['border_cut']:.0f}% of the silhouette's outline lies on the "
@@ -210,10 +214,11 @@ def warnings(values: dict[str, float], value: float) -> list[NamedWarning]:
         found.append(NamedWarning("weak-heatmaps", f"the Estimator's heat maps peak at {values['heatmap_peak']:.2f} on average: "
                                   f"it is unsure where the corners are", "check with --explain that the mask is one building "
                                   "seen whole; an unusual view or shape is out of what the networks learnt"))
-    if values["shape_margin"] < LIMITS["shape_margin"]:
+    # where the shape classifier's sure call chose the class, the IoU's margin is no doubt (`shape_call.SURE`)
+    if (call is None or call.shape is None) and values["shape_margin"] < LIMITS["shape_margin"]:
         found.append(NamedWarning("shape-undecided", f"the chosen shape class explains the silhouette by only "
                                   f"{values['shape_margin']:+.3f} IoU against the other: the shape is a guess",
-                                  "read `candidates`; pass --shape box or --shape twobox if you know it"))
+                                  SHAPE_ACTION))
     if values["mask_px"] < LIMITS["mask_px"]:
         untested = ("" if 2 ** values["mask_px"] >= SMALLEST_MEASURED_PX else
                     f"; its error bars are untested below {SMALLEST_MEASURED_PX:.0f} px (measured on silhouettes of 31-231 px)")

@@ -340,12 +340,17 @@ def caption(fit: Fit, columns: int | None = None) -> str:
 def choice_reason(fit: Fit) -> str | None:
     """Why the chosen shape won though another class scored higher, in the words of the rule that
     chose (fit/candidates.py `choose`, fit/cuboid.py `choose_cuboid`): a richer class must score more
-    than the margin higher, and a fit set aside says why in its warning. None where the chosen one
-    scored highest, or alone."""
+    than the margin higher, and a fit set aside says why in its warning; or, on a rough mask, that the
+    shape classifier called it (`fit.shape_call`), always. None where the chosen one scored highest, or alone."""
     score = "IoU" if fit.cuboid is not None else "confidence"
     margin = CUBOID_MARGIN if fit.cuboid is not None else RICHER_SHAPE_MARGIN
     chosen = fit.candidates.get(fit.shape, fit.confidence)
     higher = {s: c for s, c in fit.candidates.items() if s != fit.shape and c > chosen}
+    call = fit.shape_call
+    if call is not None and call.shape == fit.shape:  # a rough mask: the classifier's call stood
+        sure = max(call.twobox_probability, 1 - call.twobox_probability)
+        return f"{fit.shape}: the shape classifier's call on this rough silhouette ({100 * sure:.0f}% sure)" + \
+            "".join(f"; {s}'s {score} {c:.3f} is higher" for s, c in higher.items())
     if not higher:
         return None
     rival, value = max(higher.items(), key=lambda item: item[1])

@@ -42,7 +42,7 @@ def to_record(outcome: Outcome | dict, with_component: bool = False, cuboid: boo
         record = {"input": outcome.input, "shape": None, "confidence": None, "keypoints": None, "ratios": None,
                   **({"ratios_sd": None} if cuboid else {}), "refine_steps": None, "refine_converged": None, "error": outcome.reason, "warnings": [],
                   "candidates": {}}
-        return record | ({"trust": None, "cuboid": None} if cuboid else {}) | ({"component": None} if with_component else {})
+        return record | ({"trust": None, "cuboid": None, "shape_call": None} if cuboid else {}) | ({"component": None} if with_component else {})
     return outcome
 
 

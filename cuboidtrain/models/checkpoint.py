@@ -185,21 +185,27 @@ def check_intact(path: Path) -> None:
                           f"(a flipped bit or a torn copy); not loaded")
 
 
+def read_torch_file(path: Path, what: str, weights_only: bool) -> object:
+    """What torch.save wrote to `path`, its bytes checked first (`check_intact`); a one-line UsageError
+    naming `what` it should be for a missing, damaged, truncated or foreign file."""
+    if not path.is_file():
+        raise UsageError(f"{what} {path}: no such file")
+    check_intact(path)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=weights_only)
+    except Exception as exc:  # torch raises many types for a truncated or foreign file
+        if not _torch_file(path):  # a PNG, a text file: say what it is not, not what pickle tripped on
+            raise UsageError(f"{what} {path}: cannot read it: not a cuboid-fit {what} "
+                             f"(not a file that torch.save writes)") from None
+        raise UsageError(f"{what} {path}: cannot read it ({type(exc).__name__}: {exc})") from None
+
+
 def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None = None,
                     arch: str | None = None) -> dict:
     """The checkpoint's dict, checked (its bytes first: `check_intact`); ValueError names what is wrong with it."""
     path = Path(path)
-    if not path.is_file():
-        raise UsageError(f"checkpoint {path}: no such file")
-    check_intact(path)
-    try:
-        # weights_only=False: the payload holds RNG states (numpy arrays, tuples); only load your own files
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises many types for a truncated or foreign file
-        if not _torch_file(path):  # a PNG, a text file: say what it is not, not what pickle tripped on
-            raise UsageError(f"checkpoint {path}: cannot read it: not a cuboid-fit checkpoint "
-                             f"(not a file that torch.save writes)") from None
-        raise UsageError(f"checkpoint {path}: cannot read it ({type(exc).__name__}: {exc})") from None
+    # weights_only=False: the payload holds RNG states (numpy arrays, tuples); only load your own files
+    ckpt = read_torch_file(path, "checkpoint", weights_only=False)
     if not isinstance(ckpt, dict) or ckpt.get("format") not in (FORMAT, MODEL_FORMAT):
         raise UsageError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r} "
                          f"or {MODEL_FORMAT!r})")

@@ -22,11 +22,13 @@ import torch
 
 from cuboidtrain.models.checkpoint import (FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, checkpoint_grey,
                                           load_checkpoint)
+from cuboidtrain.models.classifier import load_classifier
 from cuboidtrain.models.pdm import PointDistributionModel, spool_keypoints
 from shared.errors import UsageError
 from shared.files import atomic_path
 
 SHIPPED_SHAPES = ("box", "twobox")
+CLASSIFIER_FILE = "classifier.pt"  # the shape classifier's file in the models folder
 
 
 def models_dir() -> Path:
@@ -42,6 +44,11 @@ def shipped_path(shape: str) -> Path:
         raise UsageError(f"shipped model {path}: no such file (reinstall cuboid-fit, set CUBOID_MODELS, "
                          f"or give --checkpoint)")
     return path
+
+
+def classifier_path() -> Path:
+    """The shipped shape classifier (`cuboidtrain.models.classifier`), beside the shipped models."""
+    return models_dir() / CLASSIFIER_FILE
 
 
 def default_checkpoints(given: list[Path] | None, shapes: tuple[str, ...] = SHIPPED_SHAPES) -> list[Path]:
@@ -156,6 +163,9 @@ def cards(folder: Path | None = None) -> list[dict]:
     folder = folder or models_dir()
     found = []
     for path in sorted(folder.glob("*.pt")):
+        if path.name == CLASSIFIER_FILE:
+            found.append(load_classifier(path)[1] | {"file": str(path), "bytes": path.stat().st_size})
+            continue
         model = load_checkpoint(path)
         card = model.get("card") or {"shape": model["shape"], "size": model["size"], "arch": checkpoint_arch(model)}
         found.append(card | {"file": str(path), "bytes": path.stat().st_size})

@@ -179,6 +179,10 @@ function show(answer) {
   if (answer.truth) $("truth").innerHTML = svgOf(view, view.mask, answer.truth.keypoints, null, `truth: ${answer.truth.shape}`);
   const rows = [row("shape", r.shape), row("confidence", r.confidence)];
   for (const [k, v] of Object.entries(r.candidates)) rows.push(row(`candidate ${k}`, v, null, 3, `candidates.${k}`));
+  if (r.shape_call) {  // who called the class: the silhouettes, or the shape classifier on a rough mask
+    const p = r.shape_call.twobox_probability;
+    rows.push(row("shape called by", r.shape_call.by + (p === null ? "" : ` (P(twobox) ${p.toFixed(2)})`), null, 0, "shape_call"));
+  }
   nested("", r.ratios, r.ratios_sd, rows);
   if (c) {
     rows.push(row("yaw (deg)", c.yaw_deg, c.yaw_sd_deg, 2, "yaw_deg"), row("pitch (deg)", c.pitch_deg, null, 2, "pitch_deg"),
