@@ -17,10 +17,12 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from cuboidtrain.fit.masks import frame
 from cuboidtrain.geometry.mask_fit import polygonal
 from cuboidtrain.models.classifier import CLASSIFIER_SIZE, ShapeClassifier, load_classifier
+from cuboidtrain.models.device import one_thread
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +63,8 @@ def call_shape(classifier: ShapeClassifier | None, mask: np.ndarray) -> ShapeCal
         return None
     if polygonal(mask):
         return ShapeCall(SILHOUETTE)
-    p = classifier.twobox_probability(classifier_input(mask))
+    with one_thread(torch.device("cpu")):  # the same probability on every machine (`device.one_thread`)
+        p = classifier.twobox_probability(classifier_input(mask))
     return ShapeCall(CLASSIFIER if max(p, 1.0 - p) >= SURE else SILHOUETTE, p)
 
 
