@@ -77,6 +77,8 @@ def test_the_page_fits_an_upload_as_infer_does_in_a_browser(page_server, browser
     assert shown(browser, "ratios.depth_height") == record["ratios"]["depth_height"]
     assert shown(browser, "ratios.width_height") == record["ratios"]["width_height"]
     assert shown(browser, "yaw_deg") == cuboid["yaw_deg"] and shown(browser, "focal_px") == cuboid["focal_px"]
+    called = browser.find_element("css selector", "#numbers tr[data-key='shape_call'] td:last-child").text
+    assert called.startswith(record["shape_call"]["by"])  # who called the class: the silhouettes or the classifier
     sd = browser.find_element("css selector", "#numbers tr[data-key='yaw_deg'] td[data-sd]").get_attribute("data-sd")
     assert float(sd) == cuboid["yaw_sd_deg"]
     scores = [float(td.get_attribute("data-value")) for td in
