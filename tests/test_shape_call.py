@@ -88,14 +88,14 @@ def spools(tmp_path_factory):
 
 
 def test_training_separates_the_classes_it_was_shown_and_says_how_it_was_trained(spools):
-    trained = train_classifier(spools, steps=120, batch_size=16, seed=0)
-    assert trained.steps == 120 and trained.masks == {"box": 24, "twobox": 24}
+    trained = train_classifier(spools, steps=60, batch_size=16, seed=0)
+    assert trained.steps == 60 and trained.masks == {"box": 24, "twobox": 24}
     calls = {shape: [trained.net.twobox_probability(classifier_input(build_sample(i, shape, size=64).noisy)) > 0.5
                      for i in range(24)] for shape in ("box", "twobox")}
     right = (calls["box"].count(False) + calls["twobox"].count(True)) / 48
     assert right >= 0.8, calls
     card = trained.card(spools, ["paper"], "abc1234", "a recipe")
-    assert card["samples_seen"] == 120 * 16 and card["commit"] == "abc1234" and card["scenes"] == ["paper"]
+    assert card["samples_seen"] == 60 * 16 and card["commit"] == "abc1234" and card["scenes"] == ["paper"]
 
 
 def test_training_without_a_span_or_on_an_empty_spool_says_so_in_one_line(spools, tmp_path):
