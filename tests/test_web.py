@@ -70,6 +70,9 @@ def test_the_options_are_infers_and_the_panel_comes_when_asked(page_server, tmp_
     expected = infer(mask, "--shape", "twobox", "--invert", "--focal-px", "300", "--principal-px", "80", "60")
     assert answer["record"] == expected | {"input": "dark.png"}
     assert answer["record"]["cuboid"]["intrinsics"] == {"focal_px": "given", "principal_px": "given"}
+    status, answer = post(f"{address}api/fit?name=dark.png&invert=1&no_classifier=1", mask.read_bytes())
+    assert status == 200 and answer["record"] == infer(mask, "--invert", "--no-classifier") | {"input": "dark.png"}
+    assert answer["record"]["shape_call"] is None  # the silhouettes alone chose
 
 
 def test_bad_input_is_infers_one_line_error_and_the_server_goes_on(page_server, tmp_path):

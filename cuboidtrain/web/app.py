@@ -9,7 +9,7 @@
 
 `explain=0` leaves the explanation panel out of the answer (the page asks for it in a second
 request: it takes 10-30 times the fit to draw). The options are query parameters named as `infer`'s (`shape`, `invert`, `threshold`,
-`label_id`, `focal_px`, `principal_x`, `principal_y`), read into `FitOptions` with
+`label_id`, `no_classifier`, `focal_px`, `principal_x`, `principal_y`), read into `FitOptions` with
 `cuboid=True`, as `infer` has them. A bad option or an upload over the limit is a 400 or 413
 whose JSON `error` is one line; an input that cannot be fitted is a record with its `error`,
 as `infer` writes it. The answer is made in a worker (`server.FitPool`; `answer.fit_upload`).
@@ -161,7 +161,8 @@ def page_options(query) -> FitOptions:
         raise UsageError(f"--principal-px {principal}: expected both X and Y, or neither")
     options = FitOptions(shape=query.get("shape", "auto"), invert=flag(query, "invert"),
                          threshold=optional_number(query, "threshold"), label_id=optional_whole(query, "label_id"),
-                         cuboid=True, device="cpu", focal_px=optional_number(query, "focal_px"),
+                         cuboid=True, shape_classifier=not flag(query, "no_classifier"), device="cpu",
+                         focal_px=optional_number(query, "focal_px"),
                          principal_px=None if principal[0] is None else principal)
     return options.validate()
 

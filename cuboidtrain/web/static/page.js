@@ -40,7 +40,7 @@ async function start() {
     fit();
   });
   $("refit").addEventListener("click", fit);
-  for (const id of ["shape", "invert"]) $(id).addEventListener("change", fit);
+  for (const id of ["shape", "invert", "no-classifier"]) $(id).addEventListener("change", fit);
   for (const r of document.querySelectorAll("input[name=camera]")) r.addEventListener("change", fit);
   document.body.dataset.ready = "1";
 }
@@ -56,7 +56,8 @@ function useFile(file) {
 }
 
 function query() {
-  const q = new URLSearchParams({shape: $("shape").value, invert: $("invert").checked ? "1" : "0"});
+  const q = new URLSearchParams({shape: $("shape").value, invert: $("invert").checked ? "1" : "0",
+                                 no_classifier: $("no-classifier").checked ? "1" : "0"});
   if ($("threshold").value.trim()) q.set("threshold", $("threshold").value.trim());
   if ($("label-id").value.trim()) q.set("label_id", $("label-id").value.trim());
   if (document.querySelector("input[name=camera]:checked").value === "given") {
