@@ -37,6 +37,7 @@ from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhoue
 from cuboidtrain.geometry.intrinsics import KnownCamera
 from cuboidtrain.geometry.silhouette import confidence
 from cuboidtrain.models.checkpoint import load_models
+from cuboidtrain.models.classifier import ShapeClassifier
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.models.refine import refine
 from cuboidtrain.fit.options import FitOptions
@@ -146,7 +147,7 @@ class Fitter:
             model.to(self.device).eval()
         self.classifier = self._classifier()
 
-    def _classifier(self):
+    def _classifier(self) -> ShapeClassifier | None:
         """The shipped shape classifier where it has a class to call (the cuboid fit, box and twobox
         both tried) and the options ask for it; else None."""
         shapes = {m.shape for m in self.models}
@@ -273,7 +274,7 @@ class Fitter:
     def trust(best: Candidate, cuboid: FittedCuboid, cuboids: dict[str, FittedCuboid], mask: np.ndarray,
               call: ShapeCall | None) -> Trust:
         """How far to trust the chosen fit (`trust.judge`): its signs beside the other classes' IoU, and the
-        shape classifier's doubt where it called the class chosen."""
+        shape classifier's call where it chose the class (the shape is then no guess, whatever the IoU says)."""
         others = [c.fit.iou for shape, c in cuboids.items() if shape != best.shape]
         return judge(signs(best, cuboid, mask, others), call if call is not None and call.shape == best.shape else None)
 
