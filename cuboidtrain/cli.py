@@ -586,6 +586,7 @@ def classifier_train(
     batch_size: int = typer.Option(128, min=2, help="Masks a step."),
     seed: int = typer.Option(0, help="The weights' and the batches' seed."),
     threads: int = typer.Option(1, min=1, help="Torch threads (one: it trains beside the daemons)."),
+    device: str = typer.Option("cpu", help="cpu, cuda or cuda:N (the masks are then held on the GPU: 2 GB for 120,000)."),
     scene: list[str] = typer.Option([], metavar="NAME", help="A scene the spools were drawn from, for the card (repeat)."),
     recipe: Optional[str] = typer.Option(None, help="The command that drew the spools and trained it, for the card."),
 ) -> None:
@@ -600,7 +601,7 @@ def classifier_train(
     check_outputs(("--out", out))
     torch.set_num_threads(threads)
     spools = {"box": box, "twobox": twobox}
-    trained = train_classifier(spools, minutes, steps, batch_size, seed)
+    trained = train_classifier(spools, minutes, steps, batch_size, seed, device)
     save_classifier(out, trained.net, trained.card(spools, scene, git_commit(), recipe))
     say(f"{out}: shape classifier, {trained.steps:,} steps of {batch_size} on {sum(trained.masks.values()):,} masks "
         f"in {trained.wall_time_s / 60:.1f} min, {out.stat().st_size / 2**10:.0f} KiB")

@@ -3,6 +3,10 @@ its call in the fit (a rough mask's class; a clean one's stays the silhouette's)
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -23,6 +27,8 @@ from cuboidtrain.models.zoo import CLASSIFIER_FILE, cards, shipped_path
 from cuboidtrain.train.classifier_training import train_classifier
 from shared.errors import UsageError
 from tests.conftest import build_sample, fill_spool
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def seeded_classifier(seed: int = 0) -> ShapeClassifier:
@@ -176,19 +182,26 @@ def test_the_classifier_is_only_asked_with_both_classes_and_the_cuboid_fit(monke
     assert sorted(c["shape"] for c in cards(folder)) == ["box", "box|twobox", "twobox"]
 
 
-def test_trained_by_the_command_listed_with_the_models_and_used_by_infer(spools, tmp_path, monkeypatch):
+def test_the_gpu_recipe_trains_one_that_is_listed_with_the_models_and_used_by_infer(tmp_path, monkeypatch):
+    """recipes/classifier.sh as a lent machine runs it (its spools drawn by cuboidgen, `classifier train`), tiny,
+    on the CPU; its file in a models folder beside the shipped box and twobox."""
+    env = os.environ | {"OUT": str(tmp_path / "out"), "PY": sys.executable, "DEVICE": "cpu", "SAMPLES": "4",
+                        "MINUTES": "0.3", "BATCH": "4", "WORKERS": "1", "WORK": str(tmp_path / "work"),
+                        "WHEELS": str(tmp_path / "no-wheels"), "COMMIT": "test"}
+    done = subprocess.run([str(ROOT / "recipes" / "classifier.sh")], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     folder = tmp_path / "models"
     folder.mkdir()
     for shape in ("box", "twobox"):
         (folder / f"{shape}.pt").symlink_to(shipped_path(shape))
+    (folder / CLASSIFIER_FILE).write_bytes((tmp_path / "out" / CLASSIFIER_FILE).read_bytes())
     runner = CliRunner()
-    done = runner.invoke(app, ["classifier", "train", "--box", str(spools["box"]), "--twobox", str(spools["twobox"]),
-                               "--out", str(folder / CLASSIFIER_FILE), "--steps", "3", "--batch-size", "8",
-                               "--scene", "paper"])
-    assert done.exit_code == 0, done.output
     listed = json.loads(runner.invoke(app, ["models", "--folder", str(folder), "--json"]).output)
-    assert [c["arch"] for c in listed if c["file"].endswith(CLASSIFIER_FILE)] == ["classifier"]
-    assert next(c for c in listed if c["arch"] == "classifier")["steps"] == 3
+    [card] = [c for c in listed if c["file"].endswith(CLASSIFIER_FILE)]
+    assert card["arch"] == "classifier" and card["steps"] > 0 and card["masks"] == {"box": 12, "twobox": 12}
+    assert card["device"] == "cpu" and card["recipe"].endswith("recipes/classifier.sh at test")
+    assert card["scenes"] == ["paper", "street", "irregular"]
     monkeypatch.setenv("CUBOID_MODELS", str(folder))
     path = tmp_path / "rough.png"
     assert cv2.imwrite(str(path), rough(3, "twobox").astype(np.uint8) * 255)

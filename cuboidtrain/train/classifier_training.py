@@ -20,6 +20,7 @@ from torch import nn
 
 from cuboidtrain.fit.shape_call import classifier_input
 from cuboidtrain.models.classifier import ShapeClassifier
+from cuboidtrain.models.device import resolve_device
 from shared.errors import UsageError
 from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
@@ -31,18 +32,19 @@ LR, FINAL_LR, WEIGHT_DECAY = 2e-3, 1e-5, 1e-4
 
 @dataclass(frozen=True)
 class TrainedClassifier:
-    net: ShapeClassifier
+    net: ShapeClassifier  # on the CPU, in eval mode
     steps: int
     batch_size: int
     masks: dict[str, int]  # class -> framed masks it trained on
     hidden: int  # masks an occluder hid whole, left out
     wall_time_s: float
+    device: str = "cpu"
 
     def card(self, spools: dict[str, Path], scenes: list[str], commit: str | None, recipe: str | None) -> dict:
         """The model file's card: how it was trained, in the model cards' fields (`cuboidtrain models`)."""
         return {"shape": "box|twobox", "arch": "classifier", "size": 64, "grey_input": True, "scenes": scenes,
                 "steps": self.steps, "batch_size": self.batch_size, "samples_seen": self.steps * self.batch_size,
-                "masks": self.masks, "hidden_masks": self.hidden, "wall_time_s": round(self.wall_time_s, 1),
+                "masks": self.masks, "hidden_masks": self.hidden, "wall_time_s": round(self.wall_time_s, 1), "device": self.device,
                 "spools": {shape: str(path) for shape, path in spools.items()}, "commit": commit, "recipe": recipe}
 
 
@@ -59,23 +61,26 @@ def framed_masks(spool: Path) -> tuple[np.ndarray, int]:
 
 
 def train_classifier(spools: dict[str, Path], minutes: float | None = None, steps: int | None = None,
-                     batch_size: int = 128, seed: int = 0) -> TrainedClassifier:
+                     batch_size: int = 128, seed: int = 0, device: str = "cpu") -> TrainedClassifier:
     """The classifier trained on `spools` ({"box": DIR, "twobox": DIR}) for `minutes` or `steps`
-    (whichever ends first; at least one given), the learning rate a cosine over that span."""
+    (whichever ends first; at least one given), the learning rate a cosine over that span. On a
+    GPU (`device`) the framed masks are held there whole (120,000 are 2 GB) and batches drawn there."""
     if minutes is None and steps is None:
         raise UsageError("the shape classifier's training needs --minutes or --steps")
+    where = resolve_device(device)
     read = {shape: framed_masks(spools[shape]) for shape in ("box", "twobox")}
-    x = torch.from_numpy(np.concatenate([read["box"][0], read["twobox"][0]]))[:, None]
-    y = torch.cat([torch.zeros(len(read["box"][0])), torch.ones(len(read["twobox"][0]))])
+    x = torch.from_numpy(np.concatenate([read["box"][0], read["twobox"][0]]))[:, None].to(where)
+    y = torch.cat([torch.zeros(len(read["box"][0])), torch.ones(len(read["twobox"][0]))]).to(where)
     torch.manual_seed(seed)
-    net = ShapeClassifier()
+    net = ShapeClassifier().to(where)
     optimizer = torch.optim.AdamW(net.parameters(), LR, weight_decay=WEIGHT_DECAY)
     start, step = time.monotonic(), 0
     while (done := progress(start, step, minutes, steps)) < 1.0:
         for group in optimizer.param_groups:
             group["lr"] = FINAL_LR + (LR - FINAL_LR) * 0.5 * (1 + math.cos(math.pi * done))
-        chosen = torch.randint(len(x), (batch_size,))
-        flip = torch.rand(batch_size)[:, None, None, None] < 0.5
+        # drawn on the CPU's generator wherever the masks are: the same batches for a seed on any device
+        chosen = torch.randint(len(x), (batch_size,)).to(where)
+        flip = (torch.rand(batch_size)[:, None, None, None] < 0.5).to(where)
         logits = net(torch.where(flip, x[chosen].flip(-1), x[chosen]))
         loss = nn.functional.binary_cross_entropy_with_logits(logits, y[chosen])
         optimizer.zero_grad()
@@ -84,8 +89,8 @@ def train_classifier(spools: dict[str, Path], minutes: float | None = None, step
         step += 1
         if step % 500 == 0:
             log.info("shape classifier: step %d, loss %.3f, %.1f min", step, loss.item(), (time.monotonic() - start) / 60)
-    return TrainedClassifier(net.eval(), step, batch_size, {k: len(v[0]) for k, v in read.items()},
-                             sum(v[1] for v in read.values()), time.monotonic() - start)
+    return TrainedClassifier(net.cpu().eval(), step, batch_size, {k: len(v[0]) for k, v in read.items()},
+                             sum(v[1] for v in read.values()), time.monotonic() - start, str(where))
 
 
 def progress(start: float, step: int, minutes: float | None, steps: int | None) -> float:
