@@ -17,6 +17,7 @@ set -euo pipefail
 OUT=${OUT:?OUT: the folder the lent machine sends back}
 PY=${PY:-python3} DEVICE=${DEVICE:-cuda} MINUTES=${MINUTES:-9} SAMPLES=${SAMPLES:-40000} BATCH=${BATCH:-256}
 WORK=${WORK:-/tmp/classifier-work} WHEELS=${WHEELS:-.whl} WORKERS=${WORKERS:-$(nproc)}
+THREADS=${THREADS:-1}  # torch's CPU threads: on the GPU they only feed it
 start=$(date +%s)
 mkdir -p "$OUT"
 if compgen -G "$WHEELS/*.whl" > /dev/null; then  # packages the lent machine lacks, carried as wheels
@@ -39,5 +40,5 @@ done
 left=$("$PY" -c "print(max(0.05, $MINUTES - ($(date +%s) - $start) / 60 - 1.0))")
 echo "spools drawn in $(( $(date +%s) - start )) s; training for $left min on $DEVICE"
 "$PY" -m cuboidtrain classifier train --box "$WORK/box" --twobox "$WORK/twobox" --minutes "$left" --device "$DEVICE" \
-    --threads 4 --batch-size "$BATCH" --scene paper --scene street --scene irregular --out "$OUT/classifier.pt" \
+    --threads "$THREADS" --batch-size "$BATCH" --scene paper --scene street --scene irregular --out "$OUT/classifier.pt" \
     --recipe "SAMPLES=$SAMPLES MINUTES=$MINUTES BATCH=$BATCH DEVICE=$DEVICE recipes/classifier.sh at ${COMMIT:-?}"

@@ -19,7 +19,8 @@ from cuboidtrain.cli import app
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.fit.shape_call import CLASSIFIER, SILHOUETTE, SURE, ShapeCall, call_shape, classifier_input
-from cuboidtrain.fit.trust import judge
+from cuboidtrain.fit.trust import LIMITS, judge
+from cuboidtrain.infer.explain import choice_reason
 from cuboidtrain.geometry.mask_fit import polygonal
 from cuboidtrain.models.checkpoint import DamagedFile
 from cuboidtrain.models.classifier import ShapeClassifier, load_classifier, save_classifier
@@ -125,20 +126,42 @@ def shipped():
     return Fitter.from_files([shipped_path("box"), shipped_path("twobox")], FitOptions(device="cpu", cuboid=True))
 
 
-@pytest.mark.parametrize("called", ["box", "twobox"])
-def test_on_a_rough_mask_the_classifiers_call_stands_and_the_record_says_so(shipped, called, monkeypatch):
-    stub = Stub(0.97 if called == "twobox" else 0.03)
-    monkeypatch.setattr(shipped, "classifier", stub)
-    mask = rough(3, "box" if called == "twobox" else "twobox")  # called the other class than it was drawn
-    fit = shipped.fit(mask)
-    assert stub.asked == 1
-    record = fit.record()
-    assert record["shape_call"] == {"by": "classifier", "twobox_probability": stub.p}
-    aside = [w for w in fit.warnings if w.startswith(f"the shape classifier called the mask {called}, but the {called} "
-                                                     "cuboid was set aside: ")]
-    assert (fit.shape == called) != bool(aside), (fit.shape, fit.warnings)  # only a gate outranks the call, and says so
+def test_on_a_rough_mask_a_sure_call_outranks_the_iou_and_is_no_guess(shipped, monkeypatch):
+    mask = rough(5, "twobox")
     monkeypatch.setattr(shipped, "classifier", None)
-    assert shipped.fit(mask).record()["shape_call"] is None
+    alone = shipped.fit(mask)
+    assert alone.shape == "twobox" and alone.record()["shape_call"] is None
+    assert alone.candidates["twobox"] > alone.candidates["box"] + 0.04  # the IoU says twobox, clearly
+    stub = Stub(0.03)
+    monkeypatch.setattr(shipped, "classifier", stub)
+    fit = shipped.fit(mask)
+    assert stub.asked == 1 and fit.shape == "box"
+    assert fit.record()["shape_call"] == {"by": "classifier", "twobox_probability": 0.03}
+    # the IoU's margin is past the shape-undecided limit, but the sure call chose: no guess
+    assert fit.trust.signs["shape_margin"] < LIMITS["shape_margin"]
+    assert "shape-undecided" not in [w.code for w in fit.trust.warnings]
+    assert "shape classifier's call" in choice_reason(fit)
+
+
+def test_a_gate_outranks_the_call_and_says_so(shipped, monkeypatch):
+    monkeypatch.setattr(shipped, "classifier", Stub(0.97))
+    fit = shipped.fit(rough(3, "box"))  # its twobox fit is a box with a seam
+    assert fit.shape == "box" and fit.shape_call.shape == "twobox"
+    assert any(w.startswith("the shape classifier called the mask twobox, but the twobox cuboid was set aside: ")
+               for w in fit.warnings), fit.warnings
+
+
+def test_without_a_classifier_file_the_silhouettes_decide_and_say_it_once(tmp_path, monkeypatch, caplog):
+    folder = tmp_path / "models"
+    folder.mkdir()
+    for shape in ("box", "twobox"):
+        (folder / f"{shape}.pt").symlink_to(shipped_path(shape))
+    monkeypatch.setenv("CUBOID_MODELS", str(folder))
+    with caplog.at_level("WARNING"):
+        fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))
+        assert fitter.classifier is None and fitter.fit(rough(5, "twobox")).record()["shape_call"] is None
+    assert [r.message for r in caplog.records if "no shape classifier" in r.message] == [
+        f"no shape classifier at {folder / CLASSIFIER_FILE}: the fitted cuboids' silhouettes alone choose the class"]
 
 
 def test_on_a_clean_mask_the_silhouette_decides_and_the_classifier_is_not_asked(shipped, monkeypatch):

@@ -41,7 +41,7 @@ from cuboidtrain.models.classifier import ShapeClassifier
 from cuboidtrain.models.networks import ChainOutput, CuboidNet
 from cuboidtrain.models.refine import refine
 from cuboidtrain.fit.options import FitOptions
-from cuboidtrain.fit.shape_call import ShapeCall, call_shape, shipped_classifier
+from cuboidtrain.fit.shape_call import ShapeCall, cached_classifier, call_shape, shipped_classifier
 from cuboidtrain.fit.trust import Trust, judge, signs
 from shared.errors import UsageError
 from shared.files import non_finite
@@ -153,6 +153,8 @@ class Fitter:
         shapes = {m.shape for m in self.models}
         if not (self.options.shape_classifier and self.options.cuboid and {"box", "twobox"} <= shapes):
             return None
+        if self.options.classifier_file is not None:
+            return cached_classifier(Path(self.options.classifier_file))
         return shipped_classifier()
 
     @classmethod

@@ -80,6 +80,9 @@ class FitOptions:
     # With the cuboid fit and both classes: on a rough mask the shipped shape classifier calls the class
     # (cuboidtrain.fit.shape_call); off, or on a clean mask, the fitted cuboids' silhouettes do.
     shape_classifier: bool = True
+    # Its file; None: the models folder's (`zoo.classifier_path`). `infer` pins it before work leaves this
+    # process, so that a cluster's workers load the file this machine has, as they do its box and twobox.
+    classifier_file: str | None = None
 
     def validate(self) -> "FitOptions":
         """The checked options, strings parsed; a ValueError names the bad value and what was expected.

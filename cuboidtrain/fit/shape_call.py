@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -26,7 +27,8 @@ from cuboidtrain.models.device import one_thread
 
 log = logging.getLogger(__name__)
 
-SILHOUETTE, CLASSIFIER = "silhouette", "classifier"
+SILHOUETTE: Literal["silhouette"] = "silhouette"
+CLASSIFIER: Literal["classifier"] = "classifier"
 # The classifier's call stands where it gives its class at least this probability; under it the
 # silhouettes decide. On the tuning seeds' rough masks (150 a scene and class) 0.8 was better than or
 # equal to the silhouettes alone on every scene and class, where 0.5 lost 2-4 points on twoboxes
@@ -36,7 +38,7 @@ SURE = 0.8
 
 @dataclass(frozen=True)
 class ShapeCall:
-    by: str  # SILHOUETTE (the fitted cuboids' IoU chose) or CLASSIFIER
+    by: Literal["silhouette", "classifier"]  # SILHOUETTE: the fitted cuboids' IoU chose; CLASSIFIER: its sure call
     twobox_probability: float | None = None  # the classifier's, where it was asked
 
     @property

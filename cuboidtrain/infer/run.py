@@ -78,6 +78,7 @@ def infer(request: InferRequest, console) -> InferResult:
     from cuboidtrain.models.zoo import default_checkpoints
 
     checkpoints = default_checkpoints(list(request.checkpoints), options.shapes)
+    options = pinned_classifier(options)
     fitter = Fitter.from_files(checkpoints, options)  # also checks the models before any worker starts
     batch = Batch(tuple(inputs), tuple(checkpoints), options, request.workers, request.jsonl,
                   keep=request.json_out is not None or request.jsonl is None, cluster=request.cluster)
@@ -172,3 +173,14 @@ def write_list(json_out: str | None, outcomes: list[Outcome | dict], options: Fi
     else:
         write_records(Path(json_out), records)
     return len(records)
+
+
+def pinned_classifier(options: FitOptions) -> FitOptions:
+    """The options with the shape classifier's file named where it would be used (`FitOptions.classifier_file`):
+    every worker, local or a cluster's, then loads this machine's file, or fails naming it."""
+    from cuboidtrain.models.zoo import classifier_path
+
+    if not (options.shape_classifier and options.cuboid) or options.classifier_file is not None:
+        return options
+    path = classifier_path()
+    return replace(options, classifier_file=str(path.resolve())) if path.is_file() else options

@@ -21,8 +21,8 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.models.checkpoint import (FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, checkpoint_grey,
-                                          load_checkpoint)
-from cuboidtrain.models.classifier import load_classifier
+                                          load_checkpoint, read_torch_file)
+from cuboidtrain.models.classifier import CLASSIFIER_FORMAT, load_classifier
 from cuboidtrain.models.pdm import PointDistributionModel, spool_keypoints
 from shared.errors import UsageError
 from shared.files import atomic_path
@@ -49,6 +49,12 @@ def shipped_path(shape: str) -> Path:
 def classifier_path() -> Path:
     """The shipped shape classifier (`cuboidtrain.models.classifier`), beside the shipped models."""
     return models_dir() / CLASSIFIER_FILE
+
+
+def is_classifier(path: Path) -> bool:
+    """Whether a torch file is a shape classifier's (its `format`), not a model's or a checkpoint's."""
+    payload = read_torch_file(path, "model file", weights_only=False)
+    return isinstance(payload, dict) and payload.get("format") == CLASSIFIER_FORMAT
 
 
 def default_checkpoints(given: list[Path] | None, shapes: tuple[str, ...] = SHIPPED_SHAPES) -> list[Path]:
@@ -163,7 +169,7 @@ def cards(folder: Path | None = None) -> list[dict]:
     folder = folder or models_dir()
     found = []
     for path in sorted(folder.glob("*.pt")):
-        if path.name == CLASSIFIER_FILE:
+        if is_classifier(path):  # by its format, whatever its name (`classifier train --out x.pt`)
             found.append(load_classifier(path)[1] | {"file": str(path), "bytes": path.stat().st_size})
             continue
         model = load_checkpoint(path)

@@ -50,10 +50,11 @@ class PageRequest:
 
 def start_worker() -> None:
     """A pool worker's start: one torch thread (as `infer --workers`), Ctrl-C left to the server,
-    the shipped models loaded."""
+    the shipped models and shape classifier loaded."""
     import torch
 
     from cuboidtrain.infer.stopping import leave_signals_to_parent
+    from cuboidtrain.fit.shape_call import shipped_classifier
     from cuboidtrain.models.checkpoint import load_models
     from cuboidtrain.models.zoo import default_checkpoints
 
@@ -62,6 +63,7 @@ def start_worker() -> None:
     torch.set_num_threads(1)
     for model in load_models(default_checkpoints(None, SHAPES)):
         _models[model.shape] = model
+    shipped_classifier()  # loaded (and its file checked) before the page says it is ready, as the models are
 
 
 def ready() -> bool:
