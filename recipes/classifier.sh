@@ -37,7 +37,7 @@ for shape in box twobox; do
     done
 done
 # what is left of MINUTES, less a minute for reading and framing the masks and writing the file
-left=$("$PY" -c "print(max(0.05, $MINUTES - ($(date +%s) - $start) / 60 - 1.0))")
+left=$("$PY" -c "print(max(0.01, $MINUTES - ($(date +%s) - $start) / 60 - 1.0))")
 echo "spools drawn in $(( $(date +%s) - start )) s; training for $left min on $DEVICE"
 "$PY" -m cuboidtrain classifier train --box "$WORK/box" --twobox "$WORK/twobox" --minutes "$left" --device "$DEVICE" \
     --threads "$THREADS" --batch-size "$BATCH" --scene paper --scene street --scene irregular --out "$OUT/classifier.pt" \
