@@ -77,7 +77,7 @@ def test_the_panel_title_says_why_a_lower_score_won_in_digits_that_tell_them_apa
     called = Fit(shape="box", keypoints=np.zeros((8, 2)), ratios={"depth_height": 1.0, "width_height": 1.0},
                  confidence=0.9, refine_steps=1, refine_converged=True, candidates={"box": 0.9, "twobox": 0.93},
                  cuboid="fitted", shape_call=ShapeCall(CLASSIFIER, 0.12))
-    assert choice_reason(called) == "box: the shape classifier's call on this rough silhouette (88% sure); twobox's IoU 0.930 is higher"
+    assert choice_reason(called) == "box: the shape classifier's call on this rough silhouette (88% sure); twobox's IoU 0.930 is higher than the box's 0.900"
 
 
 def test_the_model_table_splits_no_number_in_80_columns_without_a_terminal():

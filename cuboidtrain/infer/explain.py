@@ -349,8 +349,10 @@ def choice_reason(fit: Fit) -> str | None:
     call = fit.shape_call
     if call is not None and call.shape == fit.shape:  # a rough mask: the classifier's call stood
         sure = max(call.twobox_probability, 1 - call.twobox_probability)
+        digits = max(3, distinct_digits(chosen, list(higher.values())))
         return f"{fit.shape}: the shape classifier's call on this rough silhouette ({100 * sure:.0f}% sure)" + \
-            "".join(f"; {s}'s {score} {c:.3f} is higher" for s, c in higher.items())
+            "".join(f"; {s}'s {score} {c:.{digits}f} is higher than the {fit.shape}'s {chosen:.{digits}f}"
+                    for s, c in higher.items())
     if not higher:
         return None
     rival, value = max(higher.items(), key=lambda item: item[1])
