@@ -12,12 +12,13 @@
 # (its card says how it was made) and OUT/classifier.log. Carried wheels in $WHEELS (default .whl/) are installed first.
 #
 # On the CPU with tiny settings (tests/test_shape_call.py runs it so):
-#   OUT=/tmp/c DEVICE=cpu SAMPLES=8 MINUTES=1 BATCH=8 PY=.venv/bin/python recipes/classifier.sh
+#   OUT=/tmp/c DEVICE=cpu SAMPLES=8 MINUTES=1 BATCH=8 SCENES=paper PY=.venv/bin/python recipes/classifier.sh
 set -euo pipefail
 OUT=${OUT:?OUT: the folder the lent machine sends back}
 PY=${PY:-python3} DEVICE=${DEVICE:-cuda} MINUTES=${MINUTES:-9} SAMPLES=${SAMPLES:-40000} BATCH=${BATCH:-256}
 WORK=${WORK:-/tmp/classifier-work} WHEELS=${WHEELS:-.whl} WORKERS=${WORKERS:-$(nproc)}
 THREADS=${THREADS:-1}  # torch's CPU threads: on the GPU they only feed it
+SCENES=${SCENES:-paper street irregular}
 start=$(date +%s)
 mkdir -p "$OUT"
 if compgen -G "$WHEELS/*.whl" > /dev/null; then  # packages the lent machine lacks, carried as wheels
@@ -29,7 +30,7 @@ exec > >(tee -a "$OUT/classifier.log") 2>&1
 rm -rf "$WORK"
 seed=300
 for shape in box twobox; do
-    for scene in paper street irregular; do
+    for scene in $SCENES; do
         seed=$((seed + 1))
         "$PY" -c "import sys; from cuboidgen.cli import main; sys.argv[0] = 'cuboidgen'; main()" run \
             --spool "$WORK/$shape" --shape "$shape" --size 128 --seed "$seed" --scene "$scene" --limit 0 \
@@ -40,5 +41,5 @@ done
 left=$("$PY" -c "print(max(0.01, $MINUTES - ($(date +%s) - $start) / 60 - 1.0))")
 echo "spools drawn in $(( $(date +%s) - start )) s; training for $left min on $DEVICE"
 "$PY" -m cuboidtrain classifier train --box "$WORK/box" --twobox "$WORK/twobox" --minutes "$left" --device "$DEVICE" \
-    --threads "$THREADS" --batch-size "$BATCH" --scene paper --scene street --scene irregular --out "$OUT/classifier.pt" \
-    --recipe "SAMPLES=$SAMPLES MINUTES=$MINUTES BATCH=$BATCH DEVICE=$DEVICE recipes/classifier.sh at ${COMMIT:-?}"
+    --threads "$THREADS" --batch-size "$BATCH" $(printf -- '--scene %s ' $SCENES) --out "$OUT/classifier.pt" \
+    --recipe "SAMPLES=$SAMPLES MINUTES=$MINUTES BATCH=$BATCH DEVICE=$DEVICE SCENES='$SCENES' recipes/classifier.sh at ${COMMIT:-?}"
