@@ -103,6 +103,21 @@ def test_training_separates_the_classes_it_was_shown_and_says_how_it_was_trained
     assert right >= 0.8, calls
     card = trained.card(spools, ["paper"], "abc1234", "a recipe")
     assert card["samples_seen"] == 45 * 16 and card["commit"] == "abc1234" and card["scenes"] == ["paper"]
+    assert card["init"] is None
+
+
+def test_training_on_from_a_file_starts_from_its_weights_and_keeps_its_card(spools, tmp_path):
+    first = train_classifier(spools, steps=45, batch_size=16, seed=0)
+    save_classifier(tmp_path / "first.pt", first.net, first.card(spools, ["paper"], "abc1234", None))
+    on = train_classifier(spools, steps=1, batch_size=16, seed=1, init=tmp_path / "first.pt")
+    assert on.card(spools, ["paper"], None, None)["init"]["commit"] == "abc1234"
+    scratch = train_classifier(spools, steps=1, batch_size=16, seed=1)
+
+    def distance(trained):  # from the file's weights, over the convolutions' and the linear layer's
+        ours, theirs = trained.net.state_dict(), first.net.state_dict()
+        return sum(float((ours[k] - theirs[k]).norm()) for k in ours if k.endswith("weight"))
+    # one step from the file's weights stays near them; one from random weights is far away
+    assert distance(on) < 0.2 * distance(scratch)
 
 
 def test_training_without_a_span_or_on_an_empty_spool_says_so_in_one_line(spools, tmp_path):

@@ -77,9 +77,10 @@ def save_classifier(path: Path, net: ShapeClassifier, card: dict) -> None:
         torch.save(payload, tmp)
 
 
-def load_classifier(path: Path) -> tuple[ShapeClassifier, dict]:
-    """The classifier (float32, eval mode, its BatchNorms folded: for inference) and its card; a one-line UsageError for a missing, damaged
-    or foreign file (`check_intact`: a flipped bit is refused, not used)."""
+def load_classifier(path: Path, folded: bool = True) -> tuple[ShapeClassifier, dict]:
+    """The classifier (float32, eval mode, its BatchNorms folded for inference unless `folded` is False:
+    a start to train on) and its card; a one-line UsageError for a missing, damaged or foreign file
+    (`check_intact`: a flipped bit is refused, not used)."""
     payload = read_torch_file(Path(path), "shape classifier", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != CLASSIFIER_FORMAT:
         raise UsageError(f"shape classifier {path}: not a shape classifier (expected format {CLASSIFIER_FORMAT!r})")
@@ -91,4 +92,5 @@ def load_classifier(path: Path) -> tuple[ShapeClassifier, dict]:
         raise UsageError(f"shape classifier {path}: {bad} of {total} weights are NaN or Infinity: not a model to use")
     net = ShapeClassifier()
     net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in payload["model"].items()})
-    return net.eval().folded(), payload["card"]
+    net.eval()
+    return (net.folded() if folded else net), payload["card"]

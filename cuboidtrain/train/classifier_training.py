@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from cuboidtrain.fit.shape_call import classifier_input
-from cuboidtrain.models.classifier import ShapeClassifier
+from cuboidtrain.models.classifier import ShapeClassifier, load_classifier
 from cuboidtrain.models.device import resolve_device
 from shared.errors import UsageError
 from shared.sample import decode
@@ -39,13 +39,15 @@ class TrainedClassifier:
     hidden: int  # masks an occluder hid whole, left out
     wall_time_s: float
     device: str = "cpu"
+    init: dict | None = None  # the card of the classifier it started from, if not from random weights
 
     def card(self, spools: dict[str, Path], scenes: list[str], commit: str | None, recipe: str | None) -> dict:
         """The model file's card: how it was trained, in the model cards' fields (`cuboidtrain models`)."""
         return {"shape": "box|twobox", "arch": "classifier", "size": 64, "grey_input": True, "scenes": scenes,
                 "steps": self.steps, "batch_size": self.batch_size, "samples_seen": self.steps * self.batch_size,
                 "masks": self.masks, "hidden_masks": self.hidden, "wall_time_s": round(self.wall_time_s, 1), "device": self.device,
-                "spools": {shape: str(path) for shape, path in spools.items()}, "commit": commit, "recipe": recipe}
+                "spools": {shape: str(path) for shape, path in spools.items()}, "commit": commit, "recipe": recipe,
+                "init": self.init}
 
 
 def framed_masks(spool: Path) -> tuple[np.ndarray, int]:
@@ -61,9 +63,10 @@ def framed_masks(spool: Path) -> tuple[np.ndarray, int]:
 
 
 def train_classifier(spools: dict[str, Path], minutes: float | None = None, steps: int | None = None,
-                     batch_size: int = 128, seed: int = 0, device: str = "cpu") -> TrainedClassifier:
+                     batch_size: int = 128, seed: int = 0, device: str = "cpu", init: Path | None = None) -> TrainedClassifier:
     """The classifier trained on `spools` ({"box": DIR, "twobox": DIR}) for `minutes` or `steps`
-    (whichever ends first; at least one given), the learning rate a cosine over that span. On a
+    (whichever ends first; at least one given), the learning rate a cosine over that span, from random
+    weights or from the classifier file `init` (training on: its card is kept in the new one's). On a
     GPU (`device`) the framed masks are held there whole (120,000 are 2 GB) and batches drawn there."""
     if minutes is None and steps is None:
         raise UsageError("the shape classifier's training needs --minutes or --steps")
@@ -72,7 +75,8 @@ def train_classifier(spools: dict[str, Path], minutes: float | None = None, step
     x = torch.from_numpy(np.concatenate([read["box"][0], read["twobox"][0]]))[:, None].to(where)
     y = torch.cat([torch.zeros(len(read["box"][0])), torch.ones(len(read["twobox"][0]))]).to(where)
     torch.manual_seed(seed)
-    net = ShapeClassifier().to(where)
+    net, init_card = load_classifier(init, folded=False) if init is not None else (ShapeClassifier(), None)
+    net = net.train().to(where)
     optimizer = torch.optim.AdamW(net.parameters(), LR, weight_decay=WEIGHT_DECAY)
     start, step = time.monotonic(), 0
     while (done := progress(start, step, minutes, steps)) < 1.0:
@@ -90,7 +94,7 @@ def train_classifier(spools: dict[str, Path], minutes: float | None = None, step
         if step % 500 == 0:
             log.info("shape classifier: step %d, loss %.3f, %.1f min", step, loss.item(), (time.monotonic() - start) / 60)
     return TrainedClassifier(net.cpu().eval(), step, batch_size, {k: len(v[0]) for k, v in read.items()},
-                             sum(v[1] for v in read.values()), time.monotonic() - start, str(where))
+                             sum(v[1] for v in read.values()), time.monotonic() - start, str(where), init_card)
 
 
 def progress(start: float, step: int, minutes: float | None, steps: int | None) -> float:
