@@ -3,10 +3,10 @@
 Each class's `paper-clean` masks (seeded spools of their own, not the ones the restart was tuned
 on: seeds 31 and 32) are fitted as `infer` fits them (both shipped models, the shape chosen), twice
 in the same process, mask by mask: **before**, the first start alone (`mask_fit.RESTART_IOU` below
-any IoU, `Fitter.reached` restarting nothing), and **after**, as shipped. Per class and size: the
-share of masks whose chosen cuboid's silhouette IoU is at least 0.99, the "box with a seam"
-warnings, the share given their own class and the corner error (px of the mask, mean and median
-of the per-mask mean, over the masks given their own class).
+any IoU, `Fitter.reached` restarting nothing, `Fitter.settled` settling nothing), and **after**, as
+shipped. Per class and size: the share of masks whose chosen cuboid's silhouette IoU is at least
+0.99, the "box with a seam" warnings, the share given their own class and the corner error (px of
+the mask, mean and median of the per-mask mean, over the masks given their own class).
 
 `--oracle` measures instead how far the silhouette can be reached at all, per class and size: the
 IoU of the true cuboid's own silhouette (drawn by the generator's rasteriser: 1 on a clean mask), of
@@ -48,6 +48,14 @@ from shared.sample import decode
 from shared.spool import enumerate_spool, read_sample_bytes
 
 REACHED = 0.99
+SHIPPED = {"reached": Fitter.__dict__["reached"], "settled": Fitter.__dict__["settled"]}
+
+
+def restarts(on: bool) -> None:
+    """The restarts and the settling as shipped (`on`), or the first start alone."""
+    mask_fit.RESTART_IOU = REACHED if on else -1.0
+    Fitter.reached = SHIPPED["reached"] if on else (lambda self, *args: {})
+    Fitter.settled = SHIPPED["settled"] if on else staticmethod(lambda *args: None)
 
 
 def clean_spool(root: Path, shape: str, seed: int, samples: int, size: int) -> Path:
@@ -61,10 +69,9 @@ def clean_spool(root: Path, shape: str, seed: int, samples: int, size: int) -> P
     return spool
 
 
-def fitted(fitter: Fitter, sample, restart: bool, monkeypatch_reached) -> dict:
+def fitted(fitter: Fitter, sample, restart: bool) -> dict:
     """One mask's fit, the restart on or off."""
-    mask_fit.RESTART_IOU = REACHED if restart else -1.0
-    Fitter.reached = monkeypatch_reached if restart else (lambda self, *args: {})
+    restarts(restart)
     fit = fitter.fit(sample.clean.astype(np.uint8) * 255)
     own = fit.shape == sample.shape
     return {"iou": fit.cuboid.fit.iou, "own": own, "seam": any("a box with a seam" in w for w in fit.warnings),
@@ -104,7 +111,6 @@ def timed(count: int, repeats: int) -> dict:
     sys.path.insert(0, str(Path(__file__).parents[1] / "speed"))
     from bench_infer import record_masks
 
-    reached = Fitter.reached
     fitters = {"networks": Fitter.from_shipped(FitOptions(device="cpu")),
                "before": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True)),
                "after": Fitter.from_shipped(FitOptions(device="cpu", cuboid=True))}
@@ -114,12 +120,11 @@ def timed(count: int, repeats: int) -> dict:
         for _ in range(repeats):
             for path in paths:
                 for name, fitter in fitters.items():
-                    mask_fit.RESTART_IOU = -1.0 if name == "before" else REACHED
-                    Fitter.reached = (lambda self, *args: {}) if name == "before" else reached
+                    restarts(name != "before")
                     start = time.perf_counter()
                     fitter.outcomes([path])
                     times[name].append(time.perf_counter() - start)
-    Fitter.reached = reached
+    restarts(True)
     medians = {name: 1000 * statistics.median(t) for name, t in times.items()}
     return medians | {"before_ratio": medians["before"] / medians["networks"],
                       "after_ratio": medians["after"] / medians["networks"],
@@ -152,14 +157,13 @@ def main() -> None:
             samples = [decode(read_sample_bytes(spool, name)) for name in enumerate_spool(spool)[:args.samples]]
             print(oracle_line(args.size, shape, [oracle(fitter, s) for s in samples]), flush=True)
         return
-    reached = Fitter.reached
     result = {}
     for shape, seed in zip(("box", "twobox"), args.seeds):
         spool = clean_spool(args.spools, shape, seed, args.samples, args.size)
         samples = [decode(read_sample_bytes(spool, name)) for name in enumerate_spool(spool)[:args.samples]]
         for restart, label in ((False, "before"), (True, "after")):
-            result[f"{shape} {label}"] = summary([fitted(fitter, s, restart, reached) for s in samples])
-    Fitter.reached = reached
+            result[f"{shape} {label}"] = summary([fitted(fitter, s, restart) for s in samples])
+    restarts(True)
     for name, row in result.items():
         print(f"{args.size} px {name}: IoU >= {REACHED} {100 * row['reached']:.1f}% (least {row['iou_min']:.3f}), "
               f"own class {100 * row['own_class']:.1f}%, seam warnings {row['seam_warnings']}, "

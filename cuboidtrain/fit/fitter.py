@@ -255,6 +255,9 @@ class Fitter:
             if again := self.reached(best, firsts, cuboids, mask):
                 cuboids |= again
                 best, set_aside = choose_cuboid(candidates, cuboids, called)
+            if calm := self.settled(best, firsts, cuboids, mask):  # a better fit of the same class, chosen again:
+                cuboids[best.shape] = calm  # a set-aside class it now explains better than says so no more
+                best, set_aside = choose_cuboid(candidates, cuboids, called)
             candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
         else:
             best = choose(candidates)
@@ -317,6 +320,16 @@ class Fitter:
         if isinstance(first.cuboid, NoCuboid):
             raise NonFiniteCuboid(first.cuboid.reason)
         return first
+
+    @staticmethod
+    def settled(chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
+                mask: np.ndarray) -> FittedCuboid | None:
+        """Where the chosen class's cuboid is still short of a clean mask's silhouette after the restarts
+        (`cuboid.stopped_short`), it settled on it (`FirstCuboid.settled`: the outline's misses weighed alike
+        on both sides), after the choice, which it leaves as it is (it only explains the mask better); else None."""
+        if stopped_short(cuboids, chosen.shape, mask) is None:
+            return None
+        return firsts[chosen.shape].settled(cuboids[chosen.shape])
 
     def reached(self, chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
                 mask: np.ndarray) -> dict[str, FittedCuboid]:
