@@ -205,7 +205,12 @@ def load_checkpoint(path: str | Path, shape: str | None = None, size: int | None
     """The checkpoint's dict, checked (its bytes first: `check_intact`); ValueError names what is wrong with it."""
     path = Path(path)
     # weights_only=False: the payload holds RNG states (numpy arrays, tuples); only load your own files
-    ckpt = read_torch_file(path, "checkpoint", weights_only=False)
+    return checked_checkpoint(path, read_torch_file(path, "checkpoint", weights_only=False), shape, size, arch)
+
+
+def checked_checkpoint(path: Path, ckpt: object, shape: str | None = None, size: int | None = None,
+                       arch: str | None = None) -> dict:
+    """`ckpt`, what `path` holds (`read_torch_file`), checked as `load_checkpoint` checks it."""
     if not isinstance(ckpt, dict) or ckpt.get("format") not in (FORMAT, MODEL_FORMAT):
         raise UsageError(f"checkpoint {path}: not a cuboid-fit checkpoint (expected format {FORMAT!r} "
                          f"or {MODEL_FORMAT!r})")

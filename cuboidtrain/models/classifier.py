@@ -81,7 +81,12 @@ def load_classifier(path: Path, folded: bool = True) -> tuple[ShapeClassifier, d
     """The classifier (float32, eval mode, its BatchNorms folded for inference unless `folded` is False:
     a start to train on) and its card; a one-line UsageError for a missing, damaged or foreign file
     (`check_intact`: a flipped bit is refused, not used)."""
-    payload = read_torch_file(Path(path), "shape classifier", weights_only=True)
+    return checked_classifier(Path(path), read_torch_file(Path(path), "shape classifier", weights_only=True), folded)
+
+
+def checked_classifier(path: Path, payload: object, folded: bool = True) -> tuple[ShapeClassifier, dict]:
+    """The classifier and card of `payload`, what `path` holds (`read_torch_file`), checked as
+    `load_classifier` checks it."""
     if not isinstance(payload, dict) or payload.get("format") != CLASSIFIER_FORMAT:
         raise UsageError(f"shape classifier {path}: not a shape classifier (expected format {CLASSIFIER_FORMAT!r})")
     if payload.get("version") != CLASSIFIER_VERSION:

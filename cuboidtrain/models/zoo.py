@@ -21,8 +21,8 @@ from pathlib import Path
 import torch
 
 from cuboidtrain.models.checkpoint import (FORMAT, MODEL_FORMAT, VERSION, checkpoint_arch, checkpoint_grey,
-                                          load_checkpoint, read_torch_file)
-from cuboidtrain.models.classifier import CLASSIFIER_FORMAT, load_classifier
+                                          checked_checkpoint, load_checkpoint, read_torch_file)
+from cuboidtrain.models.classifier import CLASSIFIER_FORMAT, checked_classifier
 from cuboidtrain.models.pdm import PointDistributionModel, spool_keypoints
 from shared.errors import UsageError
 from shared.files import atomic_path
@@ -51,9 +51,9 @@ def classifier_path() -> Path:
     return models_dir() / CLASSIFIER_FILE
 
 
-def is_classifier(path: Path) -> bool:
-    """Whether a torch file is a shape classifier's (its `format`), not a model's or a checkpoint's."""
-    payload = read_torch_file(path, "model file", weights_only=False)
+def is_classifier(payload: object) -> bool:
+    """Whether what a torch file holds (`read_torch_file`) is a shape classifier's (its `format`), not a
+    model's or a checkpoint's."""
     return isinstance(payload, dict) and payload.get("format") == CLASSIFIER_FORMAT
 
 
@@ -169,10 +169,11 @@ def cards(folder: Path | None = None) -> list[dict]:
     folder = folder or models_dir()
     found = []
     for path in sorted(folder.glob("*.pt")):
-        if is_classifier(path):  # by its format, whatever its name (`classifier train --out x.pt`)
-            found.append(load_classifier(path)[1] | {"file": str(path), "bytes": path.stat().st_size})
-            continue
-        model = load_checkpoint(path)
-        card = model.get("card") or {"shape": model["shape"], "size": model["size"], "arch": checkpoint_arch(model)}
+        payload = read_torch_file(path, "model file", weights_only=False)  # read once, checked by its format
+        if is_classifier(payload):  # whatever its name (`classifier train --out x.pt`)
+            card = checked_classifier(path, payload)[1]
+        else:
+            model = checked_checkpoint(path, payload)
+            card = model.get("card") or {"shape": model["shape"], "size": model["size"], "arch": checkpoint_arch(model)}
         found.append(card | {"file": str(path), "bytes": path.stat().st_size})
     return found
