@@ -27,6 +27,8 @@ from cuboidtrain.models.classifier import ShapeClassifier, load_classifier, save
 from cuboidtrain.models.zoo import CLASSIFIER_FILE, cards, shipped_path
 from cuboidtrain.train.classifier_training import train_classifier
 from shared.errors import UsageError
+from shared.sample import decode
+from shared.spool import enumerate_spool, read_sample_bytes
 from tests.conftest import build_sample, fill_spool
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -238,7 +240,9 @@ def test_the_gpu_recipe_trains_one_that_is_listed_with_the_models_and_used_by_in
     listed = json.loads(runner.invoke(app, ["models", "--folder", str(folder), "--json"]).output)
     [card] = [c for c in listed if c["file"].endswith(CLASSIFIER_FILE)]
     assert card["arch"] == "classifier" and card["steps"] > 0 and card["masks"] == {"box": 8, "twobox": 8}
-    assert card["device"] == "cpu" and card["recipe"].endswith("SCENES='paper street' recipes/classifier.sh at test")
+    assert card["device"] == "cpu" and card["recipe"].endswith("SIZES='128 256' recipes/classifier.sh at test")
+    work = tmp_path / "work" / "box"  # each scene's SAMPLES split over both sizes
+    assert sorted(decode(read_sample_bytes(work, name)).size for name in enumerate_spool(work)) == [128] * 4 + [256] * 4
     assert card["scenes"] == ["paper", "street"]
     monkeypatch.setenv("CUBOID_MODELS", str(folder))
     path = tmp_path / "rough.png"
