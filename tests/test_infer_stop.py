@@ -9,12 +9,14 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import groups_end, write_mask_pngs
+from cuboidtrain.infer.stopping import held_during_import
 
 ROOT = Path(__file__).resolve().parents[1]
 MASKS = 150
@@ -96,3 +98,26 @@ def test_ctrl_c_while_a_pool_starts_ends_quietly(tmp_path, masks, delay):
     os.killpg(proc.pid, signal.SIGINT)
     _, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr[-3000:]
+
+
+def test_a_signal_during_a_held_import_is_delivered_when_it_ends():
+    """`held_during_import`: the signal waits for the block's end (a KeyboardInterrupt raised inside torch's native
+    initialisation aborts the interpreter), then comes as it would have."""
+    class Delivered(Exception):
+        pass
+
+    def handler(signum, frame):
+        raise Delivered
+
+    order = []
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        with pytest.raises(Delivered):
+            with held_during_import():
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)  # to this thread: held here
+                order.append("inside")  # not interrupted here
+            order.append("after")  # never: it comes as the block ends
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert order == ["inside"]
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, set()) == set()  # nothing left held

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.infer.inputs import gather_inputs
 from cuboidtrain.infer.mesh import MeshWriter, check_mesh_options
-from cuboidtrain.infer.stopping import Stop
+from cuboidtrain.infer.stopping import Stop, held_during_import
 from shared.errors import UsageError, check_outputs, check_writable
 from shared.files import json_text
 
@@ -73,7 +73,8 @@ def infer(request: InferRequest, console) -> InferResult:
         from cuboidtrain.infer.pool import warm_up
 
         warm_up(request.workers)  # the workers' torch import, beside this process's below (no torch imported yet)
-    from cuboidtrain.fit.fitter import Fitter, Writers
+    with held_during_import():  # torch's: a Ctrl-C inside its native initialisation would abort the interpreter
+        from cuboidtrain.fit.fitter import Fitter, Writers
     from cuboidtrain.infer.batch import Batch, run_batch
     from cuboidtrain.models.zoo import default_checkpoints
 

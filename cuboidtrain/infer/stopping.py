@@ -57,6 +57,22 @@ class Stop:
                 signal.signal(s, handler)
 
 
+@contextlib.contextmanager
+def held_during_import():
+    """Ctrl-C and SIGTERM held while the block imports a native library, and delivered when it ends, at a
+    safe point: a KeyboardInterrupt raised inside torch's pybind11 initialisation is thrown through C++
+    (`pybind11::error_already_set`) and ends the interpreter by std::terminate (exit -6, a C++ message
+    on stderr; tests/test_infer_stop.py saw it once in some runs). A no-op outside the main thread."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, set(NAMES))
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
 def leave_signals_to_parent() -> None:
     """A `--workers` process's start: Ctrl-C reaches the whole process group, and a service manager
     sends SIGTERM to every process; the parent decides, and finishes the inputs in hand."""
