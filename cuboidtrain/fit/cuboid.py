@@ -190,12 +190,12 @@ class FirstCuboid:
             return self.cuboid
         return settled(finished(self.first, reach, clean=[True])[0], self.start, self.sdf, self.known)
 
-    def settled(self, cuboid: FittedCuboid) -> FittedCuboid | None:
+    def settled_on_silhouette(self, cuboid: FittedCuboid) -> FittedCuboid | None:
         """`cuboid`, this class's chosen cuboid of a clean mask still short of its silhouette, settled on it
         (`mask_fit.settled_on_silhouette`) with its error bars; None where that explains the mask no better."""
         if self.first is None:
             return None
-        moved = mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit.camera)
+        moved = mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit)
         if moved is None:
             return None
         fit = mask_fit.with_error_bars(self.first, 0, *moved)

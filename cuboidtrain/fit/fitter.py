@@ -325,11 +325,12 @@ class Fitter:
     def settled(chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
                 mask: np.ndarray) -> FittedCuboid | None:
         """Where the chosen class's cuboid is still short of a clean mask's silhouette after the restarts
-        (`cuboid.stopped_short`), it settled on it (`FirstCuboid.settled`: the outline's misses weighed alike
-        on both sides), after the choice, which it leaves as it is (it only explains the mask better); else None."""
+        (`cuboid.stopped_short`), it settled on it (`FirstCuboid.settled_on_silhouette`: the outline's misses
+        weighed alike on both sides), after the choice, which it leaves as it is (it only explains the mask
+        better); else None."""
         if stopped_short(cuboids, chosen.shape, mask) is None:
             return None
-        return firsts[chosen.shape].settled(cuboids[chosen.shape])
+        return firsts[chosen.shape].settled_on_silhouette(cuboids[chosen.shape])
 
     def reached(self, chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
                 mask: np.ndarray) -> dict[str, FittedCuboid]:

@@ -282,8 +282,8 @@ def clean_silhouette(weights: MaskFitWeights) -> MaskFitWeights:
     return replace(silhouette_first(weights), inside=weights.outside, overhang=weights.outside)
 
 
-def settled_on_silhouette(first: FirstFits, k: int, camera: CameraParams) -> tuple[Solution, CuboidFit] | None:
-    """Mask `k`'s fit at `camera` (a clean mask's, its class chosen, still short of its silhouette after the
+def settled_on_silhouette(first: FirstFits, k: int, chosen: CuboidFit) -> tuple[Solution, CuboidFit] | None:
+    """Mask `k`'s `chosen` fit (a clean mask's, its class chosen, still short of its silhouette after the
     restarts) fitted on by POLISH_ITERATIONS of the LM on `clean_silhouette`, the outline read densely, as a
     row of `first`'s objective (`on_first_objective`: its error bars read the same objective as any fit's),
     and its fit; None where its silhouette explains no more of the mask's pixels by RESTART_GAIN_PX. Only
@@ -292,10 +292,10 @@ def settled_on_silhouette(first: FirstFits, k: int, camera: CameraParams) -> tup
     target = first.targets[k]
     settle = replace(first, weights=clean_silhouette(first.weights), stacked=StackedTargets.of(
         [densely(t) if i == k else t for i, t in enumerate(first.targets)]))
+    camera = chosen.camera
     solved = settle.solve(np.array([k]), np.array([camera.mirror]), camera.vector[None].copy(), POLISH_ITERATIONS)
     fit = described(target, first.shape, CameraParams(first.shape, solved.params[0], camera.mirror), first.weights)
-    before = coverage(first.shape, camera.keypoints(), target.mask)[0]
-    if (fit.iou - before) * int(target.mask.sum()) <= RESTART_GAIN_PX:
+    if (fit.iou - chosen.iou) * int(target.mask.sum()) <= RESTART_GAIN_PX:
         return None
     return on_first_objective(first, k, Solution(solved, 0, camera.mirror)), fit
 
