@@ -590,6 +590,7 @@ def classifier_train(
     scene: list[str] = typer.Option([], metavar="NAME", help="A scene the spools were drawn from, for the card (repeat)."),
     recipe: Optional[str] = typer.Option(None, help="The command that drew the spools and trained it, for the card."),
     init: Optional[Path] = typer.Option(None, metavar="FILE.pt", help="Start from this classifier's weights (train on), not random ones; its card is kept in the new one's."),
+    lr: Optional[float] = typer.Option(None, help="The cosine's peak learning rate (default 2e-3; lower to train on from --init)."),
 ) -> None:
     """Train the shape classifier on a box spool and a twobox spool and write its file (weights and card)."""
     import torch
@@ -602,7 +603,7 @@ def classifier_train(
     check_outputs(("--out", out))
     torch.set_num_threads(threads)
     spools = {"box": box, "twobox": twobox}
-    trained = train_classifier(spools, minutes, steps, batch_size, seed, device, init)
+    trained = train_classifier(spools, minutes, steps, batch_size, seed, device, init, lr)
     save_classifier(out, trained.net, trained.card(spools, scene, git_commit(), recipe))
     say(f"{out}: shape classifier, {trained.steps:,} steps of {batch_size} on {sum(trained.masks.values()):,} masks "
         f"in {trained.wall_time_s / 60:.1f} min, {out.stat().st_size / 2**10:.0f} KiB")

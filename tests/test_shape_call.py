@@ -124,11 +124,17 @@ def test_training_on_from_a_file_starts_from_its_weights_and_keeps_its_card(spoo
         return sum(float((ours[k] - theirs[k]).norm()) for k in ours if k.endswith("weight"))
     # one step from the file's weights stays near them; one from random weights is far away
     assert distance(on) < 0.2 * distance(scratch)
+    # a lower peak learning rate moves them less, and the card says which it was
+    gentle = train_classifier(spools, steps=1, batch_size=16, seed=1, init=tmp_path / "first.pt", lr=2e-4)
+    assert distance(gentle) < 0.5 * distance(on)
+    assert gentle.card(spools, ["paper"], None, None)["lr"] == 2e-4 and on.card(spools, [], None, None)["lr"] == 2e-3
 
 
 def test_training_without_a_span_or_on_an_empty_spool_says_so_in_one_line(spools, tmp_path):
     with pytest.raises(UsageError, match="--minutes or --steps"):
         train_classifier(spools)
+    with pytest.raises(UsageError, match="learning rate 0.0: expected more than"):  # before the spools are read
+        train_classifier({"box": tmp_path / "absent", "twobox": tmp_path / "absent"}, steps=1, lr=0.0)
     (tmp_path / "empty").mkdir()
     with pytest.raises(UsageError, match="empty: no samples"):
         train_classifier({"box": tmp_path / "empty", "twobox": spools["twobox"]}, steps=1)

@@ -40,6 +40,7 @@ class TrainedClassifier:
     wall_time_s: float
     device: str = "cpu"
     init: dict | None = None  # the card of the classifier it started from, if not from random weights
+    lr: float = LR  # the cosine's peak learning rate
 
     def card(self, spools: dict[str, Path], scenes: list[str], commit: str | None, recipe: str | None) -> dict:
         """The model file's card: how it was trained, in the model cards' fields (`cuboidtrain models`)."""
@@ -47,7 +48,7 @@ class TrainedClassifier:
                 "steps": self.steps, "batch_size": self.batch_size, "samples_seen": self.steps * self.batch_size,
                 "masks": self.masks, "hidden_masks": self.hidden, "wall_time_s": round(self.wall_time_s, 1), "device": self.device,
                 "spools": {shape: str(path) for shape, path in spools.items()}, "commit": commit, "recipe": recipe,
-                "init": self.init}
+                "init": self.init, "lr": self.lr}
 
 
 def framed_masks(spool: Path) -> tuple[np.ndarray, int]:
@@ -63,13 +64,18 @@ def framed_masks(spool: Path) -> tuple[np.ndarray, int]:
 
 
 def train_classifier(spools: dict[str, Path], minutes: float | None = None, steps: int | None = None,
-                     batch_size: int = 128, seed: int = 0, device: str = "cpu", init: Path | None = None) -> TrainedClassifier:
+                     batch_size: int = 128, seed: int = 0, device: str = "cpu", init: Path | None = None,
+                     lr: float | None = None) -> TrainedClassifier:
     """The classifier trained on `spools` ({"box": DIR, "twobox": DIR}) for `minutes` or `steps`
     (whichever ends first; at least one given), the learning rate a cosine over that span, from random
-    weights or from the classifier file `init` (training on: its card is kept in the new one's). On a
+    weights or from the classifier file `init` (training on: its card is kept in the new one's; a peak `lr`
+    below LR keeps more of what it learnt). On a
     GPU (`device`) the framed masks are held there whole (120,000 are 2 GB) and batches drawn there."""
     if minutes is None and steps is None:
         raise UsageError("the shape classifier's training needs --minutes or --steps")
+    lr = LR if lr is None else lr
+    if not lr > FINAL_LR:  # checked before the spools are read (minutes, for a large one)
+        raise UsageError(f"the shape classifier's learning rate {lr!r}: expected more than its final {FINAL_LR}")
     where = resolve_device(device)
     read = {shape: framed_masks(spools[shape]) for shape in ("box", "twobox")}
     x = torch.from_numpy(np.concatenate([read["box"][0], read["twobox"][0]]))[:, None].to(where)
@@ -77,11 +83,11 @@ def train_classifier(spools: dict[str, Path], minutes: float | None = None, step
     torch.manual_seed(seed)
     net, init_card = load_classifier(init, folded=False) if init is not None else (ShapeClassifier(), None)
     net = net.train().to(where)
-    optimizer = torch.optim.AdamW(net.parameters(), LR, weight_decay=WEIGHT_DECAY)
+    optimizer = torch.optim.AdamW(net.parameters(), lr, weight_decay=WEIGHT_DECAY)
     start, step = time.monotonic(), 0
     while (done := progress(start, step, minutes, steps)) < 1.0:
         for group in optimizer.param_groups:
-            group["lr"] = FINAL_LR + (LR - FINAL_LR) * 0.5 * (1 + math.cos(math.pi * done))
+            group["lr"] = FINAL_LR + (lr - FINAL_LR) * 0.5 * (1 + math.cos(math.pi * done))
         # drawn on the CPU's generator wherever the masks are: the same batches for a seed on any device
         chosen = torch.randint(len(x), (batch_size,)).to(where)
         flip = (torch.rand(batch_size)[:, None, None, None] < 0.5).to(where)
@@ -94,7 +100,7 @@ def train_classifier(spools: dict[str, Path], minutes: float | None = None, step
         if step % 500 == 0:
             log.info("shape classifier: step %d, loss %.3f, %.1f min", step, loss.item(), (time.monotonic() - start) / 60)
     return TrainedClassifier(net.cpu().eval(), step, batch_size, {k: len(v[0]) for k, v in read.items()},
-                             sum(v[1] for v in read.values()), time.monotonic() - start, str(where), init_card)
+                             sum(v[1] for v in read.values()), time.monotonic() - start, str(where), init_card, lr)
 
 
 def progress(start: float, step: int, minutes: float | None, steps: int | None) -> float:
