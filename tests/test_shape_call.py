@@ -16,10 +16,11 @@ from typer.testing import CliRunner
 
 from cuboidgen.config import STREET
 from cuboidtrain.cli import app
+from cuboidtrain.fit import fitter as fitter_module
 from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 from cuboidtrain.fit.shape_call import CLASSIFIER, SILHOUETTE, SURE, ShapeCall, call_shape, classifier_input
-from cuboidtrain.fit.trust import LIMITS, judge
+from cuboidtrain.fit.trust import LIMITS, UNREAD_MARGIN, judge
 from cuboidtrain.infer.explain import choice_reason
 from cuboidtrain.geometry.mask_fit import polygonal
 from cuboidtrain.models.checkpoint import DamagedFile
@@ -164,10 +165,20 @@ def test_on_a_rough_mask_a_sure_call_outranks_the_iou_and_is_no_guess(shipped, m
     fit = shipped.fit(mask)
     assert stub.asked == 1 and fit.shape == "box"
     assert fit.record()["shape_call"] == {"by": "classifier", "twobox_probability": 0.03}
-    # the IoU's margin is past the shape-undecided limit, but the sure call chose: no guess
-    assert fit.trust.signs["shape_margin"] < LIMITS["shape_margin"]
+    # its plausible box is taken whatever the twobox explains: fitted alone, the margin unread (the model's
+    # mean), and the sure call chose: no guess
+    assert set(fit.candidates) == {"box"} and fit.trust.signs["shape_margin"] == UNREAD_MARGIN
     assert "shape-undecided" not in [w.code for w in fit.trust.warnings]
     assert "shape classifier's call" in choice_reason(fit)
+    # the same box as when the twobox is fitted beside it; and there the IoU's margin is past the
+    # shape-undecided limit, but no guess either
+    monkeypatch.setattr(fitter_module, "plausible", lambda cuboid_fit: False)
+    both = shipped.fit(mask)
+    assert set(both.candidates) == {"box", "twobox"} and both.shape == "box"
+    np.testing.assert_array_equal(both.keypoints, fit.keypoints)
+    assert both.cuboid.fit.ratios == fit.cuboid.fit.ratios
+    assert both.trust.signs["shape_margin"] < LIMITS["shape_margin"]
+    assert "shape-undecided" not in [w.code for w in both.trust.warnings]
 
 
 def test_a_gate_outranks_the_call_and_says_so(shipped, monkeypatch):

@@ -337,6 +337,12 @@ def impossible(fit: CuboidFit) -> str | None:
     return None
 
 
+def plausible(fit: CuboidFit) -> bool:
+    """Whether a class's fitted cuboid is neither impossible nor implausible: where the shape classifier
+    called that class, `choose_cuboid` takes it whatever the others explain."""
+    return impossible(fit) is None and implausible(fit) is None
+
+
 def choose_cuboid(candidates: list[Candidate], cuboids: dict[str, FittedCuboid],
                   called: str | None = None) -> tuple[Candidate, list[str]]:
     """The candidate whose fitted cuboid explains the input best (its IoU, richer classes by

@@ -30,7 +30,7 @@ from cuboidtrain.models.device import one_thread, resolve_device
 from cuboidtrain.fit.candidates import Candidate, Explanation, assess, choose
 from cuboidtrain.models.codec import make_codec, render_heatmaps
 from cuboidtrain.fit.cuboid import (FirstCuboid, FittedCuboid, NoCuboid, NonFiniteCuboid, choose_cuboid,
-                                   fit_candidates, first_cuboid, stopped_short)
+                                   fit_candidates, first_cuboid, plausible, stopped_short)
 from cuboidtrain.geometry import mask_fit
 from cuboidtrain.geometry.outline import MaskTarget
 from cuboidtrain.fit.masks import Framing, components, frame, load_mask, silhouette, to_mask, warp
@@ -244,12 +244,13 @@ class Fitter:
         for model in self.models:  # with `cuboid` each is judged by its cuboid's IoU (`choose_cuboid`), not its own
             candidates.append(self.fit_framed(model, *self.framed(model, mask), oracle, judged=not self.options.cuboid))
         target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
+        call = call_shape(self.classifier, mask) if self.options.cuboid else None
         # First without restarts, then only where the chosen class stopped short (`reached`)
-        firsts = {c.shape: self.first_cuboid(c, target, known) for c in candidates} if self.options.cuboid else {}
+        firsts = self.first_cuboids(candidates, target, known, call) if self.options.cuboid else {}
         cuboids = {shape: first.cuboid for shape, first in firsts.items()}
         set_aside: list[str] = []
-        call = call_shape(self.classifier, mask) if cuboids else None
         if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
+            candidates = [c for c in candidates if c.shape in cuboids]  # the classes fitted (`first_cuboids`)
             called = None if call is None else call.shape  # a rough mask's class, by the classifier
             best, set_aside = choose_cuboid(candidates, cuboids, called)
             if again := self.reached(best, firsts, cuboids, mask):
@@ -275,13 +276,29 @@ class Fitter:
                    shape_call=call,
                    explanation=Explanation(candidate=best, mask=mask))
 
+    def first_cuboids(self, candidates: Sequence[Candidate], target: MaskTarget, known: KnownCamera | None,
+                      call: ShapeCall | None) -> dict[str, FirstCuboid]:
+        """Each candidate's cuboid from its first start (`first_cuboid`), the class the shape classifier's sure
+        `call` names first; where that one is possible and plausible, it alone: the choice takes it whatever
+        the others explain (`choose_cuboid`), and each other class's fit cost a quarter of the record."""
+        called = None if call is None else call.shape
+        firsts = {}
+        for candidate in sorted(candidates, key=lambda c: c.shape != called):  # the called class first
+            firsts[candidate.shape] = self.first_cuboid(candidate, target, known)
+            if candidate.shape == called and plausible(firsts[called].cuboid.fit):
+                break
+        return firsts
+
     @staticmethod
     def trust(best: Candidate, cuboid: FittedCuboid, cuboids: dict[str, FittedCuboid], mask: np.ndarray,
               call: ShapeCall | None) -> Trust:
-        """How far to trust the chosen fit (`trust.judge`): its signs beside the other classes' IoU, and the
-        shape classifier's call where it chose the class (the shape is then no guess, whatever the IoU says)."""
+        """How far to trust the chosen fit (`trust.judge`): its signs beside the other classes' IoU (None where
+        the classifier's sure call chose it alone: no other was fitted), and the shape classifier's call
+        where it chose the class (the shape is then no guess, whatever the IoU says)."""
         others = [c.fit.iou for shape, c in cuboids.items() if shape != best.shape]
-        return judge(signs(best, cuboid, mask, others), call if call is not None and call.shape == best.shape else None)
+        alone = not others and call is not None and call.shape == best.shape
+        return judge(signs(best, cuboid, mask, None if alone else others),
+                     call if call is not None and call.shape == best.shape else None)
 
     def framed(self, model: CuboidNet, mask: np.ndarray) -> tuple[np.ndarray, Framing]:
         """`mask`'s object framed as `model` reads it (`masks.frame`): at its own size, with the options'

@@ -56,6 +56,7 @@ MEANS = (3.253, 7.625, 0.5954, 0.1109, 0.007036, 0.7988, 0.05684, 6.678, 0.3542,
 SCALES = (2.555, 5.978, 0.0938, 0.162, 0.008697, 0.5427, 0.06895, 0.8282, 0.09872, 0.6908, 1.0, 1.0)
 WEIGHTS = (-0.3395, 0.0, 0.7714, 0.0, -1.103, -0.1885, 0.163, 0.4489, -0.503, -0.7941, 0.0, 0.0)
 INTERCEPT = -1.177
+UNREAD_MARGIN = MEANS[SIGNS.index("shape_margin")]  # no other class fitted: the sign adds nothing to the score
 # "high": a score at least HIGH and no warning; "low": a score under `low_score` (below) or a flag (no
 # whole building); "medium" the rest. On the `measure` seeds: high 34% of the records (73% of them
 # under 3 px, 2% over 10), medium 32% (24%, 16%), low 34% (5%, 47%).
@@ -94,10 +95,11 @@ class Trust:
                 "signs": {name: round(value, 4) for name, value in self.signs.items()}}
 
 
-def signs(candidate: Candidate, cuboid: FittedCuboid, mask: np.ndarray, other_ious: list[float]) -> dict[str, float]:
+def signs(candidate: Candidate, cuboid: FittedCuboid, mask: np.ndarray, other_ious: list[float] | None) -> dict[str, float]:
     """The named signs (`SIGNS`) of one fitted component: `candidate` the chosen shape class's, `cuboid`
     its fit, `mask` (H, W) bool the component in the input's pixels, `other_ious` the other classes'
-    fitted IoUs."""
+    fitted IoUs; None where no other class was fitted because the shape classifier's sure call chose this
+    one alone (`Fitter.first_cuboids`): the margin is then read at the model's mean, no evidence either way."""
     fit = cuboid.fit
     size = extent_px(mask)
     network = candidate.framing.to_input(candidate.keypoints)[fit.camera.naming()]  # in the fit's corner order
@@ -108,7 +110,8 @@ def signs(candidate: Candidate, cuboid: FittedCuboid, mask: np.ndarray, other_io
             "heatmap_peak": float(heatmap_peaks(candidate.heatmaps).mean()), "silhouette_miss": 1.0 - iou,
             "unexplained": unexplained(fit, mask),
             "outline_rms": fit.residual_px / size * 100,
-            "shape_margin": iou - max(other_ious, default=0.0), "mask_px": math.log2(size),
+            "shape_margin": UNREAD_MARGIN if other_ious is None else iou - max(other_ious, default=0.0),
+            "mask_px": math.log2(size),
             "hidden_corners": float(1.0 - np.mean(fit.on_outline)),
             "ratio_sd": math.log(max(float(np.max(relative)), 1e-6)), "border_cut": border_cut(mask),
             "roof_notches": float(roof_notches(mask, ROOF_NOTCH_DEPTH, size))}
