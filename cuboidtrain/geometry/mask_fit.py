@@ -41,13 +41,7 @@ from cuboidtrain.geometry.outline import (Fields, MaskFitWeights, MaskTarget, St
 from shared.shapes import Shape
 
 LIFT_K_STARTS = (0.0, 0.3)  # the affine starts' perspective strengths, beside the vanishing-point ones
-# The lift's iterations: enough to rank the starts; the mask fit goes on from the best two. A rough mask's
-# fit is bounded by its outline, and 10 rank its starts as well as 15 did (corners and error bars within
-# their seeds' noise) for 0.1x less of the record (BENCHMARKS.md, "The whole record against the networks").
-# A clean mask's corners are exact enough that the ranking decides whether its fit reaches the silhouette
-# (at 10, one of the tests' short clean twoboxes stopped at IoU 0.989): 15.
-LIFT_ITERATIONS = 10
-CLEAN_LIFT_ITERATIONS = 15
+LIFT_ITERATIONS = 15  # enough to rank the starts; the mask fit goes on from the best
 STARTS = 2  # lift hypotheses a mask fit starts from (one sticks now and then)
 ITERATIONS = 12
 # A fit whose silhouette explains the mask less than RESTART_IOU may have stopped short: a face seen
@@ -164,8 +158,7 @@ def first_fits(targets: Sequence[MaskTarget], shape: Shape, corners: np.ndarray,
                networks: np.ndarray | None = None) -> FirstFits:
     """`fit_masks`'s fits from the `starts` best lift hypotheses of each mask, one LM for them all."""
     cameras = CameraTerms.of(shape, known, [t.mask.shape for t in targets] if plausible else None, weights.camera)
-    clean = any(polygonal(t.mask) for t in targets)  # a batch (eval's) with a clean mask lifts as a clean one
-    lifted = lift_starts(corners, confidence, shape, cameras, CLEAN_LIFT_ITERATIONS if clean else LIFT_ITERATIONS)
+    lifted = lift_starts(corners, confidence, shape, cameras)
     chosen = [lifted.best(k, starts) for k in range(len(targets))]
     rows = np.concatenate(chosen)
     owner, mirrors = lifted.owner[rows], lifted.mirrors[rows]
@@ -444,8 +437,7 @@ def restarted(first: FirstFits, answers: Sequence[Solution], masks: Sequence[int
             for way in snapped_corners(camera, first.targets[k].mask)]
     mask_of = np.array([k for k, _ in ways])
     subset = cameras and cameras.subset(mask_of)
-    lifted = lift_starts(np.array([c for _, (c, _) in ways]), np.array([w for _, (_, w) in ways]), shape, subset,
-                         CLEAN_LIFT_ITERATIONS)  # only a clean mask restarts
+    lifted = lift_starts(np.array([c for _, (c, _) in ways]), np.array([w for _, (_, w) in ways]), shape, subset)
     owner_mask = mask_of[lifted.owner]
     rows = np.concatenate([np.flatnonzero(owner_mask == k)[np.argsort(lifted.costs[owner_mask == k])[:starts]]
                            for k in masks])
@@ -484,7 +476,7 @@ def evidence(camera: CameraParams, outline_rms: float, target: MaskTarget, corne
 
 
 def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,
-                cameras: CameraTerms | None = None, iterations: int = LIFT_ITERATIONS) -> Hypotheses:
+                cameras: CameraTerms | None = None) -> Hypotheses:
     """The lift hypotheses of K corner sets (K, N, 2) (confidence (K, N)) that mask fits start
     from, each set's best first (`Hypotheses.best`): any optimiser's starts
     (`cuboidtrain.geometry.soft_mask_fit` starts from the same). `cameras`: the sets' given cameras."""
@@ -492,7 +484,7 @@ def lift_starts(corners: np.ndarray, confidence: np.ndarray, shape: Shape,
     # The rest of the camera's rows count here already: without them, the starts chosen were the free
     # fit's, and paper's depth/height median went back from 22-26% to 36-46% (40 masks a set).
     starts = None if cameras is None else replace(cameras, in_front=False)
-    return hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=iterations,
+    return hypotheses(corners, confidence, shape, LIFT_K_STARTS, vanishing=True, iterations=LIFT_ITERATIONS,
                       tolerance=1e-9, cameras=starts)
 
 
