@@ -295,10 +295,9 @@ class Fitter:
         """How far to trust the chosen fit (`trust.judge`): its signs beside the other classes' IoU (None where
         the classifier's sure call chose it alone: no other was fitted), and the shape classifier's call
         where it chose the class (the shape is then no guess, whatever the IoU says)."""
+        chose = call if call is not None and call.shape == best.shape else None  # the classifier's call chose it
         others = [c.fit.iou for shape, c in cuboids.items() if shape != best.shape]
-        alone = not others and call is not None and call.shape == best.shape
-        return judge(signs(best, cuboid, mask, None if alone else others),
-                     call if call is not None and call.shape == best.shape else None)
+        return judge(signs(best, cuboid, mask, None if chose is not None and not others else others), chose)
 
     def framed(self, model: CuboidNet, mask: np.ndarray) -> tuple[np.ndarray, Framing]:
         """`mask`'s object framed as `model` reads it (`masks.frame`): at its own size, with the options'
