@@ -162,8 +162,11 @@ def test_on_a_rough_mask_a_sure_call_outranks_the_iou_and_is_no_guess(shipped, m
     assert alone.candidates["twobox"] > alone.candidates["box"] + 0.04  # the IoU says twobox, clearly
     stub = Stub(0.03)
     monkeypatch.setattr(shipped, "classifier", stub)
+    ran = []  # whose networks ran: the twobox's would be dropped unread
+    predict = shipped.predict
+    monkeypatch.setattr(shipped, "predict", lambda model, *args: ran.append(model.shape) or predict(model, *args))
     fit = shipped.fit(mask)
-    assert stub.asked == 1 and fit.shape == "box"
+    assert stub.asked == 1 and fit.shape == "box" and ran == ["box"]
     assert fit.record()["shape_call"] == {"by": "classifier", "twobox_probability": 0.03}
     # its plausible box is taken whatever the twobox explains: fitted alone, the margin unread (the model's
     # mean), and the sure call chose: no guess
@@ -174,7 +177,7 @@ def test_on_a_rough_mask_a_sure_call_outranks_the_iou_and_is_no_guess(shipped, m
     # shape-undecided limit, but no guess either
     monkeypatch.setattr(fitter_module, "plausible", lambda cuboid_fit: False)
     both = shipped.fit(mask)
-    assert set(both.candidates) == {"box", "twobox"} and both.shape == "box"
+    assert set(both.candidates) == {"box", "twobox"} and both.shape == "box" and ran == ["box", "box", "twobox"]
     np.testing.assert_array_equal(both.keypoints, fit.keypoints)
     assert both.cuboid.fit.ratios == fit.cuboid.fit.ratios
     assert both.trust.signs["shape_margin"] < LIMITS["shape_margin"]

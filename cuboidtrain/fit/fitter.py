@@ -240,17 +240,16 @@ class Fitter:
         """Frame one component for every candidate model and keep the best-explained fit,
         its keypoints mapped back to the input's pixels; with `cuboid`, each candidate's cuboid
         fitted to the component, judged by its own silhouette, and its projection kept."""
-        candidates = []
-        for model in self.models:  # with `cuboid` each is judged by its cuboid's IoU (`choose_cuboid`), not its own
-            candidates.append(self.fit_framed(model, *self.framed(model, mask), oracle, judged=not self.options.cuboid))
-        target = MaskTarget.of(mask) if self.options.cuboid else None  # read once for every shape class
         call = call_shape(self.classifier, mask) if self.options.cuboid else None
-        # First without restarts, then only where the chosen class stopped short (`reached`)
-        firsts = self.first_cuboids(candidates, target, known, call) if self.options.cuboid else {}
-        cuboids = {shape: first.cuboid for shape, first in firsts.items()}
         set_aside: list[str] = []
-        if cuboids:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
-            candidates = [c for c in candidates if c.shape in cuboids]  # the classes fitted (`first_cuboids`)
+        if not self.options.cuboid:  # each candidate judged by its own keypoints' silhouette
+            candidates = [self.fit_framed(model, *self.framed(model, mask), oracle) for model in self.models]
+            firsts, cuboids = {}, {}
+            best = choose(candidates)
+        else:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
+            # First without restarts, then only where the chosen class stopped short (`reached`)
+            candidates, firsts = self.first_cuboids(mask, MaskTarget.of(mask), known, call, oracle)
+            cuboids = {shape: first.cuboid for shape, first in firsts.items()}
             called = None if call is None else call.shape  # a rough mask's class, by the classifier
             best, set_aside = choose_cuboid(candidates, cuboids, called)
             if again := self.reached(best, firsts, cuboids, mask):
@@ -260,8 +259,6 @@ class Fitter:
                 cuboids[best.shape] = calm  # a set-aside class it now explains better than says so no more
                 best, set_aside = choose_cuboid(candidates, cuboids, called)
             candidates = [replace(c, confidence=cuboids[c.shape].fit.iou) for c in candidates]
-        else:
-            best = choose(candidates)
         cuboid = cuboids.get(best.shape)
         if cuboid is not None and cuboid is firsts[best.shape].cuboid:  # a first fit's: its error bars, for it alone
             cuboid = firsts[best.shape].with_error_bars()
@@ -276,18 +273,21 @@ class Fitter:
                    shape_call=call,
                    explanation=Explanation(candidate=best, mask=mask))
 
-    def first_cuboids(self, candidates: Sequence[Candidate], target: MaskTarget, known: KnownCamera | None,
-                      call: ShapeCall | None) -> dict[str, FirstCuboid]:
-        """Each candidate's cuboid from its first start (`first_cuboid`), the class the shape classifier's sure
-        `call` names first; where that one is possible and plausible, it alone: the choice takes it whatever
-        the others explain (`choose_cuboid`), and each other class's fit cost a quarter of the record."""
+    def first_cuboids(self, mask: np.ndarray, target: MaskTarget, known: KnownCamera | None, call: ShapeCall | None,
+                      oracle: Oracle | None = None) -> tuple[list[Candidate], dict[str, FirstCuboid]]:
+        """Each model's candidate for `mask` (its networks, `fit_framed`) and its cuboid from its first start
+        (`first_cuboid`), the class the shape classifier's sure `call` names first; where that one is possible
+        and plausible, it alone: the choice takes it whatever the others explain (`choose_cuboid`), and each
+        other class's networks and fit cost a quarter of the record each. The candidates in the models'
+        order, as many as were fitted."""
         called = None if call is None else call.shape
-        firsts = {}
-        for candidate in sorted(candidates, key=lambda c: c.shape != called):  # the called class first
-            firsts[candidate.shape] = self.first_cuboid(candidate, target, known)
-            if candidate.shape == called and plausible(firsts[called].cuboid.fit):
+        candidates, firsts = {}, {}
+        for model in sorted(self.models, key=lambda m: m.shape != called):  # the called class first
+            candidate = self.fit_framed(model, *self.framed(model, mask), oracle, judged=False)  # its cuboid judges it
+            candidates[model.shape], firsts[model.shape] = candidate, self.first_cuboid(candidate, target, known)
+            if model.shape == called and plausible(firsts[called].cuboid.fit):
                 break
-        return firsts
+        return [candidates[m.shape] for m in self.models if m.shape in candidates], firsts
 
     @staticmethod
     def trust(best: Candidate, cuboid: FittedCuboid, cuboids: dict[str, FittedCuboid], mask: np.ndarray,
