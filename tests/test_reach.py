@@ -46,6 +46,13 @@ def generated(seed: int, shape: str = "box", scene: str = "paper-clean"):
     return make_sample(shape, SCENES[scene], 256, seed, small_library())
 
 
+def first_start_alone(monkeypatch) -> None:
+    """The fit as before the restarts: no restart (RESTART_IOU below any IoU), and a fit that did not stop
+    short not settled either (no settling iterations)."""
+    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    monkeypatch.setattr(mask_fit, "SETTLE_ITERATIONS", 0)
+
+
 @pytest.fixture(scope="module")
 def box_fitter() -> Fitter:
     return Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape="box"))
@@ -60,7 +67,7 @@ def networks() -> Fitter:
 def test_a_clean_box_that_stopped_short_reaches_its_silhouette(box_fitter, seed, monkeypatch):
     mask = generated(seed).clean
     assert box_fitter.fit(mask).cuboid.fit.iou >= 0.99
-    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)  # the first start alone, as before the restart
+    first_start_alone(monkeypatch)
     assert box_fitter.fit(mask).cuboid.fit.iou < 0.99
 
 
@@ -73,7 +80,7 @@ def twobox_fitter() -> Fitter:
 def test_a_clean_twobox_that_stopped_short_reaches_its_silhouette(twobox_fitter, seed, monkeypatch):
     mask = generated(seed, "twobox").clean
     assert twobox_fitter.fit(mask).cuboid.fit.iou >= 0.99
-    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    first_start_alone(monkeypatch)
     assert twobox_fitter.fit(mask).cuboid.fit.iou < 0.99
 
 
@@ -82,7 +89,7 @@ def test_a_clean_twobox_whose_own_fit_stopped_short_is_not_called_a_box(monkeypa
     mask = generated(TWOBOX_CHOSEN_AS_BOX, "twobox").clean
     fit = fitter.fit(mask)
     assert fit.shape == "twobox" and fit.cuboid.fit.iou >= 0.99
-    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    first_start_alone(monkeypatch)
     assert fitter.fit(mask).shape == "box"
 
 
@@ -131,12 +138,13 @@ def test_the_convex_outline_vertices_of_a_clean_twobox_are_its_corners(seed):
 
 @pytest.mark.parametrize("shape", ["box", "twobox"])
 def test_the_restart_keeps_the_fit_whose_silhouette_explains_the_mask_better(shape, monkeypatch):
+    monkeypatch.setattr(mask_fit, "SETTLE_ITERATIONS", 0)  # the restart alone: a fit that reached is not settled
     fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape=shape))
     seeds = (*SHORT_BOXES, 0, 1, 2) if shape == "box" else (5, 6, 7, 8, 9)
     masks = [generated(seed, shape).clean for seed in seeds]
     restarted = [fitter.fit(mask).cuboid.fit for mask in masks]
     short = mask_fit.RESTART_IOU
-    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    first_start_alone(monkeypatch)
     first = [fitter.fit(mask).cuboid.fit for mask in masks]
     assert any(once.iou < short for once in first)  # the property is tried where a restart ran
     for again, once in zip(restarted, first):
@@ -159,7 +167,7 @@ def test_a_noisy_mask_is_never_restarted(box_fitter, monkeypatch):
     masks = [generated(seed, scene="paper").noisy for seed in range(4)]
     assert not any(mask_fit.polygonal(mask) for mask in masks)
     restarted = [box_fitter.fit(mask).keypoints for mask in masks]
-    monkeypatch.setattr(mask_fit, "RESTART_IOU", -1.0)
+    first_start_alone(monkeypatch)
     for mask, keypoints in zip(masks, restarted):
         np.testing.assert_array_equal(box_fitter.fit(mask).keypoints, keypoints)
 
@@ -268,3 +276,26 @@ def test_true_corners_of_another_class_are_refused():
     fitter = Fitter.from_shipped(FitOptions(device="cpu", shape="twobox"))
     with pytest.raises(ValueError, match="expected the twobox model's 14 corners"):
         fitter.fit(sample.clean, oracle=Oracle(keypoints=sample.keypoints))
+
+
+@pytest.mark.parametrize("shape", ["box", "twobox"])
+def test_a_clean_fit_that_reached_its_silhouette_settles_on_it_nearer_the_truth(shape, monkeypatch):
+    """`mask_fit.SETTLE_ITERATIONS`: a clean mask's chosen fit, short or not, settles on its silhouette, kept
+    where its IoU rises; the corners come nearer the true ones (the first fit's networks' pull and occluders'
+    asymmetry held them a pixel off: BENCHMARKS.md, "Targets")."""
+    fitter = Fitter.from_shipped(FitOptions(device="cpu", cuboid=True, shape=shape))
+    samples = [generated(seed, shape) for seed in range(12)]  # a few of ambiguous depth move either way
+    settled = [fitter.fit(sample.clean).cuboid.fit for sample in samples]
+    monkeypatch.setattr(mask_fit, "SETTLE_ITERATIONS", 0)
+    first = [fitter.fit(sample.clean).cuboid.fit for sample in samples]
+    assert all(calm.iou >= once.iou for calm, once in zip(settled, first))
+    moved = [calm.iou > once.iou for calm, once in zip(settled, first)]
+    assert sum(moved) >= 6
+    for calm, once, on in zip(settled, first, moved):
+        if not on:  # not kept: the same fit
+            np.testing.assert_array_equal(calm.keypoints, once.keypoints)
+
+    def errors(fits) -> list[float]:  # each mask's mean corner error, as bench_accuracy's median reads them
+        return [float(np.linalg.norm(fit.keypoints - sample.keypoints, axis=1).mean()) for fit, sample in zip(fits, samples)]
+
+    assert np.median(errors(settled)) < 0.8 * np.median(errors(first))

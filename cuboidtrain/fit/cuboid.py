@@ -190,12 +190,14 @@ class FirstCuboid:
             return self.cuboid
         return settled(finished(self.first, reach, clean=[True])[0], self.start, self.sdf, self.known)
 
-    def settled_on_silhouette(self, cuboid: FittedCuboid) -> FittedCuboid | None:
-        """`cuboid`, this class's chosen cuboid of a clean mask still short of its silhouette, settled on it
-        (`mask_fit.settled_on_silhouette`) with its error bars; None where that explains the mask no better."""
+    def settled_on_silhouette(self, cuboid: FittedCuboid, short: bool = True) -> FittedCuboid | None:
+        """`cuboid`, this class's chosen cuboid of a clean mask, settled on its silhouette
+        (`mask_fit.settled_on_silhouette`: at length where it is still `short` of it, else briefly) with its
+        error bars; None where that explains the mask no better."""
         if self.first is None:
             return None
-        moved = mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit)
+        moved = mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit) if short else \
+            mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit, mask_fit.SETTLE_ITERATIONS, 0.0)
         if moved is None:
             return None
         fit = mask_fit.with_error_bars(self.first, 0, *moved)

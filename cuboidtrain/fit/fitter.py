@@ -340,13 +340,16 @@ class Fitter:
     @staticmethod
     def settled(chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
                 mask: np.ndarray) -> FittedCuboid | None:
-        """Where the chosen class's cuboid is still short of a clean mask's silhouette after the restarts
-        (`cuboid.stopped_short`), it settled on it (`FirstCuboid.settled_on_silhouette`: the outline's misses
-        weighed alike on both sides), after the choice, which it leaves as it is (it only explains the mask
-        better); else None."""
-        if stopped_short(cuboids, chosen.shape, mask) is None:
+        """The chosen class's cuboid of a clean mask (`mask_fit.polygonal`) settled on its silhouette
+        (`FirstCuboid.settled_on_silhouette`: the outline's misses weighed alike on both sides), at length
+        where it is still short of it after the restarts (`cuboid.stopped_short`), briefly where it reached
+        it; after the choice, which it leaves as it is (it only explains the mask better). None where the
+        mask is rough or the settling explains it no better."""
+        if stopped_short(cuboids, chosen.shape, mask) is not None:
+            return firsts[chosen.shape].settled_on_silhouette(cuboids[chosen.shape])
+        if not mask_fit.polygonal(mask):
             return None
-        return firsts[chosen.shape].settled_on_silhouette(cuboids[chosen.shape])
+        return firsts[chosen.shape].settled_on_silhouette(cuboids[chosen.shape], short=False)
 
     def reached(self, chosen: Candidate, firsts: dict[str, FirstCuboid], cuboids: dict[str, FittedCuboid],
                 mask: np.ndarray) -> dict[str, FittedCuboid]:

@@ -89,6 +89,13 @@ RESTART_GAIN_PX = 32.0
 # The answer's error bars still read the first fits' objective at it (`on_first_objective`).
 RESTART_PULL = 0.1  # the networks' pull and the ratio anchor in a restart, times the first fit's
 POLISH_ITERATIONS = 30  # the LM's iterations polishing a fit still short after its restarts
+# A clean mask's chosen fit that reached its silhouette settles on it too, in this many LM iterations,
+# kept wherever its IoU rises at all (`settled_on_silhouette`, gain 0): the first fit reads the networks'
+# pull and the occluders' asymmetry, which hold a clean fit's edges a pixel off. Bench seeds, 200 clean
+# masks a class: corners' median 0.72 / 0.85 -> 0.56 / 0.53 px (box / twobox), depth/height with the
+# camera given 3.5 / 3.6 -> 1.9 / 1.3% (BENCHMARKS.md, "Targets"); 30 iterations cost 0.3x the networks
+# more for the same corners, 10 cost 0.05-0.09x.
+SETTLE_ITERATIONS = 10
 SNAP_POLYGON_PX = 1.5  # the mask's hull simplified to a polygon this close (px) gives the restart's corners
 SNAP_MERGE_PX = 6.0  # hull vertices closer than this are one corner's staircase
 SNAP_INTERIOR_WEIGHT = 0.1  # an interior corner's weight in the restart's lift: it follows the outline's
@@ -282,20 +289,22 @@ def clean_silhouette(weights: MaskFitWeights) -> MaskFitWeights:
     return replace(silhouette_first(weights), inside=weights.outside, overhang=weights.outside)
 
 
-def settled_on_silhouette(first: FirstFits, k: int, chosen: CuboidFit) -> tuple[Solution, CuboidFit] | None:
-    """Mask `k`'s `chosen` fit (a clean mask's, its class chosen, still short of its silhouette after the
-    restarts) fitted on by POLISH_ITERATIONS of the LM on `clean_silhouette`, the outline read densely, as a
-    row of `first`'s objective (`on_first_objective`: its error bars read the same objective as any fit's),
-    and its fit; None where its silhouette explains no more of the mask's pixels by RESTART_GAIN_PX. Only
-    after the choice: weighed alike, a box fits a twobox's small step as well (64 px clean twoboxes: 99% ->
-    96% called twobox when the restarts read these weights): the asymmetry is the choice's evidence there."""
+def settled_on_silhouette(first: FirstFits, k: int, chosen: CuboidFit, iterations: int = POLISH_ITERATIONS,
+                          gain_px: float = RESTART_GAIN_PX) -> tuple[Solution, CuboidFit] | None:
+    """Mask `k`'s `chosen` fit (a clean mask's, its class chosen) fitted on by `iterations` of the LM on
+    `clean_silhouette`, the outline read densely, as a row of `first`'s objective (`on_first_objective`:
+    its error bars read the same objective as any fit's), and its fit; None where its silhouette explains
+    no more of the mask's pixels by `gain_px` (a fit still short after the restarts: POLISH_ITERATIONS and
+    RESTART_GAIN_PX; one that reached it: SETTLE_ITERATIONS, and any gain). Only after the choice: weighed
+    alike, a box fits a twobox's small step as well (64 px clean twoboxes: 99% -> 96% called twobox when
+    the restarts read these weights): the asymmetry is the choice's evidence there."""
     target = first.targets[k]
     settle = replace(first, weights=clean_silhouette(first.weights), stacked=StackedTargets.of(
         [densely(t) if i == k else t for i, t in enumerate(first.targets)]))
     camera = chosen.camera
-    solved = settle.solve(np.array([k]), np.array([camera.mirror]), camera.vector[None].copy(), POLISH_ITERATIONS)
+    solved = settle.solve(np.array([k]), np.array([camera.mirror]), camera.vector[None].copy(), iterations)
     fit = described(target, first.shape, CameraParams(first.shape, solved.params[0], camera.mirror), first.weights)
-    if (fit.iou - chosen.iou) * int(target.mask.sum()) <= RESTART_GAIN_PX:
+    if (fit.iou - chosen.iou) * int(target.mask.sum()) <= gain_px:
         return None
     return on_first_objective(first, k, Solution(solved, 0, camera.mirror)), fit
 
