@@ -239,7 +239,8 @@ class Fitter:
                        oracle: Oracle | None = None) -> Fit:
         """Frame one component for every candidate model and keep the best-explained fit,
         its keypoints mapped back to the input's pixels; with `cuboid`, each candidate's cuboid
-        fitted to the component, judged by its own silhouette, and its projection kept."""
+        fitted to the component, judged by its own silhouette, and its projection kept (only the
+        class a sure shape call names, where its cuboid is plausible: `first_cuboids`)."""
         call = call_shape(self.classifier, mask) if self.options.cuboid else None
         set_aside: list[str] = []
         if not self.options.cuboid:  # each candidate judged by its own keypoints' silhouette
