@@ -93,8 +93,9 @@ POLISH_ITERATIONS = 30  # the LM's iterations polishing a fit still short after 
 # kept wherever its IoU rises at all (`settled_on_silhouette`, gain 0): the first fit reads the networks'
 # pull and the occluders' asymmetry, which hold a clean fit's edges a pixel off. Bench seeds, 200 clean
 # masks a class: corners' median 0.72 / 0.85 -> 0.56 / 0.53 px (box / twobox), depth/height with the
-# camera given 3.5 / 3.6 -> 1.9 / 1.3% (BENCHMARKS.md, "Targets"); 30 iterations cost 0.3x the networks
-# more for the same corners, 10 cost 0.05-0.09x.
+# camera given 3.5 / 3.6 -> 1.9 / 1.3% (BENCHMARKS.md, "Targets"); the clean boxes' mean rose 3.27 -> 3.47
+# (a depth the silhouette leaves free drifts). Its cost is within the record's noise (1.56-1.57x the
+# networks without it, 1.50-1.57x with it), its p90 64 -> 72-75 ms ("The whole record against the networks").
 SETTLE_ITERATIONS = 10
 SNAP_POLYGON_PX = 1.5  # the mask's hull simplified to a polygon this close (px) gives the restart's corners
 SNAP_MERGE_PX = 6.0  # hull vertices closer than this are one corner's staircase
