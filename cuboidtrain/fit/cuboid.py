@@ -196,8 +196,7 @@ class FirstCuboid:
         error bars; None where that explains the mask no better."""
         if self.first is None:
             return None
-        moved = mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit) if short else \
-            mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit, mask_fit.SETTLE_ITERATIONS, 0.0)
+        moved = mask_fit.settled_on_silhouette(self.first, 0, cuboid.fit, short)
         if moved is None:
             return None
         fit = mask_fit.with_error_bars(self.first, 0, *moved)

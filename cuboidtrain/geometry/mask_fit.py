@@ -290,15 +290,16 @@ def clean_silhouette(weights: MaskFitWeights) -> MaskFitWeights:
     return replace(silhouette_first(weights), inside=weights.outside, overhang=weights.outside)
 
 
-def settled_on_silhouette(first: FirstFits, k: int, chosen: CuboidFit, iterations: int = POLISH_ITERATIONS,
-                          gain_px: float = RESTART_GAIN_PX) -> tuple[Solution, CuboidFit] | None:
-    """Mask `k`'s `chosen` fit (a clean mask's, its class chosen) fitted on by `iterations` of the LM on
-    `clean_silhouette`, the outline read densely, as a row of `first`'s objective (`on_first_objective`:
-    its error bars read the same objective as any fit's), and its fit; None where its silhouette explains
-    no more of the mask's pixels by `gain_px` (a fit still short after the restarts: POLISH_ITERATIONS and
-    RESTART_GAIN_PX; one that reached it: SETTLE_ITERATIONS, and any gain). Only after the choice: weighed
-    alike, a box fits a twobox's small step as well (64 px clean twoboxes: 99% -> 96% called twobox when
-    the restarts read these weights): the asymmetry is the choice's evidence there."""
+def settled_on_silhouette(first: FirstFits, k: int, chosen: CuboidFit,
+                          short: bool = True) -> tuple[Solution, CuboidFit] | None:
+    """Mask `k`'s `chosen` fit (a clean mask's, its class chosen) fitted on by the LM on `clean_silhouette`,
+    the outline read densely, as a row of `first`'s objective (`on_first_objective`: its error bars read the
+    same objective as any fit's), and its fit; None where its silhouette explains no more of the mask's
+    pixels than the gain asked: a fit still `short` of the silhouette after the restarts takes
+    POLISH_ITERATIONS and must gain RESTART_GAIN_PX, one that reached it SETTLE_ITERATIONS and any gain.
+    Only after the choice: weighed alike, a box fits a twobox's small step as well (64 px clean twoboxes:
+    99% -> 96% called twobox when the restarts read these weights): the asymmetry is the choice's evidence there."""
+    iterations, gain_px = (POLISH_ITERATIONS, RESTART_GAIN_PX) if short else (SETTLE_ITERATIONS, 0.0)
     target = first.targets[k]
     settle = replace(first, weights=clean_silhouette(first.weights), stacked=StackedTargets.of(
         [densely(t) if i == k else t for i, t in enumerate(first.targets)]))
