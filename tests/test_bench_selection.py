@@ -11,7 +11,8 @@ from cuboidtrain.fit.fitter import Fitter
 from cuboidtrain.fit.options import FitOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy"))
-from bench_selection import EVIDENCE, Witness, called, evidence, regression, roof_notch, shares  # noqa: E402
+from bench_selection import (EVIDENCE, Witness, banded, called, drawn, evidence, irregular_calls, regression,  # noqa: E402
+                             roof_notch, shares)
 
 
 def polygon_mask(points, size: int = 128) -> np.ndarray:
@@ -64,3 +65,41 @@ def test_the_witness_keeps_both_classes_fits_and_the_evidence_is_finite():
     assert tuple(found) == EVIDENCE and all(np.isfinite(v) for v in found.values())
     # a convex hexagon, a box's silhouette: no notch but its staircase, its pixels about its hull's area (centres: a little less)
     assert found["roof_notch"] < 1 / 80 and 0.95 < found["solidity"] < 1.05
+
+
+def test_the_breakdown_reads_what_was_drawn_and_splits_each_class_by_it():
+    twobox = drawn({"height_ratio": 0.8, "occluded_fraction": 0.3, "deviations": [{"kind": "roof"}, {"kind": "blob"}]})
+    assert twobox["height_ratio"] == 0.8 and twobox["roof"] and twobox["blob"] and not twobox["neighbour"]
+    box = drawn({"occluded_fraction": 0.0})  # a box has no height ratio; a paper sample no deviations
+    assert box["height_ratio"] is None and not any(box[k] for k in ("roof", "chimney", "parapet", "neighbour", "blob", "low_res"))
+    rows = ([{"shape": "twobox", "right": right} | drawn({"height_ratio": ratio, "occluded_fraction": 0.0, "deviations": []})
+             for ratio, right in ((0.4, True), (0.5, True), (0.7, True), (0.8, False), (0.84, True))]
+            + [{"shape": "box", "right": right} | drawn({"occluded_fraction": hidden, "deviations": [{"kind": "neighbour"}] * n})
+               for hidden, right, n in ((0.0, True, 0), (0.2, False, 1), (0.5, False, 1))])
+    split = banded(rows)
+    assert split["twobox"]["all"] == (80.0, 5)
+    assert split["twobox"]["height_ratio < 0.6"] == (100.0, 2) and split["twobox"]["height_ratio 0.6-0.75"] == (100.0, 1)
+    assert split["twobox"]["height_ratio >= 0.75"] == (50.0, 2)
+    assert split["box"]["all"] == (33.3, 3) and "height_ratio < 0.6" not in split["box"]
+    assert [split["box"][f"occluded_fraction {band}"] for band in ("< 0.1", "0.1-0.25", ">= 0.25")] == [(100.0, 1), (0.0, 1), (0.0, 1)]
+    assert split["box"]["neighbour"] == (0.0, 2) and split["box"]["no neighbour"] == (100.0, 1)
+    assert np.isnan(split["box"]["roof"][0]) and split["box"]["roof"][1] == 0  # no mask with it: no share, not 0%
+
+
+def test_the_breakdown_scores_infers_call_on_each_drawn_irregular_mask(tmp_path, monkeypatch):
+    import bench_accuracy as ba
+
+    called_with = []
+
+    class Caller:  # `infer`'s choice stood in for: box on every mask, so boxes are all right, twoboxes all wrong
+        def fit(self, mask):
+            called_with.append(mask.shape)
+            return type("Fit", (), {"shape": "box"})()
+
+    monkeypatch.setattr(ba, "SEEDS", {**ba.SEEDS, ("box", "irregular"): 5, ("twobox", "irregular"): 6})
+    rows = irregular_calls(Caller(), tmp_path, samples=3, offset=0)
+    assert called_with and all(shape == (256, 256) for shape in called_with)
+    assert {r["shape"] for r in rows} == {"box", "twobox"} and len(rows) == len(called_with) <= 6
+    assert all(r["right"] == (r["shape"] == "box") for r in rows)
+    assert all(0.35 <= r["height_ratio"] <= 0.85 for r in rows if r["shape"] == "twobox")
+    assert all(r["height_ratio"] is None for r in rows if r["shape"] == "box")

@@ -30,6 +30,12 @@ recipes/shipped.sh` draws (20,000 `paper`, `street` and `irregular` samples a cl
 
     .venv/bin/python benchmarks/accuracy/bench_selection.py --samples 200 --tuning-samples 150 --decidable \
         --classifier spools-irr/train-box-128 spools-irr/train-twobox-128 --classifier-minutes 25
+
+`--breakdown` asks only where `infer`'s misses on irregular buildings are: each mask's call beside what
+the generator drew for it (a twobox's height ratio, the share occluders hid, each deviation), the % given
+their own class by band (`--seed-offset`: 0 bench_accuracy's seeds, 100 its tuning seeds, others fresh):
+
+    .venv/bin/python benchmarks/accuracy/bench_selection.py --breakdown --samples 200 --seed-offset 0
 """
 from __future__ import annotations
 
@@ -181,6 +187,52 @@ def decidable(fitter: Fitter, root: Path, samples: int) -> dict[str, float]:
     return out
 
 
+# --breakdown's bands of what the generator drew: a twobox's lower part's height over the taller's (the
+# scene draws 0.35-0.85), and the share of the building's silhouette the occluders hid.
+BANDS = {"height_ratio": (0.6, 0.75), "occluded_fraction": (0.1, 0.25)}
+DEVIATIONS = ("roof", "chimney", "parapet", "neighbour", "blob", "low_res")
+
+
+def drawn(params: dict) -> dict:
+    """What `--breakdown` reads of a sample's params: its bands' values and the deviations it got."""
+    kinds = {d["kind"] for d in params.get("deviations", ())}
+    return {name: params.get(name) for name in BANDS} | {kind: kind in kinds for kind in DEVIATIONS}
+
+
+def irregular_calls(fitter: Fitter, root: Path, samples: int, offset: int) -> list[dict]:
+    """Per irregular mask of seeds SEEDS + `offset`: its true class, `infer`'s call, and `drawn` of its params."""
+    rows = []
+    for shape in ("box", "twobox"):
+        spool = ba.spool_for(root, shape, "irregular", samples, seed=ba.SEEDS[shape, "irregular"] + offset)
+        for name in enumerate_spool(spool)[:samples]:
+            sample = decode(read_sample_bytes(spool, name))
+            if sample.noisy.any():  # one an occluder hid whole is refused by `infer`: no call to score
+                rows.append({"shape": shape, "right": fitter.fit(sample.noisy).shape == shape} | drawn(sample.params))
+    return rows
+
+
+def banded(rows: list[dict]) -> dict[str, dict[str, tuple[float, int]]]:
+    """class -> {group: (% given their own class, masks)}: all, each band of BANDS (a value under the band's
+    first edge, between them, from the second up; height ratio for twoboxes only), each deviation with and
+    without it."""
+    def share(group: list[dict]) -> tuple[float, int]:
+        return (round(100 * float(np.mean([r["right"] for r in group])), 1) if group else float("nan"), len(group))
+
+    out = {}
+    for shape in ("box", "twobox"):
+        own = [r for r in rows if r["shape"] == shape]
+        groups = {"all": own}
+        for name, (low, high) in BANDS.items():
+            if own and own[0][name] is not None:
+                groups |= {f"{name} < {low:g}": [r for r in own if r[name] < low],
+                           f"{name} {low:g}-{high:g}": [r for r in own if low <= r[name] < high],
+                           f"{name} >= {high:g}": [r for r in own if r[name] >= high]}
+        for kind in DEVIATIONS:
+            groups |= {f"{kind}": [r for r in own if r[kind]], f"no {kind}": [r for r in own if not r[kind]]}
+        out[shape] = {group: share(members) for group, members in groups.items()}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--samples", type=int, default=200, help="bench_accuracy's masks a set and class, scored")
@@ -190,10 +242,21 @@ def main() -> None:
     parser.add_argument("--classifier", nargs=2, type=Path, metavar=("BOX_SPOOL", "TWOBOX_SPOOL"),
                         help="also: a CNN trained on these spools' noisy masks, alone and as evidence")
     parser.add_argument("--classifier-minutes", type=float, default=25.0)
+    parser.add_argument("--breakdown", action="store_true", help="only: where infer's irregular misses are, by what was drawn")
+    parser.add_argument("--seed-offset", type=int, default=0, help="--breakdown's seeds: bench_accuracy's plus this")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
     fitter = Fitter([load_model(p)[0] for p in default_checkpoints(None)], FitOptions(device="cpu", cuboid=True))
+    if args.breakdown:
+        result = banded(irregular_calls(fitter, args.spools, args.samples, args.seed_offset))
+        for shape, groups in result.items():
+            print(f"irregular {shape} masks given their own class (%, masks):")
+            for group, (percent, masks) in groups.items():
+                print(f"{group:>32} {percent:5.1f} {masks:4d}")
+        if args.json:
+            args.json.write_text(json.dumps(result, indent=1) + "\n")
+        return
     tuning = measured(fitter, args.spools, args.tuning_samples, tuning=True)
     scored = measured(fitter, args.spools, args.samples, tuning=False)
     model = regression(tuning)
