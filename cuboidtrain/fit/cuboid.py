@@ -379,6 +379,16 @@ def stopped_short(cuboids: dict[str, FittedCuboid], chosen: str, mask: np.ndarra
     return reach if iou < reach and polygonal(mask) else None
 
 
+def astray(cuboids: dict[str, FittedCuboid], chosen: str, mask: np.ndarray) -> list[str]:
+    """The classes whose cuboid a given camera may have led astray (`Fitter.freed` fits them again): any
+    that is impossible (a corner at or behind the camera), and, where the chosen one is still short of a
+    clean mask's silhouette after its restarts (`stopped_short`), it and every class short of
+    `mask_fit.RESTART_IOU` (those `Fitter.reached` restarted)."""
+    short = stopped_short(cuboids, chosen, mask) is not None
+    return [shape for shape, cuboid in cuboids.items() if impossible(cuboid.fit) is not None
+            or short and (shape == chosen or cuboid.fit.iou < mask_fit.RESTART_IOU)]
+
+
 def heatmap_peaks(heatmaps: np.ndarray) -> np.ndarray:
     """(N, S, S) -> (N,) each map's maximum in [0, 1]: S's confidence in its corner (codec.peak_scores)."""
     return np.clip(heatmaps.reshape(len(heatmaps), -1).max(1).astype(np.float64), 0.0, 1.0)
