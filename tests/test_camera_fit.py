@@ -139,9 +139,10 @@ def test_astray_names_the_impossible_class_and_on_a_clean_mask_the_short_ones():
     rough = clean.copy()
     for x in range(12, 52, 6):
         rough[16:20, x:x + 3] = False  # a crenellated top: not one outline of a few straight sides
-    assert astray(cuboids(Fit(0.999), Fit(0.97)), "box", clean) == []  # the chosen one reached the silhouette
-    assert astray(cuboids(Fit(0.98), Fit(0.97)), "box", clean) == ["box", "twobox"]  # still short: both
-    assert astray(cuboids(Fit(0.98), Fit(0.995)), "box", clean) == ["box"]  # (the twobox past it: the chosen's reach)
+    assert astray(cuboids(Fit(0.999), Fit(0.5)), "box", clean) == []  # the chosen one reached the silhouette
+    assert astray(cuboids(Fit(0.98), Fit(0.97)), "box", clean) == []  # short (a 64 px fit's pixel steps), not astray
+    assert astray(cuboids(Fit(0.98), Fit(0.72)), "box", clean) == ["twobox"]  # the chosen short, the twobox astray
+    assert astray(cuboids(Fit(0.85), Fit(0.72)), "box", clean) == ["box", "twobox"]
     assert astray(cuboids(Fit(0.90), Fit(0.80)), "box", rough) == []  # a rough mask is never short
     assert astray(cuboids(Fit(0.90), Fit(0.80, nearest=-0.2)), "box", rough) == ["twobox"]  # but a camera inside is
 

@@ -14,7 +14,7 @@ random blobs; and reports how often each is flagged (`trust.FLAGS`), beside whol
 
     .venv/bin/python benchmarks/calibration/bench_trust.py --sets fit --rows fit.json          # two processes,
     .venv/bin/python benchmarks/calibration/bench_trust.py --sets measure --rows measure.json  # one core each
-    .venv/bin/python benchmarks/calibration/bench_trust.py --from-rows fit.json measure.json [--fit]
+    .venv/bin/python benchmarks/calibration/bench_trust.py --from-rows fit.json measure.json [--fit]  # or measure.json alone
 
 `--fit` fits the error bars' size scaling (`uncertainty.SIZE_INFLATION`), then the trust model
 (`trust.MEANS`, `SCALES`, `WEIGHTS`, `INTERCEPT`) and its warnings' limits (`trust.LIMITS`,
@@ -422,7 +422,8 @@ def main() -> None:
     rows = [row for path in args.from_rows for row in json.loads(path.read_text())] if args.from_rows else collect(args)
     if args.rows:
         args.rows.write_text(json.dumps(rows))
-    if not {"fit", "measure"} <= {r["set"] for r in rows}:
+    sets = {r["set"] for r in rows}
+    if "measure" not in sets or args.fit and "fit" not in sets:  # the tables are the measure set's; --fit fits on fit's
         return
     inflations = dict(SIZE_INFLATION)
     if args.fit:
