@@ -107,18 +107,24 @@ def evidence(mask: np.ndarray, seen: dict) -> dict[str, float]:
             "implausible": float(implausible(twobox) is not None or impossible(twobox) is not None)}
 
 
+def scored_samples(root: Path, shape: str, scene: str, samples: int, offset: int = 0):
+    """The first `samples` samples of (shape, scene)'s spool of seed SEEDS + `offset` (`ba.spool_for`) that
+    `infer` can score: one an occluder hid whole is refused, no choice to score."""
+    spool = ba.spool_for(root, shape, scene, samples, seed=ba.SEEDS[shape, scene] + offset)
+    for name in enumerate_spool(spool)[:samples]:
+        sample = decode(read_sample_bytes(spool, name))
+        if sample.noisy.any():
+            yield sample
+
+
 def measured(fitter: Fitter, root: Path, samples: int, tuning: bool) -> list[dict]:
     """Per mask of every scene and class: its true class, `infer`'s choice, its evidence and its
     framed input (`classifier_input`, for --classifier)."""
     rows = []
     for scene in SCENES:
         for shape in ("box", "twobox"):
-            seed = ba.SEEDS[shape, scene] + (ba.TUNING_OFFSET if tuning else 0)
-            spool = ba.spool_for(root, shape, scene, samples, seed=seed)
-            for name in enumerate_spool(spool)[:samples]:
-                mask = decode(read_sample_bytes(spool, name)).noisy
-                if not mask.any():  # an occluder hid it whole: `infer` refuses it, no choice to score
-                    continue
+            for sample in scored_samples(root, shape, scene, samples, ba.TUNING_OFFSET if tuning else 0):
+                mask = sample.noisy
                 with Witness() as witness:
                     chosen = fitter.fit(mask).shape
                 rows.append({"scene": scene, "shape": shape, "chosen": chosen, "silhouette": witness.last["silhouette"],
@@ -201,14 +207,8 @@ def drawn(params: dict) -> dict:
 
 def irregular_calls(fitter: Fitter, root: Path, samples: int, offset: int) -> list[dict]:
     """Per irregular mask of seeds SEEDS + `offset`: its true class, `infer`'s call, and `drawn` of its params."""
-    rows = []
-    for shape in ("box", "twobox"):
-        spool = ba.spool_for(root, shape, "irregular", samples, seed=ba.SEEDS[shape, "irregular"] + offset)
-        for name in enumerate_spool(spool)[:samples]:
-            sample = decode(read_sample_bytes(spool, name))
-            if sample.noisy.any():  # one an occluder hid whole is refused by `infer`: no call to score
-                rows.append({"shape": shape, "right": fitter.fit(sample.noisy).shape == shape} | drawn(sample.params))
-    return rows
+    return [{"shape": shape, "right": fitter.fit(sample.noisy).shape == shape} | drawn(sample.params)
+            for shape in ("box", "twobox") for sample in scored_samples(root, shape, "irregular", samples, offset)]
 
 
 def banded(rows: list[dict]) -> dict[str, dict[str, tuple[float, int]]]:
