@@ -248,7 +248,8 @@ class Fitter:
             firsts, cuboids = {}, {}
             best = choose(candidates)
         else:  # choose by how well each fitted cuboid explains the input, at its resolution, and is plausible
-            # First without restarts, then only where the chosen class stopped short (`reached`)
+            # First without restarts, then only where the chosen class stopped short (`reached`), and with a
+            # camera given, each class it led astray from the free camera's fit (`freed`)
             target = MaskTarget.of(mask)
             candidates, firsts = self.first_cuboids(mask, target, known, call, oracle)
             cuboids = {shape: first.cuboid for shape, first in firsts.items()}
